@@ -1,0 +1,1 @@
+"""Command line, model registry and stage orchestration of the precompute."""

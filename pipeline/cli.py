@@ -1,0 +1,151 @@
+"""``pmask`` command line (also ``python -m pipeline``).
+
+Subcommands: ``precompute``, ``models``, ``info``.  Errors print one line and
+exit non-zero; ``--verbose`` shows the traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("pmask")
+
+#: exceptions that are the user's to fix: one line, no traceback
+USER_ERRORS = (ValueError, FileNotFoundError, PermissionError, KeyError)
+
+
+def _param(text: str):
+    key, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"--param needs KEY=VALUE, got '{text}'")
+    try:
+        return key, float(value)
+    except ValueError:
+        return key, value
+
+
+def add_precompute(sub) -> None:
+    p = sub.add_parser("precompute", help="mesh, condense and write the Green's-function artifact",
+                       description="Precompute the boundary Green's functions Ξ of a model or of your own geometry.")
+    p.add_argument("model", nargs="?", default=None,
+                   help="registered model (see 'pmask models'); a label when --surface/--volume is given")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--surface", help="closed triangle surface (STL, OBJ, PLY, ...), remeshed by gmsh")
+    src.add_argument("--volume", help="tetrahedral mesh (.msh, .vtu, ...)")
+    p.add_argument("--edge-length", type=float, help="target edge length for --surface (input units)")
+    p.add_argument("--fixed", help="support region selector: 'z<-0.9', 'box:x0,y0,z0,x1,y1,z1', "
+                                   "'sphere:cx,cy,cz,r', 'group:NAME', unions with '|'")
+    p.add_argument("--contact", help="region a probe can touch (same selectors); default: every free vertex")
+    p.add_argument("--r-max", type=float, help="largest mask radius the runtime may use (input units)")
+    p.add_argument("-E", "--youngs-modulus", dest="E", type=float, help="Young's modulus [Pa]")
+    p.add_argument("--nu", type=float, help="Poisson's ratio, in (-1, 0.5)")
+    p.add_argument("--units", default="m", help="length unit of the input geometry: m, cm, mm, um (default m)")
+    p.add_argument("--size", type=float, help="mesh size parameter of the model (kidney: largest edge [m])")
+    p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
+                   help="further model parameter (repeatable), e.g. --param h_load=0.00125")
+    p.add_argument("-o", "--out", help="artifact path (default artifacts/MODEL.h5)")
+    p.add_argument("--force", action="store_true", help="recompute even if the artifact is up to date")
+    p.set_defaults(func=cmd_precompute)
+
+
+def cmd_precompute(args) -> int:
+    from pipeline.stages import Spec, run
+
+    if args.model is None and not (args.surface or args.volume):
+        raise ValueError("name a model (see 'pmask models') or give --surface FILE or --volume FILE")
+    label = args.model or Path(args.surface or args.volume).stem
+    params = dict(args.param)
+    if args.size is not None:
+        params["size"] = args.size
+    spec = Spec(model=label, params=params, surface=args.surface, volume=args.volume, fixed=args.fixed,
+                contact=args.contact, E=args.E, nu=args.nu, units=args.units, r_max=args.r_max,
+                edge_length=args.edge_length)
+    out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
+    summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
+    if summary["up_to_date"]:
+        print(f"{out} is up to date (input hash {summary['input_hash'][:12]}); --force recomputes it")
+        return 0
+    t = summary["timings"]
+    print(f"wrote {out} ({summary['size_bytes'] / 2**20:.1f} MiB)")
+    print(f"  mesh: {summary['volume_vertices']} vertices, {summary['tets']} tets, {summary['dofs']} dofs condensed")
+    print(f"  surface: {summary['surface_vertices']} vertices: {summary['free']} free (Λp), "
+          f"{summary['fixed']} fixed (Λu), {summary['contact']} in Ξ")
+    print("  time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()) + f"; total {sum(t.values()):.2f}s"
+          + (f" (resumed after: {', '.join(summary['resumed'])})" if summary["resumed"] else ""))
+    return 0
+
+
+def add_models(sub) -> None:
+    p = sub.add_parser("models", help="list the registered models")
+    p.set_defaults(func=cmd_models)
+
+
+def cmd_models(args) -> int:
+    from pipeline.models import MODELS
+
+    for name, (_, desc) in MODELS.items():
+        print(f"{name:10s} {desc}")
+    return 0
+
+
+def add_info(sub) -> None:
+    p = sub.add_parser("info", help="describe an artifact: counts, material, units, provenance")
+    p.add_argument("artifact")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_info)
+
+
+def cmd_info(args) -> int:
+    from runtime.artifact import read_artifact
+
+    d = read_artifact(args.artifact)
+    a = d["attrs"]
+    info = {
+        "file": args.artifact, "format": f"{a['format_name']} {a['format_version']}", "model": a["model"],
+        "surface_vertices": len(d["surface/points"]), "triangles": len(d["surface/triangles"]),
+        "free": len(d["surface/free"]), "fixed": len(d["surface/fixed"]), "contact": len(d["surface/contact"]),
+        "volume_vertices": len(d["volume/points"]), "tets": len(d["volume/tets"]),
+        "material": a["material"], "units": a["units"], "r_max": float(a["r_max"]),
+        "Xi": f"{d['greens/Xi'].shape} {d['greens/Xi'].dtype}", "input_hash": a["input_hash"],
+        "libraries": a["provenance"].get("libraries"), "timings": a["timings"],
+    }
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+    else:
+        for k, v in info.items():
+            print(f"{k:16s} {v}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (add_precompute, add_models, add_info):
+        add(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else (logging.WARNING if args.quiet else logging.INFO),
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not args.verbose:
+        logging.getLogger("skfem").setLevel(logging.WARNING)
+    try:
+        return args.func(args)
+    except USER_ERRORS as exc:
+        if args.verbose:
+            raise
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"pmask: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("pmask: interrupted; run the same command again to resume from the last finished stage",
+              file=sys.stderr)
+        return 130

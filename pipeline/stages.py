@@ -1,0 +1,262 @@
+"""Stage orchestration: mesh → condense (factorise) → Green's functions → artifact.
+
+Each expensive stage leaves a checkpoint (written atomically) in a work folder
+named after the input hash, next to the artifact.  A run that is interrupted
+resumes from the last finished stage; a run whose inputs are unchanged finds
+the artifact up to date and does nothing.  The work folder is removed once the
+artifact is written.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import platform
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from runtime.artifact import FORMAT_VERSION
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parent.parent
+CODE_DIRS = ("precompute", "meshes", "pipeline")
+CODE_FILES = ("runtime/artifact.py", "runtime/geometry.py")
+
+
+@dataclass
+class Spec:
+    """Everything that determines an artifact.
+
+    model : registered model name, or a label for a user's geometry.
+    params : keyword arguments of the model builder.
+    surface, volume : a user's geometry file (at most one), instead of a registered model.
+    fixed, contact : region selectors (None: the model's defaults).
+    E, nu : material (None: the model's defaults).  units : length unit of the input geometry.
+    r_max : largest mask radius [m] the runtime may use (None: model default).
+    edge_length : target edge length [m] when remeshing a --surface.
+    """
+
+    model: str
+    params: dict = field(default_factory=dict)
+    surface: str | None = None
+    volume: str | None = None
+    fixed: str | None = None
+    contact: str | None = None
+    E: float | None = None
+    nu: float | None = None
+    units: str = "m"
+    r_max: float | None = None
+    edge_length: float | None = None
+
+
+UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
+
+
+def file_digest(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def code_digest() -> str:
+    """Hash of the source that produces an artifact (a code change invalidates artifacts)."""
+    h = hashlib.sha256()
+    files = sorted(p for d in CODE_DIRS for p in (ROOT / d).rglob("*.py")) + [ROOT / f for f in CODE_FILES]
+    for p in files:
+        h.update(str(p.relative_to(ROOT)).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def library_versions() -> dict:
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version()}
+    for name in ("numpy", "scipy", "h5py", "gmsh", "scikit-fem", "meshio", "cvxopt", "trimesh"):
+        try:
+            out[name] = md.version(name)
+        except md.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def input_hash(spec: Spec) -> str:
+    """SHA-256 of every input: geometry, parameters, code and the libraries that shape the mesh."""
+    d = asdict(spec)
+    for key in ("surface", "volume"):
+        if d[key]:
+            d[key] = {"sha256": file_digest(d[key])}
+    versions = library_versions()
+    d["code"] = code_digest()
+    d["format_version"] = FORMAT_VERSION
+    d["libraries"] = {k: versions[k] for k in ("gmsh", "scikit-fem")}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def artifact_hash(path: Path) -> str | None:
+    """The input hash stored in an existing artifact, or None."""
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            v = f.attrs.get("input_hash")
+            return v.decode() if isinstance(v, bytes) else v
+    except (OSError, KeyError):
+        return None
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def build_mesh(spec: Spec):
+    """Stage 1: the volume mesh and its regions from a model or a user's file."""
+    from meshes.common import ModelMesh
+    from pipeline.models import get_model
+    from precompute import meshing
+
+    scale = UNITS[spec.units]
+    if spec.surface:
+        if spec.edge_length is None:
+            raise ValueError("--surface needs --edge-length (target edge length in the file's units)")
+        points, tets = meshing.remesh_surface(Path(spec.surface), edge_length=spec.edge_length * scale, scale=scale)
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", info={"source": Path(spec.surface).name})
+    if spec.volume:
+        points, tets, groups = meshing.read_volume(Path(spec.volume), scale=scale)
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", groups=groups,
+                         info={"source": Path(spec.volume).name})
+    return get_model(spec.model)(**spec.params)
+
+
+def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -> dict:
+    """Run the precompute for ``spec`` into ``out``; return a summary dict."""
+    from precompute import condense, elasticity, regions, selectors, surface
+    from precompute.writer import write_artifact
+    from runtime.geometry import mean_edge_length, vertex_areas
+
+    out = Path(out)
+    if spec.units not in UNITS:
+        raise ValueError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
+    for key in ("surface", "volume"):
+        p = getattr(spec, key)
+        if p and not Path(p).is_file():
+            raise FileNotFoundError(f"--{key} {p}: no such file")
+    if spec.E is not None or spec.nu is not None:
+        elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not os.access(out.parent, os.W_OK):
+        raise PermissionError(f"cannot write to {out.parent}: choose a writable folder with --out")
+    h = input_hash(spec)
+    if out.exists() and not force and artifact_hash(out) == h:
+        log.debug("%s is up to date (input hash %s)", out, h[:12])
+        return {"up_to_date": True, "artifact": str(out), "input_hash": h}
+
+    work = out.parent / ".work" / f"{out.stem}-{h[:16]}"
+    work.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    resumed: list[str] = []
+
+    # -- stage 1: mesh ---------------------------------------------------------------------
+    t0 = time.perf_counter()
+    mesh_ck = work / "mesh.npz"
+    if mesh_ck.exists():
+        from meshes.common import ModelMesh
+
+        ck = np.load(mesh_ck)
+        m = json.loads(str(ck["meta"]))
+        groups = {k[6:]: ck[k] for k in ck.files if k.startswith("group_")}
+        model = ModelMesh(points=ck["points"], tets=ck["tets"], groups=groups, **m)
+        resumed.append("mesh")
+    else:
+        model = build_mesh(spec)
+        meta = {"fixed": model.fixed, "contact": model.contact, "material": model.material, "info": model.info}
+        _save_npz(mesh_ck, points=model.points, tets=model.tets, meta=json.dumps(meta),
+                  **{f"group_{k}": v for k, v in model.groups.items()})
+    timings["mesh"] = time.perf_counter() - t0
+
+    E = spec.E if spec.E is not None else model.material["E"]
+    nu = spec.nu if spec.nu is not None else model.material["nu"]
+    elasticity.check_material(E, nu)
+    scale = UNITS[spec.units]
+
+    # -- regions (cheap) -------------------------------------------------------------------
+    t0 = time.perf_counter()
+    surf_vertices, triangles = surface.boundary_surface(model.points, model.tets)
+    spoints = model.points[surf_vertices]
+    areas = vertex_areas(spoints, triangles)
+    fixed_sel = spec.fixed or model.fixed
+    if not fixed_sel:
+        raise regions.RegionError("no fixed region given: use --fixed SELECTOR (e.g. 'z<-0.9' or 'group:NAME')")
+    contact_sel = spec.contact if spec.contact is not None else model.contact
+    fixed_mask = selectors.select(fixed_sel, model.points / scale, model.groups)[surf_vertices]
+    contact_mask = (selectors.select(contact_sel, model.points / scale, model.groups)[surf_vertices]
+                    if contact_sel else None)
+    bbox = float(np.linalg.norm(spoints.max(axis=0) - spoints.min(axis=0)))
+    if spec.r_max is not None:
+        r_max = spec.r_max * scale
+    elif contact_mask is None:
+        r_max = bbox  # every free vertex is in Ξ: any mask is complete
+    else:
+        r_max = model.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
+    reg = regions.surface_regions(spoints, fixed_mask, contact_mask, r_max,
+                                  fixed_selector=fixed_sel, contact_selector=contact_sel or "")
+    timings["regions"] = time.perf_counter() - t0
+
+    # -- stage 2: assemble + factorise (Schur complement onto contact + fixed) --------------
+    t0 = time.perf_counter()
+    factor_ck = work / "factor.npz"
+    if factor_ck.exists():
+        ck = np.load(factor_ck)
+        factor = condense.SurfaceFactor(L_FF=ck["L_FF"], L_UF=ck["L_UF"], stats=json.loads(str(ck["stats"])))
+        resumed.append("factor")
+        timings["assemble"] = 0.0
+    else:
+        K = elasticity.stiffness_matrix(model.points, model.tets, E, nu)
+        timings["assemble"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        contact_v = surf_vertices[reg.contact]
+        fixed_v = surf_vertices[reg.fixed]
+        interior = np.setdiff1d(np.arange(len(model.points)), np.concatenate([contact_v, fixed_v]))
+        factor = condense.surface_factor(K, model.tets, interior, contact_v, fixed_v)
+        del K
+        _save_npz(factor_ck, L_FF=factor.L_FF, L_UF=factor.L_UF, stats=json.dumps(factor.stats))
+    timings["factor"] = time.perf_counter() - t0
+
+    # -- stage 3: Green's functions ---------------------------------------------------------
+    t0 = time.perf_counter()
+    Xi, reactions = condense.greens_functions(factor, areas[reg.contact])
+    timings["greens"] = time.perf_counter() - t0
+
+    # -- stage 4: write ------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    meta = {
+        "model": spec.model, "input_hash": h, "E": float(E), "nu": float(nu), "r_max": float(r_max),
+        "fixed_selector": fixed_sel, "contact_selector": contact_sel or "",
+        "parameters": {**asdict(spec), "model_info": model.info},
+        "provenance": {"libraries": library_versions(), "code_sha256": code_digest(),
+                       "created_unix": time.time(), "host": platform.node(), "resumed_stages": resumed,
+                       "factor": factor.stats},
+        "timings": timings,
+    }
+    write_artifact(out, meta=meta, volume_points=model.points, tets=model.tets, surface_vertices=surf_vertices,
+                   triangles=triangles, areas=areas, regions=reg, Xi=Xi, reactions=reactions)
+    timings["write"] = time.perf_counter() - t0
+    shutil.rmtree(work, ignore_errors=True)
+    try:
+        (out.parent / ".work").rmdir()
+    except OSError:
+        pass
+    return {"up_to_date": False, "artifact": str(out), "input_hash": h, "timings": timings, "resumed": resumed,
+            "volume_vertices": len(model.points), "tets": len(model.tets), "surface_vertices": len(spoints),
+            "free": len(reg.free), "fixed": len(reg.fixed), "contact": len(reg.contact),
+            "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs")}

@@ -1,0 +1,184 @@
+r"""Condensation of the solid onto its free surface: Schur complement and Green's functions.
+
+With the support vertices Λu held (u_U = 0) the free dofs obey
+:math:`K_{FF} u_F = f_F`.  Eliminating the interior leaves the free surface
+dofs S with the condensed stiffness (Schur complement)
+
+.. math::  S = K_{SS} - K_{SI} K_{II}^{-1} K_{IS},
+
+whose inverse :math:`G = S^{-1}` is the *flexibility*: displacement of free
+surface vertex i per unit nodal force at free surface vertex j (symmetric).
+The paper's RSGFs (eq. 4-5) map *tractions* to displacements; a traction
+:math:`p_j` acts as the nodal force :math:`a_j p_j` (lumped boundary mass,
+eq. 10), so
+
+.. math::  \Xi = G\,\mathrm{diag}(a), \qquad a_i \Xi_{ij} = a_j \Xi_{ji}^T .
+
+How S is formed (the dense-algebra route): the sparse stiffness is permuted
+to ``[interior (AMD order), free surface, fixed surface]`` and factorised by
+CHOLMOD's supernodal Cholesky with exactly that order.  The trailing block of
+the factor is dense; its free-surface part :math:`L_{FF}` satisfies
+:math:`L_{FF} L_{FF}^T = S`, so :math:`G = L_{FF}^{-T} L_{FF}^{-1}` by LAPACK
+(trtri + lauum).  A positive diagonal added to the fixed block makes the
+matrix definite without changing the free blocks, and the fixed rows of the
+factor give the support reactions for free: with :math:`W = L_{FF}^{-1}`,
+the nodal forces the support exerts for unit nodal loads are
+:math:`S_{UF} G = L_{UF} W`.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg.lapack as lapack
+import scipy.sparse as sp
+
+from precompute.elasticity import dofs
+
+log = logging.getLogger(__name__)
+
+
+class CondensationError(ValueError):
+    """The support does not hold the body (singular stiffness) or the sets are inconsistent."""
+
+
+@dataclass
+class SurfaceFactor:
+    """Trailing Cholesky block of the stiffness with the surface ordered last.
+
+    L_FF : (3 n_free, 3 n_free) lower-triangular, L_FF L_FFᵀ = S (free surface Schur complement)
+    L_UF : (3 n_fixed, 3 n_free), so that S_UF = L_UF L_FFᵀ
+    """
+
+    L_FF: np.ndarray
+    L_UF: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+def node_graph(n_vertices: int, tets: np.ndarray) -> sp.csr_matrix:
+    """Vertex adjacency (with diagonal) of a tet mesh."""
+    rows = np.repeat(tets, 4, axis=1).ravel()
+    cols = np.tile(tets, (1, 4)).ravel()
+    g = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_vertices, n_vertices))
+    g.sum_duplicates()
+    return g
+
+
+def amd_order(graph: sp.spmatrix) -> np.ndarray:
+    """Approximate-minimum-degree fill-reducing order of a symmetric pattern (SuiteSparse AMD)."""
+    import cvxopt
+    import cvxopt.amd
+
+    if graph.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    g = graph.tocoo()
+    A = cvxopt.spmatrix(1.0, cvxopt.matrix(g.row.astype(np.int64)), cvxopt.matrix(g.col.astype(np.int64)), g.shape)
+    return np.array(cvxopt.amd.order(A), dtype=np.int64).ravel()
+
+
+def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free: np.ndarray,
+                   fixed: np.ndarray) -> SurfaceFactor:
+    """Factorise K with the ``free`` (contact) and ``fixed`` vertices last; return the trailing block.
+
+    ``interior`` (everything to eliminate, including free surface vertices a
+    probe cannot touch), ``free`` and ``fixed`` are disjoint vertex index
+    arrays that together cover every vertex of the mesh (``fixed`` non-empty).
+    """
+    import cvxopt
+    import cvxopt.cholmod as cholmod
+
+    n_vertices = K.shape[0] // 3
+    if len(fixed) == 0:
+        raise CondensationError("the fixed region is empty: nothing holds the body, its stiffness is singular")
+    if len(interior) + len(free) + len(fixed) != n_vertices or len(
+            np.unique(np.concatenate([interior, free, fixed]))) != n_vertices:
+        raise CondensationError("interior, free and fixed vertex sets must partition the mesh")
+    t0 = time.perf_counter()
+    graph = node_graph(n_vertices, tets)
+    order = interior[amd_order(graph[interior][:, interior])]
+    perm = np.concatenate([dofs(order), dofs(free), dofs(fixed)])
+    n, nf, nu = len(perm), 3 * len(free), 3 * len(fixed)
+    Kp = sp.csr_matrix(K)[perm][:, perm]
+    shift = np.zeros(n)
+    shift[n - nu:] = Kp.diagonal()[n - nu:]  # makes the fixed block definite; leaves L_FF, L_UF unchanged
+    low = sp.tril(Kp + sp.diags(shift), format="coo")
+    A = cvxopt.spmatrix(low.data, cvxopt.matrix(low.row.astype(np.int64)),
+                        cvxopt.matrix(low.col.astype(np.int64)), (n, n))
+    t_order = time.perf_counter() - t0
+
+    saved = dict(cholmod.options)
+    cholmod.options.update({"supernodal": 2, "nmethods": 1, "postorder": False})
+    try:
+        t0 = time.perf_counter()
+        F = cholmod.symbolic(A, p=cvxopt.matrix(np.arange(n, dtype=np.int64)))
+        try:
+            cholmod.numeric(A, F)
+        except ArithmeticError as exc:
+            raise CondensationError(
+                "the stiffness matrix is singular with this fixed region: the support must hold the body "
+                "against rigid motion (at least three non-collinear fixed vertices) and every part of the "
+                f"mesh must be connected to it (CHOLMOD stopped at column {exc.args[0] if exc.args else '?'})"
+            ) from exc
+        t_factor = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        L = cholmod.getfactor(F)
+    finally:
+        cholmod.options.clear()
+        cholmod.options.update(saved)
+    colptr, rowind, values = (np.array(x, copy=False).ravel() for x in L.CCS)
+    nt = nf + nu
+    start = colptr[n - nt]
+    cols = np.repeat(np.arange(nt), np.diff(colptr[n - nt:]))
+    L_TT = np.zeros((nt, nt))
+    L_TT[rowind[start:] - (n - nt), cols] = values[start:]
+    nnz = int(colptr[-1])
+    del L, F, A
+    t_extract = time.perf_counter() - t0
+    log.info("factor: %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
+             n, nnz, t_order, t_factor, t_extract)
+    return SurfaceFactor(L_FF=np.ascontiguousarray(L_TT[:nf, :nf]), L_UF=np.ascontiguousarray(L_TT[nf:, :nf]),
+                         stats={"dofs": n, "nnz_L": nnz, "order_s": t_order, "factor_s": t_factor,
+                                "extract_s": t_extract})
+
+
+def greens_functions(factor: SurfaceFactor, areas: np.ndarray):
+    r"""Green's functions Ξ (traction → displacement) and support reactions.
+
+    Parameters
+    ----------
+    factor : from :func:`surface_factor`.
+    areas : vertex areas a of the free (contact) vertices, in the order of ``free``.
+
+    Returns
+    -------
+    Xi : (3 n, 3 n) with block (i, j) the displacement of vertex i per unit traction at
+        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)`.
+    reactions : (3 n_fixed, 3 n), the nodal forces the support exerts per unit traction
+        at vertex j (equilibrium: they sum to :math:`-a_j p_j`).
+    """
+    nf = factor.L_FF.shape[0]
+    W, info = lapack.dtrtri(factor.L_FF, lower=1)
+    if info != 0:
+        raise CondensationError(f"the condensed surface stiffness is singular (LAPACK trtri info={info})")
+    a = np.repeat(np.asarray(areas, float), 3)
+    if len(a) != nf:
+        raise CondensationError(f"{len(a) // 3} vertex areas for {nf // 3} free vertices")
+    # trtri leaves the (zero) upper triangle of L_FF as it was, so W is lower triangular
+    reactions = (factor.L_UF @ W) * a[None, :]
+    G, info = lapack.dlauum(W, lower=1, overwrite_c=1)  # lower triangle of Wᵀ W = S⁻¹
+    if info != 0:
+        raise CondensationError(f"LAPACK lauum failed (info={info})")
+    _mirror_lower(G)  # reciprocity is tested against separate solves, not this mirror
+    G *= a[None, :]
+    return G, reactions
+
+
+def _mirror_lower(G: np.ndarray, block: int = 512) -> None:
+    """Copy the strict lower triangle of G onto its upper triangle, in place, block by block."""
+    n = G.shape[0]
+    for i0 in range(0, n, block):
+        i1 = min(i0 + block, n)
+        G[i0:i1, i0:i1] = np.tril(G[i0:i1, i0:i1]) + np.tril(G[i0:i1, i0:i1], -1).T
+        G[i0:i1, i1:] = G[i1:, i0:i1].T
