@@ -20,7 +20,7 @@ HILUM_CENTRE = (0.0, -0.041, 0.0)  # m
 HILUM_RADIUS = 0.019  # m: the indentation is 8 mm deep at its centre
 
 #: characteristic edge length [m] that gives about 1,500 free surface vertices
-DEFAULT_SIZE = 0.0035
+DEFAULT_SIZE = 0.005
 
 
 def build(size: float = DEFAULT_SIZE) -> ModelMesh:
@@ -40,7 +40,7 @@ def build(size: float = DEFAULT_SIZE) -> ModelMesh:
         hilum = [s for s in surfaces if gmsh.model.getBoundingBox(2, s)[4] < -0.5 * SEMI_AXES[1]]
         gmsh.model.addPhysicalGroup(3, vol, name="kidney")
         gmsh.model.addPhysicalGroup(2, hilum, name="hilum")
-        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 16)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 28)
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         gmsh.option.setNumber("Mesh.MeshSizeMin", size / 4)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)

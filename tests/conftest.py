@@ -1,0 +1,61 @@
+"""Shared fixtures: small artifacts built once per session, and an independent FE solver."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from pipeline.stages import Spec, run  # noqa: E402
+from precompute.elasticity import dofs, stiffness_matrix  # noqa: E402
+
+
+def build(tmp_path_factory, name: str, spec: Spec) -> Path:
+    out = tmp_path_factory.mktemp(name) / f"{name}.h5"
+    run(spec, out)
+    return out
+
+
+@pytest.fixture(scope="session")
+def kidney_small(tmp_path_factory) -> Path:
+    """A coarse kidney (about 300 surface vertices): the default model at a CI-friendly size."""
+    return build(tmp_path_factory, "kidney_small", Spec(model="kidney", params={"size": 0.009}))
+
+
+@pytest.fixture(scope="session")
+def halfspace_small(tmp_path_factory) -> Path:
+    """A coarse half-space with a contact region (Ξ over a subset of the free surface)."""
+    return build(tmp_path_factory, "halfspace_small", Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}))
+
+
+def full_solve(points, tets, E, nu, fixed_vertices, loads):
+    """Independent route: the whole free system K_FF u = f by SuperLU (no condensation).
+
+    loads : (3N, k) nodal forces.  Returns (u (3N, k) with zeros on fixed dofs, reactions (3N, k) = K u
+    restricted to fixed dofs, i.e. the forces the support exerts).
+    """
+    K = stiffness_matrix(points, tets, E, nu).tocsc()
+    n = K.shape[0]
+    fixed = dofs(fixed_vertices)
+    free = np.setdiff1d(np.arange(n), fixed)
+    lu = spla.splu(K[free][:, free].tocsc())
+    u = np.zeros((n, loads.shape[1]))
+    u[free] = lu.solve(np.asarray(loads[free], float))
+    r = np.zeros_like(u)
+    r[fixed] = (K @ u)[fixed] - loads[fixed]
+    return u, r
+
+
+def relerr(a, b) -> float:
+    return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(b))
+
+
+@pytest.fixture
+def sparse():
+    return sp

@@ -1,0 +1,126 @@
+"""Models, artifact round trip, input hashing, CLI, and a user's STL end to end."""
+from __future__ import annotations
+
+import dataclasses
+
+import h5py
+import numpy as np
+import pytest
+
+from conftest import relerr
+from meshes import kidney, loop
+from pipeline.cli import main
+from pipeline.stages import Spec, input_hash, run
+from precompute.surface import boundary_surface
+from runtime.artifact import ArtifactError, read_artifact
+from runtime.geometry import vertex_areas
+
+
+@pytest.mark.parametrize("level,n", [(0, 34), (1, 130), (2, 514), (3, 2050)])
+def test_loop_family_vertex_counts_and_exact_shape(level, n):
+    pts, tris = loop.surface(level)
+    assert len(pts) == n and len(tris) == 2 * n - 4  # closed genus-0 surface
+    assert np.allclose(np.sum((pts / loop.SEMI_AXES) ** 2, axis=1), 1.0)
+
+
+def test_loop_interior_keeps_the_surface():
+    m = loop.build(1)
+    sv, tris = boundary_surface(m.points, m.tets)
+    spts, stris = loop.surface(1)
+    assert np.array_equal(sv, np.arange(len(spts)))
+    assert np.allclose(m.points[sv], spts)
+    assert {tuple(sorted(t)) for t in tris} == {tuple(sorted(t)) for t in stris}
+
+
+def test_kidney_default_size_and_spread():
+    m = kidney.build()
+    sv, tris = boundary_surface(m.points, m.tets)
+    ext = m.points.max(axis=0) - m.points.min(axis=0)
+    assert np.allclose(ext, [0.11, 0.06, 0.04], rtol=0.05)
+    free = len(sv) - int(m.groups["hilum"][sv].sum())
+    assert 1200 <= free <= 1800
+    a = vertex_areas(m.points[sv], tris)
+    assert np.percentile(a, 95) / np.percentile(a, 5) > 2.5  # a mesher's spread, not a uniform mesh
+
+
+def test_artifact_round_trip(kidney_small):
+    d = read_artifact(kidney_small)
+    a = d["attrs"]
+    assert a["material"]["E"] == 1e4 and a["material"]["nu"] == 0.45
+    assert a["units"]["length"] == "m" and "Xi = G diag(a)" in a["definition"]
+    assert np.isclose(d["surface/vertex_areas"].sum(), vertex_areas(d["surface/points"], d["surface/triangles"]).sum())
+    with h5py.File(kidney_small, "r") as f:
+        assert np.array_equal(f["greens/Xi"][()], d["greens/Xi"])
+        assert f["greens/Xi"].fletcher32
+    free, fixed = d["surface/free"], d["surface/fixed"]
+    assert len(np.intersect1d(free, fixed)) == 0 and len(free) + len(fixed) == len(d["surface/points"])
+
+
+def test_input_hash_changes_with_every_input_and_only_then(tmp_path):
+    base = Spec(model="kidney", params={"size": 0.01})
+    h = input_hash(base)
+    assert input_hash(dataclasses.replace(base)) == h
+    for change in ({"params": {"size": 0.011}}, {"E": 2e4}, {"nu": 0.3}, {"fixed": "x<0"},
+                   {"contact": "z>0"}, {"r_max": 0.01}, {"units": "mm"}, {"model": "loop1"}):
+        assert input_hash(dataclasses.replace(base, **change)) != h, change
+    stl = tmp_path / "s.stl"
+    stl.write_bytes(b"solid a\nendsolid a\n")
+    s = Spec(model="s", surface=str(stl), edge_length=0.1)
+    h1 = input_hash(s)
+    stl.write_bytes(b"solid b\nendsolid b\n")
+    assert input_hash(s) != h1
+
+
+def test_cli_precompute_then_up_to_date(tmp_path, capsys):
+    out = tmp_path / "loop1.h5"
+    assert main(["-q", "precompute", "loop1", "-o", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    stamp = out.stat().st_mtime_ns
+    assert main(["-q", "precompute", "loop1", "-o", str(out)]) == 0
+    assert "up to date" in capsys.readouterr().out and out.stat().st_mtime_ns == stamp
+    assert main(["info", str(out)]) == 0
+    assert "loop1" in capsys.readouterr().out
+    assert not (tmp_path / ".work").exists()
+
+
+def test_cli_unknown_model_lists_models(tmp_path, capsys):
+    assert main(["precompute", "liver", "-o", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "unknown model 'liver'" in err and "kidney" in err and "Traceback" not in err
+
+
+def test_user_surface_stl_end_to_end(tmp_path):
+    """A fine triangulated sphere in mm, remeshed by gmsh, fixed on its bottom cap."""
+    import meshio
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=20.0)  # mm, 2562 vertices
+    stl = tmp_path / "organ.stl"
+    meshio.write_points_cells(stl, sphere.vertices, [("triangle", sphere.faces)])
+    out = tmp_path / "organ.h5"
+    s = run(Spec(model="organ", surface=str(stl), edge_length=6.0, units="mm", fixed="z<-15", E=5e3, nu=0.4), out)
+    d = read_artifact(out)
+    assert d["attrs"]["material"]["E"] == 5e3
+    r = np.linalg.norm(d["surface/points"], axis=1)
+    assert np.allclose(r, 0.02, rtol=0.02)  # remeshed in metres on the same sphere
+    assert 100 < s["surface_vertices"] < len(sphere.vertices)  # coarser than the input
+    assert np.all(d["surface/points"][d["surface/fixed"]][:, 2] < -0.015 + 1e-12)
+    # a pull on the top vertex moves it up, and Ξ's diagonal blocks are symmetric positive definite
+    Xi = d["greens/Xi"]
+    top = int(np.argmax(d["surface/points"][d["surface/contact"], 2]))
+    block = Xi[3 * top:3 * top + 3, 3 * top:3 * top + 3]
+    assert block[2, 2] > 0 and np.all(np.linalg.eigvalsh(0.5 * (block + block.T)) > 0)
+    assert relerr(block, block.T) < 1e-12
+
+
+def test_halfspace_contact_region_is_widened_by_r_max(halfspace_small):
+    d = read_artifact(halfspace_small)
+    x = d["surface/points"][d["surface/contact"]]
+    core = d["surface/contact_core"]
+    r_max = float(d["attrs"]["r_max"])
+    free_x = d["surface/points"][d["surface/free"]]
+    # every free vertex within r_max of a core vertex is in Ξ
+    dist = np.linalg.norm(free_x[:, None, :] - x[core][None, :, :], axis=2).min(axis=1)
+    assert np.sum(dist <= r_max) == len(x)
+    assert core.sum() < len(x) < len(free_x)
+    assert np.all(np.abs(x[:, 2]) < 1e-12)  # all on the flat face
