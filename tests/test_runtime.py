@@ -1,0 +1,181 @@
+"""Runtime: masks, vertex/surface stiffness against full FE solves, deformation, continuity, validation."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, full_solve, relerr
+from precompute.elasticity import dofs
+from runtime import MASK_KINDS, Model, pressure_masks
+from runtime.geometry import vertex_areas
+
+
+@pytest.fixture(scope="module")
+def model(kidney_small):
+    return Model.load(kidney_small)
+
+
+def test_runtime_imports_no_heavy_packages():
+    code = ("import sys, runtime; heavy = [m for m in ('scipy', 'gmsh', 'skfem', 'meshio', 'trimesh', 'cvxopt', "
+            "'precompute', 'pipeline', 'matplotlib') if m in sys.modules]; print(heavy); sys.exit(bool(heavy))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def uneven_surface(seed=0):
+    """A graded, very uneven triangulation of the unit square (triangle areas spanning 4 decades)."""
+    rng = np.random.default_rng(seed)
+    xs = np.cumsum(np.r_[0, np.geomspace(1e-3, 0.2, 24)])
+    ys = np.cumsum(np.r_[0, rng.uniform(0.002, 0.1, 20)])
+    X, Y = np.meshgrid(xs / xs[-1], ys / ys[-1])
+    pts = np.column_stack([X.ravel(), Y.ravel(), 0 * X.ravel()])
+    nx = len(xs)
+    q = np.array([(j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i)
+                  for j in range(len(ys) - 1) for i in range(nx - 1)])
+    tris = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+    return pts, tris
+
+
+@pytest.mark.parametrize("kind", MASK_KINDS)
+def test_masks_normalised_and_compact_on_uneven_mesh(kind):
+    pts, tris = uneven_surface()
+    a = vertex_areas(pts, tris)
+    assert a.max() / a.min() > 1e3
+    r = 0.05
+    m = pressure_masks(pts, a, np.arange(len(pts)), kind, r)
+    rho = m.dense(len(pts))
+    np.testing.assert_allclose(rho @ a, 1.0, rtol=1e-12)           # eq. 9
+    assert np.all(rho[np.arange(len(pts)), np.arange(len(pts))] > 0)  # i ∈ M_i
+    assert np.all(rho >= 0)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    assert np.all(rho[d >= r] == 0)                                  # compact support
+    if kind == "single":
+        assert m.single_vertex == len(pts)
+    else:
+        # the fine corner has neighbours within r, the coarse one does not: both cases reported
+        assert 0 < m.single_vertex < len(pts)
+        assert m.single_vertex == int(np.sum(np.sum(d < r, axis=1) == 1))
+
+
+def test_radius_validation(model):
+    for bad in (0.0, -1.0, np.nan, np.inf, "a"):
+        with pytest.raises(ValueError, match="radius"):
+            model.stiffness("linear", bad)
+    with pytest.raises(ValueError, match="r_max"):
+        model.stiffness("linear", 2 * model.r_max)
+    with pytest.raises(ValueError, match="unknown mask"):
+        model.stiffness("cone", 0.01)
+
+
+@pytest.fixture(scope="module")
+def probe_solve(model):
+    """Full FE solves (outside the runtime) of a cone-masked load at one free vertex, f = e_x, e_y, e_z."""
+    r = 2.0 * model.mean_edge_length
+    stiff = model.stiffness("linear", r, symmetric=False)
+    k = int(np.flatnonzero(np.diff(stiff.masks.indptr) >= 5)[3])
+    cols, rho = stiff.masks.row(k)
+    return stiff, k, cols, rho
+
+
+def _full_displacements(model, cols, rho):
+    from runtime.artifact import read_artifact
+
+    d = read_artifact(model.path)
+    vi = d["surface/volume_index"]
+    P, T = d["volume/points"], d["volume/tets"]
+    loads = np.zeros((3 * len(P), 3))
+    for j, w in zip(cols, rho):
+        v = vi[model.contact[j]]
+        loads[dofs([v]), :] += model.vertex_areas[model.contact[j]] * w * np.eye(3)  # nodal force a_j ρ_j f
+    u, _ = full_solve(P, T, model.E, model.nu, vi[model.fixed], loads)
+    return u, vi
+
+
+def test_masked_vertex_stiffness_is_inverse_of_full_solve(model, probe_solve):
+    stiff, k, cols, rho = probe_solve
+    u, vi = _full_displacements(model, cols, rho)
+    i_surface = model.contact[stiff.masks.centres[k]]
+    U = u[dofs([vi[i_surface]])]  # 3x3: column c = displacement of vertex i for f = e_c
+    assert relerr(stiff.K_full[k], np.linalg.inv(U)) < 1e-8
+    # and the single-vertex stiffness is the inverse of the point-load response
+    single = model.stiffness("single")
+    u1, _ = _full_displacements(model, [stiff.masks.centres[k]], [1.0 / model.vertex_areas[i_surface]])
+    assert relerr(single.K_full[k], np.linalg.inv(u1[dofs([vi[i_surface]])])) < 1e-8
+    # the mask spreads the load: the masked vertex is stiffer than the single one
+    assert np.linalg.norm(stiff.K_full[k], 2) > 1.2 * np.linalg.norm(single.K_full[k], 2)
+
+
+def test_zeta_reproduces_full_displacement_field(model, probe_solve):
+    stiff, k, cols, rho = probe_solve
+    u, vi = _full_displacements(model, cols, rho)
+    i_surface = model.contact[stiff.masks.centres[k]]
+    Z = stiff.zeta(i_surface)
+    assert relerr(Z, u[dofs(vi[model.contact])]) < 1e-8
+    # eq. 16 at a vertex (b = e_k) is ζ_i f
+    t = int(np.flatnonzero(np.any(model.triangles == i_surface, axis=1))[0])
+    b = (model.triangles[t] == i_surface).astype(float)
+    f = np.array([0.1, -0.2, 0.3])
+    v = stiff.deformation(t, b, f)
+    assert relerr(v[model.contact].ravel(), u[dofs(vi[model.contact])] @ f) < 1e-8
+    assert np.all(v[model.fixed] == 0)
+
+
+def test_surface_stiffness_continuous_and_interpolating(model):
+    stiff = model.stiffness("linear", 2 * model.mean_edge_length)
+    T = model.triangles
+    for t in range(0, len(T), 17):
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = 1.0
+            np.testing.assert_allclose(stiff.at(t, e), stiff.K_vertex[T[t, k]], rtol=1e-13)
+    # across every shared edge the two triangles agree at the edge's points
+    from runtime.geometry import triangle_neighbours
+
+    nb = triangle_neighbours(T)
+    worst = 0.0
+    for t in range(len(T)):
+        for k in range(3):
+            s = nb[t, k]
+            a, b = T[t, (k + 1) % 3], T[t, (k + 2) % 3]
+            for w in (0.25, 0.5):
+                bt = np.zeros(3)
+                bt[(k + 1) % 3], bt[(k + 2) % 3] = w, 1 - w
+                bs = np.zeros(3)
+                bs[list(T[s]).index(a)], bs[list(T[s]).index(b)] = w, 1 - w
+                Kt, Ks = stiff.at(t, bt), stiff.at(s, bs)
+                worst = max(worst, np.abs(Kt - Ks).max() / np.abs(Kt).max())
+    assert worst < 1e-13
+
+
+def test_symmetric_by_default_and_asymmetry_reported(model):
+    r = 2 * model.mean_edge_length
+    sym, full = model.stiffness("linear", r), model.stiffness("linear", r, symmetric=False)
+    K = sym.K_vertex[model.contact[model.core]]
+    np.testing.assert_allclose(K, np.swapaxes(K, 1, 2))
+    rep = full.report()
+    assert rep["asymmetry_max"] > 1e-3  # the masked K_i really are non-symmetric
+    Kf = full.K_vertex[model.contact[model.core]]
+    np.testing.assert_allclose(0.5 * (Kf + np.swapaxes(Kf, 1, 2)), K, rtol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [
+    (np.nan, [1, 0, 0]), (-1, [1, 0, 0]), (10**9, [1, 0, 0]), (1.5, [1, 0, 0]), ("0", [1, 0, 0]),
+    (0, [0.5, 0.6, -0.1]), (0, [0.5, 0.6, 0.1]), (0, [np.nan, 0.5, 0.5]), (0, [1, 0]), (0, [np.inf, 0, 0]),
+])
+def test_query_validation(model, bad):
+    stiff = model.stiffness("linear", 2 * model.mean_edge_length)
+    with pytest.raises(ValueError):
+        stiff.at(*bad)
+
+
+def test_force_and_deformation_validation(model):
+    stiff = model.stiffness("linear", 2 * model.mean_edge_length)
+    t = int(np.flatnonzero(stiff.touchable)[0])
+    for bad in ([np.nan, 0, 0], [0, np.inf, 0], [1, 2]):
+        with pytest.raises(ValueError, match="finite|3"):
+            stiff.force(t, [1, 0, 0], bad)
+        with pytest.raises(ValueError, match="finite|3"):
+            stiff.deformation(t, [1, 0, 0], bad)
