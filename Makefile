@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 MODEL  ?= kidney
 ARGS   ?=
 
-.PHONY: venv precompute test bench clean
+.PHONY: venv precompute test bench reference figures stroke clean
 
 venv: $(BIN)/.installed
 
@@ -22,6 +22,16 @@ precompute: venv
 ## make test: the whole test suite (what CI runs)
 test: venv
 	$(BIN)/python -m pytest -q
+
+## make reference: recompute tests/reference from the stored meshes and show the diff (REMESH=1: mesh anew)
+reference: venv
+	$(BIN)/pmask reference $(if $(REMESH),--remesh,)
+	git diff --stat -- tests/reference || true
+
+## make figures: the Figure 6 maps of the kidney and the 1 kHz stroke traces into docs/
+figures: venv
+	$(BIN)/pmask figures $(MODEL) --out docs
+	$(BIN)/python examples/stroke.py artifacts/$(MODEL).h5 --out docs
 
 clean:
 	rm -rf $(VENV) artifacts .pytest_cache .hypothesis

@@ -26,3 +26,27 @@ class ModelMesh:
     material: dict = field(default_factory=lambda: {"E": 1.0e4, "nu": 0.45})
     groups: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+
+
+def save_model_mesh(path, model: ModelMesh) -> None:
+    """Store a ModelMesh as .npz (atomically): the mesh checkpoint and the reference meshes use it."""
+    import json
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    meta = {"fixed": model.fixed, "contact": model.contact, "material": model.material, "info": model.info}
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}.npz")
+    np.savez_compressed(tmp, points=model.points, tets=model.tets.astype(np.int32), meta=json.dumps(meta),
+                        **{f"group_{k}": np.asarray(v, bool) for k, v in model.groups.items()})
+    os.replace(tmp, path)
+
+
+def load_model_mesh(path) -> ModelMesh:
+    """Read a ModelMesh written by :func:`save_model_mesh`."""
+    import json
+
+    with np.load(path) as ck:
+        meta = json.loads(str(ck["meta"]))
+        groups = {k[6:]: ck[k] for k in ck.files if k.startswith("group_")}
+        return ModelMesh(points=ck["points"], tets=ck["tets"].astype(np.int64), groups=groups, **meta)

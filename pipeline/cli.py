@@ -120,12 +120,64 @@ def cmd_info(args) -> int:
     return 0
 
 
+def add_reference(sub) -> None:
+    p = sub.add_parser("reference", help="recompute the stored reference tables (tests/reference) and show the diff")
+    p.add_argument("--remesh", action="store_true", help="mesh anew with gmsh instead of using the stored meshes")
+    p.add_argument("--dir", default=None, help="reference folder (default tests/reference)")
+    p.set_defaults(func=cmd_reference)
+
+
+def cmd_reference(args) -> int:
+    from pipeline.reference import REFERENCE_DIR, regenerate
+
+    diffs = regenerate(Path(args.dir) if args.dir else REFERENCE_DIR, remesh=args.remesh)
+    for name, d in diffs.items():
+        print(f"{name}: {'unchanged' if not d else f'{len(d)} changes'}")
+        for line in d[:20]:
+            print(f"  {line}")
+    if any(diffs.values()):
+        print("A changed reference needs its reason in the commit message.")
+    return 0
+
+
+def add_figures(sub) -> None:
+    p = sub.add_parser("figures", help="the paper's Figure 6 maps (PNG) and their two numbers for a model")
+    p.add_argument("model", help="registered model name or an artifact path (.h5)")
+    p.add_argument("--out", default="docs", help="output folder (default docs)")
+    p.add_argument("--radius-factor", type=float, default=2.0, help="cone radius in mean edge lengths")
+    p.set_defaults(func=cmd_figures)
+
+
+def cmd_figures(args) -> int:
+    from pipeline.figures import figure6
+    from pipeline.truth import figure6_numbers
+    from runtime import Model
+
+    path = Path(args.model)
+    if path.suffix != ".h5":
+        from pipeline.models import get_model
+        from pipeline.stages import Spec, run
+
+        get_model(args.model)
+        path = Path("artifacts") / f"{args.model}.h5"
+        run(Spec(model=args.model), path)
+    model = Model.load(path)
+    nums = figure6_numbers(model, args.radius_factor)
+    out = figure6(model, Path(args.out) / f"figure6_{path.stem}.png", args.radius_factor, nums)
+    print(f"wrote {out}")
+    for name in ("single", "masked"):
+        n = nums[name]
+        print(f"  {name:6s} rank correlation with vertex area {n['rank_correlation_with_area']:+.3f}, "
+              f"roughness {n['roughness']:.4f}, median ‖K‖₂ {n['median_norm']:.2f} N/m")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (add_precompute, add_models, add_info):
+    for add in (add_precompute, add_models, add_info, add_reference, add_figures):
         add(sub)
     return parser
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from meshes.common import ModelMesh, load_model_mesh, save_model_mesh
 from runtime.artifact import FORMAT_VERSION
 
 log = logging.getLogger(__name__)
@@ -121,7 +122,6 @@ def _save_npz(path: Path, **arrays) -> None:
 
 def build_mesh(spec: Spec):
     """Stage 1: the volume mesh and its regions from a model or a user's file."""
-    from meshes.common import ModelMesh
     from pipeline.models import get_model
     from precompute import meshing
 
@@ -131,6 +131,8 @@ def build_mesh(spec: Spec):
             raise ValueError("--surface needs --edge-length (target edge length in the file's units)")
         points, tets = meshing.remesh_surface(Path(spec.surface), edge_length=spec.edge_length * scale, scale=scale)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", info={"source": Path(spec.surface).name})
+    if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
+        return load_model_mesh(spec.volume)
     if spec.volume:
         points, tets, groups = meshing.read_volume(Path(spec.volume), scale=scale)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", groups=groups,
@@ -170,18 +172,11 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     t0 = time.perf_counter()
     mesh_ck = work / "mesh.npz"
     if mesh_ck.exists():
-        from meshes.common import ModelMesh
-
-        ck = np.load(mesh_ck)
-        m = json.loads(str(ck["meta"]))
-        groups = {k[6:]: ck[k] for k in ck.files if k.startswith("group_")}
-        model = ModelMesh(points=ck["points"], tets=ck["tets"], groups=groups, **m)
+        model = load_model_mesh(mesh_ck)
         resumed.append("mesh")
     else:
         model = build_mesh(spec)
-        meta = {"fixed": model.fixed, "contact": model.contact, "material": model.material, "info": model.info}
-        _save_npz(mesh_ck, points=model.points, tets=model.tets, meta=json.dumps(meta),
-                  **{f"group_{k}": v for k, v in model.groups.items()})
+        save_model_mesh(mesh_ck, model)
     timings["mesh"] = time.perf_counter() - t0
 
     E = spec.E if spec.E is not None else model.material["E"]

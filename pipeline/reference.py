@@ -1,0 +1,205 @@
+"""Reference stiffness tables: computed from stored meshes, kept in ``tests/reference``, checked by CI.
+
+The meshes are stored too (``tests/reference/meshes/*.npz``), so that a new gmsh
+cannot move the numbers silently: ``pmask reference`` recomputes the tables
+from the stored meshes, ``pmask reference --remesh`` meshes anew first.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from meshes import halfspace, kidney, loop
+from meshes.common import load_model_mesh, save_model_mesh
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parent.parent
+REFERENCE_DIR = ROOT / "tests" / "reference"
+HALFSPACE_R = halfspace.LOAD_RADIUS
+HALFSPACE_DIVISIONS = (4, 8, 16)  # h = r / k at the load
+KIDNEY_SMALL_SIZE = 0.009
+
+#: stored mesh name -> builder
+MESHES = {
+    **{f"loop{k}": (lambda k=k: loop.build(k)) for k in range(4)},
+    **{f"halfspace_h{k}": (lambda k=k: halfspace.build(h_load=HALFSPACE_R / k)) for k in HALFSPACE_DIVISIONS},
+    "kidney": lambda: kidney.build(),
+    "kidney_small": lambda: kidney.build(KIDNEY_SMALL_SIZE),
+}
+
+
+def ensure_meshes(mesh_dir: Path, remesh: bool = False) -> None:
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    for name, build in MESHES.items():
+        p = mesh_dir / f"{name}.npz"
+        if remesh or not p.exists():
+            log.info("meshing %s", name)
+            save_model_mesh(p, build())
+
+
+def artifact_for(name: str, mesh_dir: Path, work: Path, nu: float | None = None) -> Path:
+    """Precompute (or reuse) the artifact of a stored mesh."""
+    from pipeline.stages import Spec, run
+
+    out = work / (f"{name}.h5" if nu is None else f"{name}_nu{nu:g}.h5")
+    run(Spec(model=name, volume=str(mesh_dir / f"{name}.npz"), nu=nu), out)
+    return out
+
+
+def figure5_table(mesh_dir: Path, work: Path):
+    from pipeline.truth import figure5_row
+    from runtime import Model
+
+    models = [Model.load(artifact_for(f"loop{k}", mesh_dir, work)) for k in range(4)]
+    radius = models[0].mean_edge_length
+    base = load_model_mesh(mesh_dir / "loop0.npz").info["base_vertex_position"]
+    rows = []
+    for k, m in enumerate(models):
+        r = figure5_row(m, base, radius)
+        rows.append({"model": f"loop{k}", "surface_vertices": r["vertices"], "mean_edge_m": r["mean_edge"],
+                     "single_norm_N_per_m": r["single"], "masked_norm_N_per_m": r["masked"],
+                     "mask_vertices": r["mask_size"]})
+    meta = {"table": "paper Figure 5: vertex stiffness vs Loop level", "model": "loop0..loop3 ellipsoid "
+            "80 x 40 x 40 mm, fixed cap x >= 12 mm (0.3 a)", "resolution": "34/130/514/2050 surface vertices",
+            "mask": f"linear cone, r = {radius:.6e} m (mean edge length of loop0)",
+            "vertex": "base vertex 17 (ring 3, segment 0)", "units": "N/m (norm = largest singular value)",
+            "material": f"E = {models[0].E:g} Pa, nu = {models[0].nu:g}"}
+    return meta, rows
+
+
+def halfspace_table(mesh_dir: Path, work: Path):
+    from pipeline.truth import analytic_centre_stiffness, centre_stiffness
+    from runtime import Model
+
+    rows = []
+    for nu in (0.3, 0.45):
+        for k in HALFSPACE_DIVISIONS:
+            name = f"halfspace_h{k}"
+            m = Model.load(artifact_for(name, mesh_dir, work, nu=nu))
+            for kind in ("linear", "disk", "wendland", "gaussian", "single"):
+                c = centre_stiffness(m, kind, HALFSPACE_R)
+                kn_a, kt_a = analytic_centre_stiffness(kind, m.E, m.nu, HALFSPACE_R)
+                ratio_a = 2 * (1 - m.nu) / (2 - m.nu)
+                rows.append({"mesh": name, "h_over_r": 1.0 / k, "nu": nu, "mask": kind, "kn_N_per_m": c["kn"],
+                             "kt_N_per_m": c["kt"], "kt_over_kn": c["ratio"], "kn_analytic": kn_a,
+                             "kt_analytic": kt_a, "kn_error": c["kn"] / kn_a - 1 if kn_a else float("nan"),
+                             "kt_error": c["kt"] / kt_a - 1 if kt_a else float("nan"),
+                             "ratio_error": c["ratio"] / ratio_a - 1, "volume_vertices": len(m.volume_points)})
+    meta = {"table": "centre stiffness of masks on a half-space vs Boussinesq/Cerruti",
+            "model": f"hemisphere R = 30 r fixed on its curved surface, r = {HALFSPACE_R} m, E = 1e4 Pa",
+            "resolution": "h = r/4, r/8, r/16 at the load, growing 0.2 per unit distance",
+            "mask": "linear cone, uniform disk, Wendland C2, truncated Gaussian, single vertex; radius r",
+            "units": "N/m; errors relative", "element": "P1"}
+    return meta, rows
+
+
+def kidney_tables(mesh_dir: Path, work: Path):
+    import sys
+
+    from pipeline.truth import figure6_numbers, vertex_norms
+    from runtime import Model
+
+    m = Model.load(artifact_for("kidney", mesh_dir, work))
+    f6 = figure6_numbers(m, 2.0)
+    sys.path.insert(0, str(ROOT / "examples"))
+    import stroke
+
+    strokes = {}
+    for name, stiff in (("single", m.stiffness("single")), ("masked", m.stiffness("linear", f6["radius"]))):
+        forces, status = stroke.run_stroke(stiff, stroke.stroke_path())
+        strokes[name] = stroke.smoothness(forces, status)
+    rows = [{"stiffness": name, "rank_correlation_with_area": f6[name]["rank_correlation_with_area"],
+             "vertex_roughness": f6[name]["roughness"], "median_norm_N_per_m": f6[name]["median_norm"],
+             "stroke_roughness": strokes[name]["roughness"], "stroke_rms_step_N": strokes[name]["rms_step"],
+             "stroke_mean_force_N": strokes[name]["mean_force"]} for name in ("single", "masked")]
+    meta6 = {"table": "paper Figure 6: what the stiffness maps show", "model": "kidney (default resolution)",
+             "resolution": f"{len(m.points)} surface vertices, {len(m.free)} free",
+             "mask": f"single vertex; linear cone r = 2 x mean edge = {f6['radius']:.6e} m",
+             "stroke": "examples/stroke.py: y = 12 mm, x = -45..45 mm, 1.5 mm deep, 35 mm/s, 1 kHz",
+             "units": "N/m, N; roughness relative"}
+    small = Model.load(artifact_for("kidney_small", mesh_dir, work))
+    r = 2.0 * small.mean_edge_length
+    single, masked = vertex_norms(small.stiffness("single")), vertex_norms(small.stiffness("linear", r))
+    verts = small.contact[small.core]
+    vrows = [{"vertex": int(v), "x_m": small.points[v, 0], "y_m": small.points[v, 1], "z_m": small.points[v, 2],
+              "area_m2": small.vertex_areas[v], "single_norm_N_per_m": s, "masked_norm_N_per_m": k}
+             for v, s, k in zip(verts, single, masked)]
+    metav = {"table": "per-vertex stiffness of a small kidney", "model": f"kidney size = {KIDNEY_SMALL_SIZE} m",
+             "resolution": f"{len(small.points)} surface vertices", "mask": f"single; linear cone r = {r:.6e} m",
+             "units": "m, m^2, N/m"}
+    return (meta6, rows), (metav, vrows)
+
+
+def compute_all(mesh_dir: Path, work: Path) -> dict:
+    f6, kv = kidney_tables(mesh_dir, work)
+    return {"figure5": figure5_table(mesh_dir, work), "halfspace": halfspace_table(mesh_dir, work),
+            "figure6": f6, "kidney_vertices": kv}
+
+
+def format_table(meta: dict, rows: list[dict]) -> str:
+    buf = io.StringIO()
+    for k, v in meta.items():
+        buf.write(f"# {k}: {v}\n")
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.10g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def read_table(path: Path) -> tuple[dict, list[dict]]:
+    meta, lines = {}, []
+    for line in Path(path).read_text().splitlines():
+        if line.startswith("# "):
+            k, _, v = line[2:].partition(": ")
+            meta[k] = v
+        else:
+            lines.append(line)
+    return meta, list(csv.DictReader(lines))
+
+
+def compare(old: list[dict], new: list[dict], rtol: float) -> list[str]:
+    """Differences beyond rtol between two tables (numbers) or any text change."""
+    if len(old) != len(new):
+        return [f"{len(old)} rows stored, {len(new)} computed"]
+    out = []
+    for i, (a, b) in enumerate(zip(old, new)):
+        for key in a:
+            x, y = a[key], b.get(key)
+            try:
+                fx, fy = float(x), float(y)
+            except (TypeError, ValueError):
+                if str(x) != str(y):
+                    out.append(f"row {i} {key}: {x} -> {y}")
+                continue
+            if not (np.isnan(fx) and np.isnan(fy)) and abs(fx - fy) > rtol * max(abs(fx), abs(fy), 1e-300):
+                out.append(f"row {i} {key}: {x} -> {y} (rel {abs(fx - fy) / max(abs(fx), abs(fy)):.2e})")
+    return out
+
+
+def regenerate(ref_dir: Path = REFERENCE_DIR, *, remesh: bool = False, work: Path | None = None) -> dict:
+    """Recompute every table (from stored meshes unless ``remesh``), write them, return the diffs."""
+    import tempfile
+
+    mesh_dir = ref_dir / "meshes"
+    ensure_meshes(mesh_dir, remesh)
+    with tempfile.TemporaryDirectory() as tmp:
+        tables = compute_all(mesh_dir, Path(work) if work else Path(tmp))
+    diffs = {}
+    for name, (meta, rows) in tables.items():
+        path = ref_dir / f"{name}.csv"
+        if path.exists():
+            diffs[name] = compare(read_table(path)[1], read_table_from_text(format_table(meta, rows)), 1e-9)
+        else:
+            diffs[name] = ["new table"]
+        path.write_text(format_table(meta, rows))
+    return diffs
+
+
+def read_table_from_text(text: str) -> list[dict]:
+    return list(csv.DictReader(line for line in text.splitlines() if not line.startswith("# ")))
