@@ -23,6 +23,10 @@ precompute: venv
 test: venv
 	$(BIN)/python -m pytest -q
 
+## make bench: precompute and runtime benchmarks -> bench/results.json, bench/results.md
+bench: venv
+	$(BIN)/python bench/run.py
+
 ## make reference: recompute tests/reference from the stored meshes and show the diff (REMESH=1: mesh anew)
 reference: venv
 	$(BIN)/pmask reference $(if $(REMESH),--remesh,)

@@ -40,7 +40,9 @@ def build(size: float = DEFAULT_SIZE) -> ModelMesh:
         hilum = [s for s in surfaces if gmsh.model.getBoundingBox(2, s)[4] < -0.5 * SEMI_AXES[1]]
         gmsh.model.addPhysicalGroup(3, vol, name="kidney")
         gmsh.model.addPhysicalGroup(2, hilum, name="hilum")
-        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 28)
+        # elements per 2π of curvature radius, scaled with size so that the pattern of
+        # triangle sizes stays the same and only the resolution changes
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", max(4, round(28 * DEFAULT_SIZE / size)))
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         gmsh.option.setNumber("Mesh.MeshSizeMin", size / 4)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)

@@ -41,6 +41,7 @@ class Spec:
     E, nu : material (None: the model's defaults).  units : length unit of the input geometry.
     r_max : largest mask radius [m] the runtime may use (None: model default).
     edge_length : target edge length [m] when remeshing a --surface.
+    dtype : storage precision of Ξ, "float64" or "float32" (half the size; see README).
     """
 
     model: str
@@ -54,6 +55,7 @@ class Spec:
     units: str = "m"
     r_max: float | None = None
     edge_length: float | None = None
+    dtype: str = "float64"
 
 
 UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
@@ -147,6 +149,8 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     from runtime.geometry import mean_edge_length, vertex_areas
 
     out = Path(out)
+    if spec.dtype not in ("float64", "float32"):
+        raise ValueError(f"dtype must be float64 or float32, got {spec.dtype!r}")
     if spec.units not in UNITS:
         raise ValueError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
     for key in ("surface", "volume"):
@@ -244,7 +248,8 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         "timings": timings,
     }
     write_artifact(out, meta=meta, volume_points=model.points, tets=model.tets, surface_vertices=surf_vertices,
-                   triangles=triangles, areas=areas, regions=reg, Xi=Xi, reactions=reactions)
+                   triangles=triangles, areas=areas, regions=reg, Xi=Xi, reactions=reactions,
+                   dtype=np.dtype(spec.dtype))
     timings["write"] = time.perf_counter() - t0
     shutil.rmtree(work, ignore_errors=True)
     try:

@@ -68,6 +68,7 @@ class HapticContact:
         inv = np.linalg.inv(np.stack([e1, e2, n], axis=2))  # rows: dual vectors of e1, e2, n
         self._R = inv  # (T, 3, 3) for the vectorised search
         self._v0 = v0
+        self._V = P[T]  # (T, 3, 3)
         self._tri = [tuple(row) for row in np.concatenate([v0, inv[:, 0], inv[:, 1], n], axis=1).tolist()]
         self._nb = [tuple(r) for r in triangle_neighbours(T).tolist()]
         self._vert = [tuple(r) for r in P[T].reshape(len(T), 9).tolist()]
@@ -166,8 +167,7 @@ class HapticContact:
         b = np.column_stack([1 - b12.sum(axis=1), b12])
         b = np.clip(b, 0, None)
         b /= b.sum(axis=1, keepdims=True)
-        V = np.asarray(self._vert).reshape(-1, 3, 3)
-        q = np.einsum("tk,tkj->tj", b, V)
+        q = np.einsum("tk,tkj->tj", b, self._V)
         return int(np.argmin(np.sum((q - p) ** 2, axis=1)))
 
     def _point(self, t: int, b0: float, b1: float, b2: float):

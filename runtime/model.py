@@ -35,7 +35,7 @@ class Model:
         self.fixed = data["surface/fixed"]
         self.contact = data["surface/contact"]
         self.core = data["surface/contact_core"]
-        self.Xi = np.asarray(data["greens/Xi"], dtype=float)
+        self.Xi = data["greens/Xi"]  # float64, or float32 if stored so (K_i are summed in float64)
         self.reactions = data["greens/reactions"]
         self.volume_points = data["volume/points"]
         self.volume_tets = data["volume/tets"]
