@@ -14,7 +14,7 @@ from pathlib import Path
 log = logging.getLogger("pmask")
 
 #: exceptions that are the user's to fix: one line, no traceback
-USER_ERRORS = (ValueError, FileNotFoundError, PermissionError, KeyError)
+USER_ERRORS = (ValueError, OSError, KeyError)
 
 
 def _param(text: str):
@@ -173,12 +173,43 @@ def cmd_figures(args) -> int:
     return 0
 
 
+def _vector(text: str):
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"need three comma-separated numbers, got '{text}'")
+    return v
+
+
+def add_export(sub) -> None:
+    p = sub.add_parser("export", help="write the surface with areas, regions and stiffness for ParaView (meshio)")
+    p.add_argument("artifact")
+    p.add_argument("out", help="output file, e.g. kidney.vtu")
+    p.add_argument("--mask", default="linear", help="mask for K_masked_norm (default linear)")
+    p.add_argument("--radius", type=float, help="mask radius [m] (default 2 x mean edge length)")
+    p.add_argument("--contact-vertex", type=int, help="add the deformation for a contact at this surface vertex")
+    p.add_argument("--force", type=_vector, default=[0.0, 0.0, -0.1], help="contact force fx,fy,fz [N]")
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_export(args) -> int:
+    from pipeline.export import export_surface
+    from runtime import Model
+
+    out = export_surface(Model.load(args.artifact), Path(args.out), mask=args.mask, radius=args.radius,
+                         contact_vertex=args.contact_vertex, force=args.force)
+    print(f"wrote {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (add_precompute, add_models, add_info, add_reference, add_figures):
+    for add in (add_precompute, add_models, add_info, add_export, add_reference, add_figures):
         add(sub)
     return parser
 

@@ -14,6 +14,8 @@ import logging
 import os
 import platform
 import shutil
+import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -142,8 +144,19 @@ def build_mesh(spec: Spec):
     return get_model(spec.model)(**spec.params)
 
 
+def _checkpoint_reached(stage: str) -> None:
+    """Test hook: ``PMASK_PAUSE_AFTER=<stage>`` sleeps after that stage's checkpoint, so that a test
+    can kill a real run mid-way and check that the next run resumes from there."""
+    if os.environ.get("PMASK_PAUSE_AFTER") == stage:
+        log.warning("pausing after stage %s (PMASK_PAUSE_AFTER)", stage)
+        time.sleep(float(os.environ.get("PMASK_PAUSE_SECONDS", "600")))
+
+
 def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -> dict:
-    """Run the precompute for ``spec`` into ``out``; return a summary dict."""
+    """Run the precompute for ``spec`` into ``out``; return a summary dict.
+
+    ``progress`` shows a bar over the stages on stderr (the CLI turns it on for a terminal).
+    """
     from precompute import condense, elasticity, regions, selectors, surface
     from precompute.writer import write_artifact
     from runtime.geometry import mean_edge_length, vertex_areas
@@ -159,9 +172,13 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             raise FileNotFoundError(f"--{key} {p}: no such file")
     if spec.E is not None or spec.nu is not None:
         elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not os.access(out.parent, os.W_OK):
-        raise PermissionError(f"cannot write to {out.parent}: choose a writable folder with --out")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".pmask-write-test-"):
+            pass
+    except OSError as exc:
+        raise PermissionError(f"cannot write to {out.parent} ({exc.strerror or exc}); "
+                              "choose a writable folder with --out") from None
     h = input_hash(spec)
     if out.exists() and not force and artifact_hash(out) == h:
         log.debug("%s is up to date (input hash %s)", out, h[:12])
@@ -171,6 +188,10 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     work.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     resumed: list[str] = []
+    from tqdm import tqdm
+
+    bar = tqdm(total=4, desc=f"{spec.model}: mesh", disable=not progress, file=sys.stderr, leave=False,
+               bar_format="{desc:<40} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
 
     # -- stage 1: mesh ---------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -182,6 +203,9 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         model = build_mesh(spec)
         save_model_mesh(mesh_ck, model)
     timings["mesh"] = time.perf_counter() - t0
+    _checkpoint_reached("mesh")
+    bar.update()
+    bar.set_description(f"{spec.model}: assemble + factorise")
 
     E = spec.E if spec.E is not None else model.material["E"]
     nu = spec.nu if spec.nu is not None else model.material["nu"]
@@ -230,11 +254,16 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         del K
         _save_npz(factor_ck, L_FF=factor.L_FF, L_UF=factor.L_UF, stats=json.dumps(factor.stats))
     timings["factor"] = time.perf_counter() - t0
+    _checkpoint_reached("factor")
+    bar.update()
+    bar.set_description(f"{spec.model}: Green's functions")
 
     # -- stage 3: Green's functions ---------------------------------------------------------
     t0 = time.perf_counter()
     Xi, reactions = condense.greens_functions(factor, areas[reg.contact])
     timings["greens"] = time.perf_counter() - t0
+    bar.update()
+    bar.set_description(f"{spec.model}: write")
 
     # -- stage 4: write ------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -251,6 +280,8 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
                    triangles=triangles, areas=areas, regions=reg, Xi=Xi, reactions=reactions,
                    dtype=np.dtype(spec.dtype))
     timings["write"] = time.perf_counter() - t0
+    bar.update()
+    bar.close()
     shutil.rmtree(work, ignore_errors=True)
     try:
         (out.parent / ".work").rmdir()

@@ -106,6 +106,40 @@ def volume_inside_surface(points: np.ndarray, triangles: np.ndarray, *, size_fac
     return vol_points, tets
 
 
+def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surface") -> tuple[np.ndarray, np.ndarray]:
+    """Refuse a triangle surface that cannot bound a solid; return it with duplicate vertices merged.
+
+    Checks, each with a message that says what to fix: at least one triangle, no
+    degenerate triangles, closed (every edge in two triangles), manifold (no edge in
+    more than two), consistently oriented, and oriented outwards (positive volume).
+    Self-intersections are found by gmsh when it meshes the volume.
+    """
+    if triangles is None or len(triangles) == 0:
+        raise MeshError(f"{name}: no triangles; give a closed triangle surface (STL, OBJ, PLY, ...)")
+    pts, inverse = np.unique(np.asarray(points, float), axis=0, return_inverse=True)
+    tris = inverse.ravel()[np.asarray(triangles, np.int64)]
+    bad = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+    if np.any(bad):
+        raise MeshError(f"{name}: {int(bad.sum())} degenerate triangles (repeated vertices); clean the surface")
+    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    undirected, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    if np.any(counts == 1):
+        raise MeshError(f"{name}: the surface is open ({int(np.sum(counts == 1))} boundary edges); "
+                        "close its holes (e.g. 'fill holes' in your segmentation or mesh tool)")
+    if np.any(counts > 2):
+        raise MeshError(f"{name}: the surface is not manifold ({int(np.sum(counts > 2))} edges shared by more "
+                        "than two triangles); separate the touching parts")
+    if len(np.unique(directed, axis=0)) != len(directed):
+        raise MeshError(f"{name}: triangle orientation is inconsistent (some neighbours face opposite ways); "
+                        "re-orient the triangles consistently (e.g. trimesh.repair.fix_winding)")
+    p = pts[tris]
+    volume = np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum() / 6.0
+    if volume < 0:
+        raise MeshError(f"{name}: the surface is inverted (normals point inwards, volume {volume:.3g}); "
+                        "flip the triangle orientation")
+    return pts, tris
+
+
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
 
@@ -114,14 +148,21 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     (in metres, after ``scale`` is applied).  Returns (points, tets) of the
     volume inside.
     """
+    import warnings
+
     import meshio
 
-    m = meshio.read(path)
-    tris = np.concatenate([c.data for c in m.cells if c.type == "triangle"]) if any(
-        c.type == "triangle" for c in m.cells) else None
-    if tris is None:
-        raise MeshError(f"{path}: no triangles found; --surface needs a closed triangle surface (STL, OBJ, PLY, ...)")
-    pts = np.asarray(m.points, float)[:, :3] * scale
+    if not (np.isfinite(edge_length) and edge_length > 0):
+        raise MeshError(f"the target edge length must be > 0, got {edge_length}")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # meshio's STL format sniffing overflows harmlessly
+            m = meshio.read(path)
+    except Exception as exc:  # meshio raises several types for unreadable files
+        raise MeshError(f"{path}: cannot read this file as a triangle surface ({exc})") from exc
+    blocks = [c.data for c in m.cells if c.type == "triangle"]
+    pts, tris = check_surface(np.asarray(m.points, float)[:, :3] * scale,
+                              np.concatenate(blocks) if blocks else None, str(path))
     with gmsh_session("remesh") as gmsh:
         s = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, s, np.arange(1, len(pts) + 1), pts.ravel())
@@ -138,6 +179,9 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
         try:
             gmsh.model.mesh.generate(3)
         except Exception as exc:
+            if "intersect" in str(exc):
+                raise MeshError(f"{path}: the surface intersects itself (gmsh: {exc}); repair it so that no "
+                                "triangles cross (e.g. remove overlapping parts)") from exc
             raise MeshError(f"{path}: gmsh could not remesh this surface ({exc}); "
                             "check that it is closed and not self-intersecting") from exc
         return tets_from_gmsh(gmsh)
@@ -151,7 +195,10 @@ def read_volume(path: Path, *, scale: float = 1.0):
     """
     import meshio
 
-    m = meshio.read(path)
+    try:
+        m = meshio.read(path)
+    except Exception as exc:
+        raise MeshError(f"{path}: cannot read this file as a volume mesh ({exc})") from exc
     blocks = [c.data for c in m.cells if c.type == "tetra"]
     if not blocks:
         raise MeshError(f"{path}: the file has no tetrahedra (cell types: "

@@ -69,7 +69,7 @@ class Model:
         symmetric : render (K + Kᵀ)/2 (passive); False renders the full K_i.
         """
         m = self.masks(mask, radius)
-        if m.single_vertex:
+        if m.single_vertex and mask != "single":
             log.info("%d of %d masks reach no neighbour at r = %g (single-vertex stiffness there)",
                      m.single_vertex, len(m.centres), m.radius)
         K = vertex_stiffness(self.Xi, m)

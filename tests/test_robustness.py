@@ -1,0 +1,214 @@
+"""Bad input gets one clear line (no traceback); an interrupted precompute resumes; export; fuzzing."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import meshio
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import ROOT
+from pipeline.cli import main
+from pipeline.stages import Spec, run
+from runtime import Model
+
+
+def cli_error(capsys, argv) -> str:
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def write_stl(path, pts, tris):
+    meshio.write_points_cells(path, pts, [("triangle", np.asarray(tris))])
+    return str(path)
+
+
+@pytest.fixture
+def sphere():
+    s = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    return np.asarray(s.vertices), np.asarray(s.faces)
+
+
+@pytest.mark.parametrize("case,message", [
+    ("open", "open"), ("nonmanifold", "not manifold"), ("inconsistent", "inconsistent"),
+    ("inverted", "inverted"), ("selfintersecting", "intersects itself"),
+])
+def test_bad_surfaces_are_refused_with_a_clear_message(tmp_path, capsys, sphere, case, message):
+    pts, tris = sphere
+    if case == "open":
+        tris = tris[1:]
+    elif case == "nonmanifold":
+        other = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+        # a second sphere sharing one edge of the first: that edge now has four triangles
+        t0 = tris[0]
+        q = other.vertices + (pts[t0[0]] - other.vertices[other.faces[0][0]])
+        pts = np.vstack([pts, q])
+        tris = np.vstack([tris, other.faces + len(sphere[0])])
+        tris[tris == other.faces[0][0] + len(sphere[0])] = t0[0]
+        tris[tris == other.faces[0][1] + len(sphere[0])] = t0[1]
+    elif case == "inconsistent":
+        tris = tris.copy()
+        tris[5] = tris[5][::-1]
+    elif case == "inverted":
+        tris = tris[:, ::-1]
+    elif case == "selfintersecting":
+        pts = np.vstack([pts, pts + [15.0, 0, 0]])
+        tris = np.vstack([tris, tris + len(sphere[0])])
+    stl = write_stl(tmp_path / "bad.stl", pts, tris)
+    err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "8", "--units", "mm",
+                             "--fixed", "z<-15", "-o", str(tmp_path / "bad.h5")])
+    assert message in err and "bad.stl" in err
+    assert not (tmp_path / "bad.h5").exists()
+
+
+def test_volume_without_tetrahedra(tmp_path, capsys, sphere):
+    p = tmp_path / "surf.vtu"
+    meshio.write_points_cells(p, sphere[0], [("triangle", sphere[1])])
+    err = cli_error(capsys, ["precompute", "--volume", str(p), "--fixed", "z<-15", "-o", str(tmp_path / "x.h5")])
+    assert "no tetrahedra" in err
+
+
+def test_volume_with_inverted_tetrahedra(tmp_path, capsys, kidney_small):
+    d = Model.load(kidney_small)
+    tets = d.volume_tets.copy()
+    tets[::7] = tets[::7][:, [0, 2, 1, 3]]
+    p = tmp_path / "inv.vtu"
+    meshio.write_points_cells(p, d.volume_points, [("tetra", tets)])
+    err = cli_error(capsys, ["precompute", "--volume", str(p), "--fixed", "z<-0.015", "-o", str(tmp_path / "x.h5")])
+    assert "inverted" in err
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--fixed", "z<-1"], "matches no surface vertex"),
+    (["--fixed", "all"], "matches every surface vertex"),
+    (["--fixed", "q<1"], "cannot read selector"),
+    (["--fixed", "group:pedicle"], "no physical group named 'pedicle'"),
+    (["-E", "0"], "Young's modulus"),
+    (["-E", "-5"], "Young's modulus"),
+    (["--nu", "0.5"], "Poisson"),
+    (["--nu", "-1.2"], "Poisson"),
+    (["--units", "furlong"], "unknown length unit"),
+])
+def test_bad_parameters(tmp_path, capsys, argv, message):
+    err = cli_error(capsys, ["precompute", "loop1", *argv, "-o", str(tmp_path / "x.h5")])
+    assert message in err
+
+
+def test_unwritable_output_folder(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    err = cli_error(capsys, ["precompute", "loop1", "-o", str(blocker / "out.h5")])
+    assert "cannot write" in err and "--out" in err
+
+
+def test_verbose_shows_the_traceback(tmp_path):
+    with pytest.raises(ValueError):
+        main(["-v", "precompute", "loop1", "--nu", "0.7", "-o", str(tmp_path / "x.h5")])
+
+
+def test_killed_precompute_resumes_and_matches_an_uninterrupted_run(tmp_path):
+    out = tmp_path / "k.h5"
+    env = dict(os.environ, PMASK_PAUSE_AFTER="factor", PMASK_PAUSE_SECONDS="120")
+    code = "from pipeline.cli import main; main(['-q', 'precompute', 'kidney', '--size', '0.012', '-o', %r])" % str(out)
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while not list(tmp_path.glob(".work/*/factor.npz")):
+            assert proc.poll() is None and time.time() < deadline, "the run ended before its factor checkpoint"
+            time.sleep(0.05)
+        time.sleep(0.2)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert not out.exists() and not list(tmp_path.glob("*.h5"))  # nothing half-written under any name
+    s = run(Spec(model="kidney", params={"size": 0.012}), out)
+    assert s["resumed"] == ["mesh", "factor"]
+    ref = tmp_path / "ref" / "k.h5"
+    s2 = run(Spec(model="kidney", params={"size": 0.012}), ref)
+    assert s2["resumed"] == []
+    with h5py.File(out) as a, h5py.File(ref) as b:
+        X, Y = a["greens/Xi"][()], b["greens/Xi"][()]
+        assert a.attrs["input_hash"] == b.attrs["input_hash"]
+    assert np.abs(X - Y).max() <= 1e-12 * np.abs(Y).max()
+    assert not (tmp_path / ".work").exists()
+
+
+def test_export_for_paraview(tmp_path, kidney_small, capsys):
+    out = tmp_path / "k.vtu"
+    assert main(["export", str(kidney_small), str(out), "--contact-vertex", "10", "--force", "0,0,-0.1"]) == 0
+    m = meshio.read(out)
+    model = Model.load(kidney_small)
+    assert len(m.points) == len(model.points)
+    np.testing.assert_allclose(m.point_data["vertex_area"], model.vertex_areas)
+    k = m.point_data["K_masked_norm"]
+    assert np.all(np.isfinite(k[model.contact[model.core]])) and np.all(np.isnan(k[model.fixed]))
+    v = m.point_data["deformation"]
+    assert v[10, 2] < 0 and np.all(v[model.fixed] == 0)  # pushed in where pressed, held at the support
+
+
+@st.composite
+def polytope(draw):
+    n = draw(st.integers(8, 24))
+    seed = draw(st.integers(0, 10**6))
+    rng = np.random.default_rng(seed)
+    d = rng.standard_normal((n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * draw(st.floats(0.01, 0.05)) * np.array([1.0, draw(st.floats(0.5, 1.0)), draw(st.floats(0.5, 1.0))])
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                                  HealthCheck.too_slow])
+@given(polytope(), st.sampled_from(["linear", "gaussian", "wendland", "disk", "single"]),
+       st.floats(0.1, 4.0), st.data())
+def test_fuzz_random_solids_masks_and_queries(tmp_path_factory, pts, kind, rfac, data):
+    """Random convex solids through the whole pipeline: no NaN/inf escapes, errors are the documented ones."""
+    from meshes.common import ModelMesh, save_model_mesh
+    from precompute.meshing import volume_inside_surface
+    from precompute.regions import RegionError
+
+    hull = trimesh.convex.convex_hull(pts)
+    points, tets = volume_inside_surface(np.asarray(hull.vertices), np.asarray(hull.faces))
+    z = points[:, 2]
+    cut = float(np.quantile(z[np.unique(hull.faces)], 0.3))
+    mm = ModelMesh(points=points, tets=tets, fixed=f"z<={cut!r}")
+    d = tmp_path_factory.mktemp("fuzz")
+    save_model_mesh(d / "m.npz", mm)
+    try:
+        run(Spec(model="fuzz", volume=str(d / "m.npz")), d / "m.h5")
+    except RegionError as exc:  # the documented refusal of a support too small to hold the body
+        assert "fixed region" in str(exc)
+        return
+    model = Model.load(d / "m.h5")
+    try:
+        stiff = model.stiffness(kind, rfac * model.mean_edge_length)
+    except ValueError as exc:
+        assert "r_max" in str(exc)
+        return
+    assert np.all(np.isfinite(stiff.K_vertex))
+    touch = np.flatnonzero(stiff.touchable)
+    for _ in range(20):
+        t = int(touch[data.draw(st.integers(0, len(touch) - 1))])
+        b = np.array(data.draw(st.lists(st.floats(0, 1), min_size=3, max_size=3)))
+        if b.sum() == 0:
+            b[0] = 1.0
+        b /= b.sum()
+        b[0] = 1.0 - b[1] - b[2]
+        try:
+            K = stiff.at(t, b)
+        except ValueError:
+            continue  # rounding left a coordinate at -1e-17 or the sum off by more than 1e-9: refused, fine
+        assert np.all(np.isfinite(K))
+        f = K @ np.array([0.0, 0.0, -1e-3])
+        assert np.all(np.isfinite(stiff.deformation(t, b, f)))
