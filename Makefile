@@ -9,10 +9,11 @@ ARGS   ?=
 
 venv: $(BIN)/.installed
 
-$(BIN)/.installed: pyproject.toml
+$(BIN)/.installed: pyproject.toml tools/install_cholmod.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
+	bash tools/install_cholmod.sh $(BIN)/pip
 	touch $@
 
 ## make precompute MODEL=kidney [ARGS="--force ..."]: write artifacts/$(MODEL).h5

@@ -28,6 +28,7 @@ the nodal forces the support exerts for unit nodal loads are
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -78,49 +79,101 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
     return np.array(cvxopt.amd.order(A), dtype=np.int64).ravel()
 
 
+def cholmod_backend(prefer: str | None = None) -> str:
+    """'sksparse' (scikit-sparse on the system SuiteSparse with a threaded OpenBLAS) when importable,
+    else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS; pip-only, about 3x slower)."""
+    choice = prefer or os.environ.get("PMASK_CHOLMOD")
+    if choice in ("cvxopt", "sksparse"):
+        return choice
+    try:
+        import sksparse.cholmod  # noqa: F401
+        return "sksparse"
+    except ImportError:
+        return "cvxopt"
+
+
 def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free: np.ndarray,
-                   fixed: np.ndarray) -> SurfaceFactor:
+                   fixed: np.ndarray, *, backend: str | None = None) -> SurfaceFactor:
     """Factorise K with the ``free`` (contact) and ``fixed`` vertices last; return the trailing block.
 
     ``interior`` (everything to eliminate, including free surface vertices a
     probe cannot touch), ``free`` and ``fixed`` are disjoint vertex index
     arrays that together cover every vertex of the mesh (``fixed`` non-empty).
     """
-    import cvxopt
-    import cvxopt.cholmod as cholmod
-
     n_vertices = K.shape[0] // 3
     if len(fixed) == 0:
         raise CondensationError("the fixed region is empty: nothing holds the body, its stiffness is singular")
     if len(interior) + len(free) + len(fixed) != n_vertices or len(
             np.unique(np.concatenate([interior, free, fixed]))) != n_vertices:
         raise CondensationError("interior, free and fixed vertex sets must partition the mesh")
+    backend = cholmod_backend(backend)
     t0 = time.perf_counter()
     graph = node_graph(n_vertices, tets)
     order = interior[amd_order(graph[interior][:, interior])]
     perm = np.concatenate([dofs(order), dofs(free), dofs(fixed)])
     n, nf, nu = len(perm), 3 * len(free), 3 * len(fixed)
+    nt = nf + nu
     Kp = sp.csr_matrix(K)[perm][:, perm]
     shift = np.zeros(n)
     shift[n - nu:] = Kp.diagonal()[n - nu:]  # makes the fixed block definite; leaves L_FF, L_UF unchanged
-    low = sp.tril(Kp + sp.diags(shift), format="coo")
-    A = cvxopt.spmatrix(low.data, cvxopt.matrix(low.row.astype(np.int64)),
-                        cvxopt.matrix(low.col.astype(np.int64)), (n, n))
+    A = sp.tril(Kp + sp.diags(shift), format="csc")
     t_order = time.perf_counter() - t0
+    factorise = _factor_sksparse if backend == "sksparse" else _factor_cvxopt
+    (indptr, indices, data), t_factor, t_extract = factorise(A)
+    t0 = time.perf_counter()
+    L_TT = _trailing_block(indptr, indices, data, n, nt)
+    t_extract += time.perf_counter() - t0
+    nnz = int(indptr[-1])
+    log.info("factor (%s): %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
+             backend, n, nnz, t_order, t_factor, t_extract)
+    return SurfaceFactor(L_FF=np.asfortranarray(L_TT[:nf, :nf]), L_UF=np.ascontiguousarray(L_TT[nf:, :nf]),
+                         stats={"dofs": n, "nnz_L": nnz, "backend": backend, "order_s": t_order,
+                                "factor_s": t_factor, "extract_s": t_extract})
 
+
+def _singular(column) -> CondensationError:
+    return CondensationError(
+        "the stiffness matrix is singular with this fixed region: the support must hold the body against "
+        "rigid motion (at least three non-collinear fixed vertices) and every part of the mesh must be "
+        f"connected to it (CHOLMOD stopped at column {column})")
+
+
+def _factor_sksparse(A: sp.csc_matrix):
+    """Supernodal CHOLMOD in the given (natural) order; the factor as CSC arrays."""
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+
+    t0 = time.perf_counter()
+    try:
+        F = cholesky(A, ordering_method="natural", mode="supernodal")
+    except CholmodNotPositiveDefiniteError as exc:
+        raise _singular(getattr(exc, "column", "?")) from exc
+    if not np.array_equal(F.P(), np.arange(A.shape[0])):
+        raise CondensationError("CHOLMOD did not keep the surface-last order")
+    t_factor = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    L = F.L()
+    del F
+    return (L.indptr, L.indices, L.data), t_factor, time.perf_counter() - t0
+
+
+def _factor_cvxopt(A: sp.csc_matrix):
+    """The same through cvxopt's bundled CHOLMOD (user order only, no postordering)."""
+    import cvxopt
+    import cvxopt.cholmod as cholmod
+
+    n = A.shape[0]
+    low = A.tocoo()
+    Ac = cvxopt.spmatrix(low.data, cvxopt.matrix(low.row.astype(np.int64)),
+                         cvxopt.matrix(low.col.astype(np.int64)), (n, n))
     saved = dict(cholmod.options)
     cholmod.options.update({"supernodal": 2, "nmethods": 1, "postorder": False})
     try:
         t0 = time.perf_counter()
-        F = cholmod.symbolic(A, p=cvxopt.matrix(np.arange(n, dtype=np.int64)))
+        F = cholmod.symbolic(Ac, p=cvxopt.matrix(np.arange(n, dtype=np.int64)))
         try:
-            cholmod.numeric(A, F)
+            cholmod.numeric(Ac, F)
         except ArithmeticError as exc:
-            raise CondensationError(
-                "the stiffness matrix is singular with this fixed region: the support must hold the body "
-                "against rigid motion (at least three non-collinear fixed vertices) and every part of the "
-                f"mesh must be connected to it (CHOLMOD stopped at column {exc.args[0] if exc.args else '?'})"
-            ) from exc
+            raise _singular(exc.args[0] if exc.args else "?") from exc
         t_factor = time.perf_counter() - t0
         t0 = time.perf_counter()
         L = cholmod.getfactor(F)
@@ -128,19 +181,21 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
         cholmod.options.clear()
         cholmod.options.update(saved)
     colptr, rowind, values = (np.array(x, copy=False).ravel() for x in L.CCS)
-    nt = nf + nu
-    start = colptr[n - nt]
-    cols = np.repeat(np.arange(nt), np.diff(colptr[n - nt:]))
-    L_TT = np.zeros((nt, nt))
-    L_TT[rowind[start:] - (n - nt), cols] = values[start:]
-    nnz = int(colptr[-1])
-    del L, F, A
-    t_extract = time.perf_counter() - t0
-    log.info("factor: %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
-             n, nnz, t_order, t_factor, t_extract)
-    return SurfaceFactor(L_FF=np.ascontiguousarray(L_TT[:nf, :nf]), L_UF=np.ascontiguousarray(L_TT[nf:, :nf]),
-                         stats={"dofs": n, "nnz_L": nnz, "order_s": t_order, "factor_s": t_factor,
-                                "extract_s": t_extract})
+    return (colptr, rowind, values), t_factor, time.perf_counter() - t0
+
+
+def _trailing_block(indptr, indices, data, n: int, nt: int) -> np.ndarray:
+    """Dense lower-triangular trailing nt x nt block of a CSC factor (Fortran order, for LAPACK)."""
+    L_TT = np.zeros((nt, nt), order="F")
+    off = n - nt
+    for j in range(nt):
+        a, b = indptr[off + j], indptr[off + j + 1]
+        rows = indices[a:b] - off
+        if len(rows) == nt - j and rows[0] == j and np.all(rows[1:] - rows[:-1] == 1):
+            L_TT[j:, j] = data[a:b]  # the dense block: a contiguous column copy
+        else:
+            L_TT[rows, j] = data[a:b]
+    return L_TT
 
 
 def greens_functions(factor: SurfaceFactor, areas: np.ndarray):

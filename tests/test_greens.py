@@ -126,3 +126,19 @@ def test_patch_test_linear_field_reproduced(kidney_small):
     Id = dofs(inner)
     u_inner = spla.spsolve(K[Id][:, Id].tocsc(), -K[Id][:, B] @ exact[B])
     assert relerr(u_inner, exact[Id]) < 1e-9
+
+
+def test_cholmod_backends_agree(kidney_small):
+    """scikit-sparse (system SuiteSparse) and cvxopt (bundled CHOLMOD) give the same surface factor."""
+    pytest.importorskip("sksparse.cholmod")
+    from precompute.condense import surface_factor
+
+    d = read_artifact(kidney_small)
+    P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
+    K = stiffness_matrix(P, T, 1e4, 0.45)
+    free, fixed = vi[d["surface/contact"]], vi[d["surface/fixed"]]
+    interior = np.setdiff1d(np.arange(len(P)), np.concatenate([free, fixed]))
+    a = surface_factor(K, T, interior, free, fixed, backend="sksparse")
+    b = surface_factor(K, T, interior, free, fixed, backend="cvxopt")
+    assert a.stats["backend"] == "sksparse" and b.stats["backend"] == "cvxopt"
+    assert relerr(a.L_FF, b.L_FF) < 1e-12 and relerr(a.L_UF, b.L_UF) < 1e-12
