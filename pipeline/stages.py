@@ -13,6 +13,7 @@ import json
 import logging
 import os
 import platform
+import re
 import shutil
 import sys
 import tempfile
@@ -21,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from meshes.common import ModelMesh, load_model_mesh, save_model_mesh
 from runtime.artifact import FORMAT_VERSION
@@ -188,8 +190,6 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     work.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     resumed: list[str] = []
-    from tqdm import tqdm
-
     bar = tqdm(total=4, desc=f"{spec.model}: mesh", disable=not progress, file=sys.stderr, leave=False,
                bar_format="{desc:<40} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
 
@@ -286,7 +286,10 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     timings["write"] = time.perf_counter() - t0
     bar.update()
     bar.close()
-    shutil.rmtree(work, ignore_errors=True)
+    mine = re.compile(rf"^{re.escape(out.stem)}-[0-9a-f]{{16}}$")
+    for stale in (out.parent / ".work").glob(f"{out.stem}-*"):  # this run's and older runs' checkpoints
+        if mine.match(stale.name):
+            shutil.rmtree(stale, ignore_errors=True)
     try:
         (out.parent / ".work").rmdir()
     except OSError:
