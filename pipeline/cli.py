@@ -47,6 +47,8 @@ def add_precompute(sub) -> None:
     p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
                    help="further model parameter (repeatable), e.g. --param h_load=0.00125")
     p.add_argument("--float32", action="store_true", help="store Ξ in single precision (half the size)")
+    p.add_argument("--element", choices=("P1", "P2"), default="P1",
+                   help="tetrahedra: P1 (default, dense Schur route) or P2 (quadratic; small contact regions)")
     p.add_argument("-o", "--out", help="artifact path (default artifacts/MODEL.h5)")
     p.add_argument("--force", action="store_true", help="recompute even if the artifact is up to date")
     p.set_defaults(func=cmd_precompute)
@@ -63,7 +65,8 @@ def cmd_precompute(args) -> int:
         params["size"] = args.size
     spec = Spec(model=label, params=params, surface=args.surface, volume=args.volume, fixed=args.fixed,
                 contact=args.contact, E=args.E, nu=args.nu, units=args.units, r_max=args.r_max,
-                edge_length=args.edge_length, dtype="float32" if args.float32 else "float64")
+                edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
+                element=args.element)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
     if summary["up_to_date"]:

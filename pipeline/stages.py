@@ -46,6 +46,7 @@ class Spec:
     r_max : largest mask radius [m] the runtime may use (None: model default).
     edge_length : target edge length [m] when remeshing a --surface.
     dtype : storage precision of Ξ, "float64" or "float32" (half the size; see README).
+    element : "P1" (dense Schur route) or "P2" (blocked solves; for small contact regions).
     """
 
     model: str
@@ -60,6 +61,7 @@ class Spec:
     r_max: float | None = None
     edge_length: float | None = None
     dtype: str = "float64"
+    element: str = "P1"
 
 
 UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
@@ -146,6 +148,42 @@ def build_mesh(spec: Spec):
     return get_model(spec.model)(**spec.params)
 
 
+def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, bar, label):
+    """P1: assemble, factorise with the surface last (checkpointed), then Ξ by dense algebra."""
+    from precompute import condense, elasticity
+
+    t0 = time.perf_counter()
+    factor_ck = work / "factor.npz"
+    if factor_ck.exists():
+        ck = np.load(factor_ck)
+        factor = condense.SurfaceFactor(L_FF=ck["L_FF"], L_UF=ck["L_UF"], stats=json.loads(str(ck["stats"])))
+        resumed.append("factor")
+        timings["assemble"] = 0.0
+        timings["factor"] = time.perf_counter() - t0
+    else:
+        K = elasticity.stiffness_matrix(model.points, model.tets, E, nu)
+        timings["assemble"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        contact_v = surf_vertices[reg.contact]
+        fixed_v = surf_vertices[reg.fixed]
+        interior = np.setdiff1d(np.arange(len(model.points)), np.concatenate([contact_v, fixed_v]))
+        factor = condense.surface_factor(K, model.tets, interior, contact_v, fixed_v)
+        del K
+        timings["factor"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        _save_npz(factor_ck, L_FF=factor.L_FF, L_UF=factor.L_UF, stats=json.dumps(factor.stats))
+        timings["checkpoint"] = time.perf_counter() - t0
+    _checkpoint_reached("factor")
+    bar.update()
+    bar.set_description(f"{label}: Green's functions")
+    t0 = time.perf_counter()
+    Xi, reactions = condense.greens_functions(factor, areas[reg.contact])
+    timings["greens"] = time.perf_counter() - t0
+    bar.update()
+    bar.set_description(f"{label}: write")
+    return Xi, reactions, {**factor.stats, "element": "P1"}
+
+
 def _checkpoint_reached(stage: str) -> None:
     """Test hook: ``PMASK_PAUSE_AFTER=<stage>`` sleeps after that stage's checkpoint, so that a test
     can kill a real run mid-way and check that the next run resumes from there."""
@@ -159,11 +197,13 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
 
     ``progress`` shows a bar over the stages on stderr (the CLI turns it on for a terminal).
     """
-    from precompute import condense, elasticity, regions, selectors, surface
+    from precompute import elasticity, regions, selectors, surface
     from precompute.writer import write_artifact
     from runtime.geometry import mean_edge_length, vertex_areas
 
     out = Path(out)
+    if spec.element not in ("P1", "P2"):
+        raise ValueError(f"element must be P1 or P2, got {spec.element!r}")
     if spec.dtype not in ("float64", "float32"):
         raise ValueError(f"dtype must be float64 or float32, got {spec.dtype!r}")
     if spec.units not in UNITS:
@@ -235,39 +275,24 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
                                   fixed_selector=fixed_sel, contact_selector=contact_sel or "")
     timings["regions"] = time.perf_counter() - t0
 
-    # -- stage 2: assemble + factorise (Schur complement onto contact + fixed) --------------
-    t0 = time.perf_counter()
-    factor_ck = work / "factor.npz"
-    if factor_ck.exists():
-        ck = np.load(factor_ck)
-        factor = condense.SurfaceFactor(L_FF=ck["L_FF"], L_UF=ck["L_UF"], stats=json.loads(str(ck["stats"])))
-        resumed.append("factor")
-        timings["assemble"] = 0.0
-    else:
-        K = elasticity.stiffness_matrix(model.points, model.tets, E, nu)
-        timings["assemble"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        contact_v = surf_vertices[reg.contact]
-        fixed_v = surf_vertices[reg.fixed]
-        interior = np.setdiff1d(np.arange(len(model.points)), np.concatenate([contact_v, fixed_v]))
-        factor = condense.surface_factor(K, model.tets, interior, contact_v, fixed_v)
-        del K
-        timings["factor"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        _save_npz(factor_ck, L_FF=factor.L_FF, L_UF=factor.L_UF, stats=json.dumps(factor.stats))
-        timings["checkpoint"] = time.perf_counter() - t0
-    if "factor" not in timings:
-        timings["factor"] = time.perf_counter() - t0
-    _checkpoint_reached("factor")
-    bar.update()
-    bar.set_description(f"{spec.model}: Green's functions")
+    if spec.element == "P2":
+        # P2: one sparse factorisation and blocked solves (no dense Schur route, no factor checkpoint)
+        from precompute import p2
 
-    # -- stage 3: Green's functions ---------------------------------------------------------
-    t0 = time.perf_counter()
-    Xi, reactions = condense.greens_functions(factor, areas[reg.contact])
-    timings["greens"] = time.perf_counter() - t0
-    bar.update()
-    bar.set_description(f"{spec.model}: write")
+        t0 = time.perf_counter()
+        K2, edges = p2.p2_stiffness(model.points, model.tets, E, nu)
+        B = p2.surface_load_matrix(model.points, surf_vertices[triangles], edges)
+        timings["assemble"] = time.perf_counter() - t0
+        bar.update()
+        t0 = time.perf_counter()
+        Xi, reactions, factor_stats = p2.greens_by_solves(K2, B, edges, surf_vertices[reg.contact],
+                                                          surf_vertices[reg.fixed])
+        del K2
+        timings["greens"] = time.perf_counter() - t0
+        bar.update()
+    else:
+        Xi, reactions, factor_stats = _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings,
+                                                 resumed, bar, spec.model)
 
     # -- stage 4: write ------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -277,9 +302,10 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         "parameters": {**asdict(spec), "model_info": model.info},
         "provenance": {"libraries": library_versions(), "code_sha256": code_digest(),
                        "created_unix": time.time(), "host": platform.node(), "resumed_stages": resumed,
-                       "factor": factor.stats},
+                       "factor": factor_stats},
         "timings": timings,
     }
+    meta["element"] = spec.element
     write_artifact(out, meta=meta, volume_points=model.points, tets=model.tets, surface_vertices=surf_vertices,
                    triangles=triangles, areas=areas, regions=reg, Xi=Xi, reactions=reactions,
                    dtype=np.dtype(spec.dtype))
@@ -297,5 +323,5 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     return {"up_to_date": False, "artifact": str(out), "input_hash": h, "timings": timings, "resumed": resumed,
             "volume_vertices": len(model.points), "tets": len(model.tets), "surface_vertices": len(spoints),
             "free": len(reg.free), "fixed": len(reg.fixed), "contact": len(reg.contact),
-            "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs"),
-            "backend": factor.stats.get("backend")}
+            "size_bytes": out.stat().st_size, "dofs": factor_stats.get("dofs"),
+            "backend": factor_stats.get("backend"), "element": spec.element}

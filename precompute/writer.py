@@ -27,7 +27,7 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         "format_version": FORMAT_VERSION,
         "definition": DEFINITION,
         "model": meta["model"],
-        "element": "P1",
+        "element": meta.get("element", "P1"),
         "units": json.dumps({"length": "m", "force": "N", "pressure": "Pa", "Xi": "m/Pa",
                              "reactions": "N/Pa", "vertex_areas": "m^2"}),
         "material": json.dumps({"E": meta["E"], "nu": meta["nu"], "model": "isotropic linear elastic"}),

@@ -142,3 +142,63 @@ def test_cholmod_backends_agree(kidney_small):
     b = surface_factor(K, T, interior, free, fixed, backend="cvxopt")
     assert a.stats["backend"] == "sksparse" and b.stats["backend"] == "cvxopt"
     assert relerr(a.L_FF, b.L_FF) < 1e-12 and relerr(a.L_UF, b.L_UF) < 1e-12
+
+
+@pytest.fixture(scope="module")
+def halfspace_p2(tmp_path_factory):
+    from pipeline.stages import Spec, run
+
+    out = tmp_path_factory.mktemp("p2") / "hs_p2.h5"
+    run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, element="P2"), out)
+    return out
+
+
+def test_p2_load_matrix_integrates_the_hat_functions(halfspace_p2):
+    """Σ_k ∫ψ_k φ_j = ∫φ_j = a_j: the consistent P2 load of a unit traction is the P1 vertex area."""
+    from precompute.p2 import surface_load_matrix
+    from precompute.surface import boundary_surface
+    from runtime.geometry import vertex_areas
+    from skfem import MeshTet
+
+    d = read_artifact(halfspace_p2)
+    P, T = d["volume/points"], d["volume/tets"]
+    sv, tris = boundary_surface(P, T)
+    edges = np.sort(MeshTet(P.T, T.T).edges.T, axis=1)
+    B = surface_load_matrix(P, sv[tris], edges)
+    a = np.zeros(len(P))
+    a[sv] = vertex_areas(P[sv], tris)
+    np.testing.assert_allclose(np.asarray(B.sum(axis=0)).ravel(), a, rtol=1e-12, atol=1e-18)
+    assert d["attrs"]["element"] == "P2"
+
+
+def test_p2_columns_and_equilibrium_against_full_solve(halfspace_p2):
+    """P2 Ξ columns equal a SuperLU solve of the whole free P2 system; reactions balance the load."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from precompute.p2 import p2_stiffness, surface_load_matrix
+    from precompute.surface import boundary_surface
+
+    d = read_artifact(halfspace_p2)
+    P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
+    mat = d["attrs"]["material"]
+    K, edges = p2_stiffness(P, T, mat["E"], mat["nu"])
+    sv, tris = boundary_surface(P, T)
+    B = surface_load_matrix(P, sv[tris], edges)
+    fixed = vi[d["surface/fixed"]]
+    is_f = np.zeros(len(P), bool)
+    is_f[fixed] = True
+    fe = np.flatnonzero(is_f[edges[:, 0]] & is_f[edges[:, 1]])
+    dd = dofs(np.concatenate([fixed, len(P) + fe]))
+    free = np.setdiff1d(np.arange(K.shape[0]), dd)
+    lu = spla.splu(K[free][:, free].tocsc())
+    contact = vi[d["surface/contact"]]
+    j = 0
+    load = sp.kron(B[:, contact[j:j + 1]], sp.identity(3)).toarray()
+    u = np.zeros((K.shape[0], 3))
+    u[free] = lu.solve(load[free])
+    Xi = d["greens/Xi"]
+    assert relerr(Xi[:, 3 * j:3 * j + 3], u[dofs(contact)]) < 1e-8
+    a_j = d["surface/vertex_areas"][d["surface/contact"][j]]
+    R = d["greens/reactions"][:, 3 * j:3 * j + 3].reshape(-1, 3, 3)  # (vertex, component, load direction)
+    np.testing.assert_allclose(R.sum(axis=0), -a_j * np.eye(3), atol=1e-9 * a_j)

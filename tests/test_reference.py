@@ -55,7 +55,7 @@ def test_figure5_single_falls_masked_converges():
 
 
 def test_halfspace_matches_boussinesq_cerruti():
-    rows = [r for r in table("halfspace") if float(r["nu"]) == 0.3]
+    rows = [r for r in table("halfspace") if float(r["nu"]) == 0.3 and r["element"] == "P1"]
     for kind in ("linear", "wendland", "gaussian", "disk"):
         rs = sorted((r for r in rows if r["mask"] == kind), key=lambda r: -float(r["h_over_r"]))
         h = col(rs, "h_over_r")
@@ -69,10 +69,19 @@ def test_halfspace_matches_boussinesq_cerruti():
     assert np.all(kn[:-1] / kn[1:] > 1.7)  # point-load stiffness ∝ h → 0
 
 
-def test_p1_locking_gap_is_reported():
+def test_p2_matches_at_coarser_meshes_and_locks_less():
     rows = table("halfspace")
-    fine = {(float(r["nu"]), r["mask"]): abs(float(r["kn_error"])) for r in rows if r["mesh"] == "halfspace_h16"}
-    assert fine[(0.45, "linear")] > fine[(0.3, "linear")]  # P1 locks as nu -> 0.5
+    err = {(r["element"], r["mesh"], float(r["nu"]), r["mask"]): abs(float(r["kn_error"])) for r in rows}
+    assert err[("P2", "halfspace_h4", 0.3, "linear")] <= 0.05  # the cone: P2 needs h = r/4 where P1 needs r/16
+    for mesh in ("halfspace_h4", "halfspace_h8"):
+        for kind in ("linear", "wendland", "gaussian"):
+            assert err[("P2", mesh, 0.3, kind)] < err[("P1", mesh, 0.3, kind)]
+            if mesh == "halfspace_h8":  # the more concentrated profiles need r/8
+                assert err[("P2", mesh, 0.3, kind)] <= 0.05, (mesh, kind)
+    assert err[("P2", "halfspace_h8", 0.3, "linear")] < err[("P2", "halfspace_h4", 0.3, "linear")]
+    # the locking gap (error at nu = 0.45 minus error at nu = 0.3): P1 locks, P2 much less
+    gap = {e: err[(e, "halfspace_h8", 0.45, "linear")] - err[(e, "halfspace_h8", 0.3, "linear")] for e in ("P1", "P2")}
+    assert gap["P1"] > 0.02 and gap["P2"] < 0.5 * gap["P1"], gap
 
 
 def test_figure6_masks_remove_mesh_artefacts():
