@@ -86,34 +86,40 @@ def check_cost(path: Path) -> dict:
     """What the metadata checksum costs at load (Fletcher-32 is checked by HDF5 on every read either way)."""
     return json.loads(sh([sys.executable, "-c", CHECK_SNIPPET, str(path)], cwd=ROOT).strip().splitlines()[-1])
 
-def uv_ellipsoid(n_target: int, axes=(0.055, 0.03, 0.02)):
-    """Closed UV ellipsoid with about n_target vertices (synthetic surfaces for the query benchmarks)."""
-    rings = max(3, int(round(np.sqrt(n_target / 2))))
-    segs = max(4, int(round((n_target - 2) / rings)))
-    pts = [(axes[0], 0.0, 0.0)]
-    for k in range(1, rings + 1):
-        th = np.pi * k / (rings + 1)
-        for m in range(segs):
-            ph = 2 * np.pi * m / segs
-            pts.append((axes[0] * np.cos(th), axes[1] * np.sin(th) * np.cos(ph), axes[2] * np.sin(th) * np.sin(ph)))
-    pts.append((-axes[0], 0.0, 0.0))
-    ring = lambda k, m: 1 + k * segs + (m % segs)  # noqa: E731
-    tris = []
-    for m in range(segs):
-        tris.append((0, ring(0, m), ring(0, m + 1)))
-        for k in range(rings - 1):
-            tris += [(ring(k, m), ring(k + 1, m), ring(k + 1, m + 1)), (ring(k, m), ring(k + 1, m + 1), ring(k, m + 1))]
-        tris.append((len(pts) - 1, ring(rings - 1, m + 1), ring(rings - 1, m)))
-    pts, tris = np.array(pts), np.array(tris)
-    p = pts[tris]
-    if np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 0]).sum() < 0:
+def gmsh_ellipsoid(n_target: int, axes=(0.055, 0.03, 0.02)):
+    """A gmsh (frontal-Delaunay) surface mesh of an ellipsoid with about n_target vertices: the synthetic
+    surfaces of the query benchmarks, with a mesher's valences (a UV sphere's pole fans are not)."""
+    from precompute.meshing import gmsh_session
+
+    a, b, c = axes
+    p = 1.6075
+    area = 4 * np.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
+    h = np.sqrt(2 * area / (np.sqrt(3) * n_target))
+    with gmsh_session("synthetic") as gmsh:
+        s = gmsh.model.occ.addSphere(0, 0, 0, 1.0)
+        gmsh.model.occ.dilate([(3, s)], 0, 0, 0, a, b, c)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", h)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        gmsh.model.mesh.generate(2)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, _, tri = gmsh.model.mesh.getElements(2)
+    order = np.argsort(tags)
+    pts = coords.reshape(-1, 3)[order]
+    tris = np.searchsorted(tags[order], np.concatenate(tri).reshape(-1, 3))
+    used, inv = np.unique(tris, return_inverse=True)
+    pts, tris = pts[used], inv.reshape(-1, 3)
+    q = pts[tris]
+    if np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), q[:, 0]).sum() < 0:
         tris = tris[:, ::-1].copy()
     return pts, tris
+
 
 def synthetic_stiffness(n: int):
     from runtime import SurfaceStiffness
 
-    pts, tris = uv_ellipsoid(n)
+    pts, tris = gmsh_ellipsoid(n)
     rng = np.random.default_rng(1)
     X = rng.standard_normal((len(pts), 3, 3)) * 10
     K = np.einsum("nij,nkj->nik", X, X) + 50 * np.eye(3)
@@ -347,7 +353,7 @@ def markdown(res: dict) -> str:
                    f"{lw['load_s'] + lw['vertex_stiffness_s']:.3f} s"
         deform = f"{lw['deformation_s'] * 1e3:.2f} ms" if lw else "—"
         st = r["step"]
-        label = "synthetic UV ellipsoid (random SPD K_i)" if r["synthetic"] else "kidney (cone mask, r = 2 mean edges)"
+        label = "synthetic gmsh ellipsoid (random SPD K_i)" if r["synthetic"] else "kidney (cone mask, r = 2 mean edges)"
         L.append(f"| {label} | {r['surface_vertices']} | {load} | {deform} | {st['median_us']:.1f} | "
                  f"{st['p99_us']:.1f} | {st['p999_us']:.1f} | {st['max_us']:.0f} | "
                  f"{r['batch']['queries_per_s'] / 1e6:.1f} |")
