@@ -109,6 +109,7 @@ def cmd_info(args) -> int:
     a = d["attrs"]
     info = {
         "file": args.artifact, "format": f"{a['format_name']} {a['format_version']}", "model": a["model"],
+        "element": a.get("element", "P1"),
         "surface_vertices": len(d["surface/points"]), "triangles": len(d["surface/triangles"]),
         "free": len(d["surface/free"]), "fixed": len(d["surface/fixed"]), "contact": len(d["surface/contact"]),
         "volume_vertices": len(d["volume/points"]), "tets": len(d["volume/tets"]),
