@@ -153,9 +153,10 @@ class HapticContact:
             k = 0 if (b0 <= b1 and b0 <= b2) else (1 if b1 <= b2 else 2)
             nb = nbs[t][k]
             if nb < 0 or nb == prev:
-                break
+                break  # a ridge or an open edge: clamp onto t (already projected)
             prev, t = t, nb
-        b0, b1, b2, s = self._project(t, px, py, pz)
+        else:
+            b0, b1, b2, s = self._project(t, px, py, pz)  # walk budget spent: clamp where it ended
         b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)
         tot = b0 + b1 + b2
         return t, b0 / tot, b1 / tot, b2 / tot, s
@@ -237,16 +238,20 @@ class HapticContact:
             tx, ty, tz = ux - un * nx, uy - un * ny, uz - un * nz
             ut = math.sqrt(tx * tx + ty * ty + tz * tz)
             limit = -self.friction * un
-            if ut > limit:  # slide the proxy to the edge of the friction cone
-                s = 1.0 - limit / ut
-                t, b0, b1, b2, _ = self._locate(t, cx + s * tx, cy + s * ty, cz + s * tz)
-                self.triangle, self.bary = t, (b0, b1, b2)
+            if ut <= limit:  # inside the friction cone: the proxy sticks, ū as computed
+                return self._render(t, b0, b1, b2, ux, uy, uz)
+            s = 1.0 - limit / ut  # slide the proxy to the edge of the friction cone
+            t, b0, b1, b2, _ = self._locate(t, cx + s * tx, cy + s * ty, cz + s * tz)
+            self.triangle, self.bary = t, (b0, b1, b2)
         t = self.triangle
         b0, b1, b2 = self.bary
+        cx, cy, cz = self._point(t, b0, b1, b2)
+        return self._render(t, b0, b1, b2, px - cx, py - cy, pz - cz)
+
+    def _render(self, t: int, b0: float, b1: float, b2: float, ux: float, uy: float, uz: float):
+        """f = K(x) ū at the proxy (eq. 15); −f to the user."""
         if not self._touchable[t]:
             return self._none(Status.OUTSIDE_REGION)
-        cx, cy, cz = self._point(t, b0, b1, b2)
-        ux, uy, uz = px - cx, py - cy, pz - cz
         k = self._table[t]
         K = [b0 * k[i] + b1 * k[9 + i] + b2 * k[18 + i] for i in range(9)]  # eq. 15
         fx = K[0] * ux + K[1] * uy + K[2] * uz

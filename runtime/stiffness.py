@@ -32,11 +32,11 @@ BARY_TOL = 1e-9
 BATCH_CHUNK = 32768
 
 
-def masked_flexibility(Xi: np.ndarray, masks: Masks, rows: np.ndarray | None = None) -> np.ndarray:
-    r"""(n, 3, 3) blocks :math:`\sum_j \rho^i_j \Xi_{ij}` for every mask (i = ``rows`` or the centres)."""
+def masked_flexibility(Xi: np.ndarray, masks: Masks) -> np.ndarray:
+    r"""(n, 3, 3) blocks :math:`\sum_j \rho^i_j \Xi_{ij}`, one per mask centre i."""
     n = Xi.shape[1] // 3
     X4 = Xi.reshape(Xi.shape[0] // 3, 3, n, 3)
-    rows = masks.centres if rows is None else rows
+    rows = masks.centres
     counts = np.diff(masks.indptr)
     i = np.repeat(rows, counts)
     blocks = X4[i, :, masks.indices, :] * masks.values[:, None, None]  # (pairs, 3, 3)

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -55,7 +54,3 @@ def full_solve(points, tets, E, nu, fixed_vertices, loads):
 def relerr(a, b) -> float:
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(b))
 
-
-@pytest.fixture
-def sparse():
-    return sp
