@@ -7,13 +7,20 @@ ARGS   ?=
 
 .PHONY: venv precompute test bench reference figures stroke clean
 
-venv: $(BIN)/.installed
+NATIVE := $(VENV)/lib/pmask/.built
+
+venv: $(BIN)/.installed $(NATIVE)
 
 $(BIN)/.installed: pyproject.toml tools/install_cholmod.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
 	bash tools/install_cholmod.sh $(BIN)/pip
+	touch $@
+
+# the C over CHOLMOD (precompute/native.py); rebuilt when its source changes
+$(NATIVE): $(BIN)/.installed precompute/_surface_factor.c tools/build_native.sh
+	bash tools/build_native.sh $(VENV)
 	touch $@
 
 ## make precompute MODEL=kidney [ARGS="--force ..."]: write artifacts/$(MODEL).h5

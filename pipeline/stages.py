@@ -78,7 +78,8 @@ def file_digest(path) -> str:
 def code_digest() -> str:
     """Hash of the source that produces an artifact (a code change invalidates artifacts)."""
     h = hashlib.sha256()
-    files = sorted(p for d in CODE_DIRS for p in (ROOT / d).rglob("*.py")) + [ROOT / f for f in CODE_FILES]
+    files = sorted(p for d in CODE_DIRS for ext in ("*.py", "*.c") for p in (ROOT / d).rglob(ext))
+    files += [ROOT / f for f in CODE_FILES]
     for p in files:
         h.update(str(p.relative_to(ROOT)).encode())
         h.update(p.read_bytes())
@@ -94,6 +95,9 @@ def library_versions() -> dict:
             out[name] = md.version(name)
         except md.PackageNotFoundError:
             out[name] = None
+    from precompute import native
+
+    out["cholmod"] = native.cholmod_version()
     return out
 
 
@@ -156,7 +160,8 @@ def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, 
     factor_ck = work / "factor.npz"
     if factor_ck.exists():
         ck = np.load(factor_ck)
-        factor = condense.SurfaceFactor(L_FF=ck["L_FF"], L_UF=ck["L_UF"], stats=json.loads(str(ck["stats"])))
+        factor = condense.SurfaceFactor(L_TT=np.asfortranarray(ck["L_TT"]), n_free=int(ck["n_free"]),
+                                        stats=json.loads(str(ck["stats"])))
         resumed.append("factor")
         timings["assemble"] = 0.0
         timings["factor"] = time.perf_counter() - t0
@@ -171,7 +176,7 @@ def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, 
         del K
         timings["factor"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        _save_npz(factor_ck, L_FF=factor.L_FF, L_UF=factor.L_UF, stats=json.dumps(factor.stats))
+        _save_npz(factor_ck, L_TT=factor.L_TT, n_free=factor.n_free, stats=json.dumps(factor.stats))
         timings["checkpoint"] = time.perf_counter() - t0
     _checkpoint_reached("factor")
     bar.update()

@@ -16,7 +16,9 @@ eq. 10), so
 
 How S is formed (the dense-algebra route): the sparse stiffness is permuted
 to ``[interior (AMD order), free surface, fixed surface]`` and factorised by
-CHOLMOD's supernodal Cholesky with exactly that order.  The trailing block of
+CHOLMOD's supernodal Cholesky with exactly that order.  With the native
+backend (:mod:`precompute.native`) the trailing block is used where CHOLMOD
+stores it and the LAPACK steps below run in place: no copy of the factor.  The trailing block of
 the factor is dense; its free-surface part :math:`L_{FF}` satisfies
 :math:`L_{FF} L_{FF}^T = S`, so :math:`G = L_{FF}^{-T} L_{FF}^{-1}` by LAPACK
 (trtri + lauum).  A positive diagonal added to the fixed block makes the
@@ -33,6 +35,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg.blas as blas
 import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 
@@ -49,13 +52,23 @@ class CondensationError(ValueError):
 class SurfaceFactor:
     """Trailing Cholesky block of the stiffness with the surface ordered last.
 
-    L_FF : (3 n_free, 3 n_free) lower-triangular, L_FF L_FFᵀ = S (free surface Schur complement)
-    L_UF : (3 n_fixed, 3 n_free), so that S_UF = L_UF L_FFᵀ
+    L_TT : (nt, nt) column-major (any leading dimension), lower triangle valid; its first
+        ``n_free`` rows and columns are L_FF (L_FF L_FFᵀ = S, the free-surface Schur
+        complement), the rows below them L_UF (S_UF = L_UF L_FFᵀ).  With the native backend
+        it is a view into CHOLMOD's own storage.
     """
 
-    L_FF: np.ndarray
-    L_UF: np.ndarray
+    L_TT: np.ndarray
+    n_free: int
     stats: dict = field(default_factory=dict)
+
+    @property
+    def L_FF(self) -> np.ndarray:
+        return np.tril(self.L_TT[:self.n_free, :self.n_free])
+
+    @property
+    def L_UF(self) -> np.ndarray:
+        return np.array(self.L_TT[self.n_free:, :self.n_free])
 
 
 def node_graph(n_vertices: int, tets: np.ndarray) -> sp.csr_matrix:
@@ -80,16 +93,22 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
 
 
 def cholmod_backend(prefer: str | None = None) -> str:
-    """'sksparse' (scikit-sparse on the system SuiteSparse with a threaded OpenBLAS) when importable,
-    else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS; pip-only, about 3x slower)."""
+    """'native' (our C over Debian's CHOLMOD and threaded OpenBLAS, built by ``make venv``) when
+    installed, else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS; pip-only, slower).
+    ``PMASK_CHOLMOD=cvxopt`` forces the latter."""
+    from precompute import native
+
     choice = prefer or os.environ.get("PMASK_CHOLMOD")
-    if choice in ("cvxopt", "sksparse"):
-        return choice
-    try:
-        import sksparse.cholmod  # noqa: F401
-        return "sksparse"
-    except ImportError:
+    if choice == "cvxopt":
         return "cvxopt"
+    if choice not in (None, "", "native"):
+        raise ValueError(f"unknown CHOLMOD backend {choice!r}: use 'native' or 'cvxopt'")
+    if native.available():
+        return "native"
+    if choice == "native":
+        raise RuntimeError(f"the native CHOLMOD library is not built ({native.LIBRARY}); run make venv "
+                           "as root so that libsuitesparse-dev can be installed")
+    return "cvxopt"
 
 
 def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free: np.ndarray,
@@ -99,6 +118,8 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     ``interior`` (everything to eliminate, including free surface vertices a
     probe cannot touch), ``free`` and ``fixed`` are disjoint vertex index
     arrays that together cover every vertex of the mesh (``fixed`` non-empty).
+    The interior is ordered by AMD (constrained AMD over the whole matrix with
+    the native backend, so that the coupling to the surface is in view).
     """
     n_vertices = K.shape[0] // 3
     if len(fixed) == 0:
@@ -108,8 +129,11 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
         raise CondensationError("interior, free and fixed vertex sets must partition the mesh")
     backend = cholmod_backend(backend)
     t0 = time.perf_counter()
-    graph = node_graph(n_vertices, tets)
-    order = interior[amd_order(graph[interior][:, interior])]
+    if backend == "native":
+        order = interior  # reordered inside, by CHOLMOD's constrained AMD
+    else:
+        graph = node_graph(n_vertices, tets)
+        order = interior[amd_order(graph[interior][:, interior])]
     perm = np.concatenate([dofs(order), dofs(free), dofs(fixed)])
     n, nf, nu = len(perm), 3 * len(free), 3 * len(fixed)
     nt = nf + nu
@@ -117,16 +141,26 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     shift = np.zeros(n)
     shift[n - nu:] = Kp.diagonal()[n - nu:]  # makes the fixed block definite; leaves L_FF, L_UF unchanged
     A = sp.tril(Kp + sp.diags(shift), format="csc")
+    A.sort_indices()
     t_order = time.perf_counter() - t0
-    factorise = _factor_sksparse if backend == "sksparse" else _factor_cvxopt
-    (indptr, indices, data), t_factor, t_extract = factorise(A)
     t0 = time.perf_counter()
-    L_TT = _trailing_block(indptr, indices, data, n, nt)
-    t_extract += time.perf_counter() - t0
-    nnz = int(indptr[-1])
+    if backend == "native":
+        from precompute import native
+
+        try:
+            L_TT, st = native.factor(A, nt)
+        except ArithmeticError as exc:
+            raise _singular(exc.args[0]) from None
+        t_factor, t_extract, nnz = time.perf_counter() - t0, st["locate_s"], st["stored_L"]
+    else:
+        (indptr, indices, data), t_factor, t_extract = _factor_cvxopt(A)
+        t0 = time.perf_counter()
+        L_TT = _trailing_block(indptr, indices, data, n, nt)
+        t_extract += time.perf_counter() - t0
+        nnz = int(indptr[-1])
     log.info("factor (%s): %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
              backend, n, nnz, t_order, t_factor, t_extract)
-    return SurfaceFactor(L_FF=np.asfortranarray(L_TT[:nf, :nf]), L_UF=np.ascontiguousarray(L_TT[nf:, :nf]),
+    return SurfaceFactor(L_TT=L_TT, n_free=nf,
                          stats={"dofs": n, "nnz_L": nnz, "backend": backend, "order_s": t_order,
                                 "factor_s": t_factor, "extract_s": t_extract})
 
@@ -136,24 +170,6 @@ def _singular(column) -> CondensationError:
         "the stiffness matrix is singular with this fixed region: the support must hold the body against "
         "rigid motion (at least three non-collinear fixed vertices) and every part of the mesh must be "
         f"connected to it (CHOLMOD stopped at column {column})")
-
-
-def _factor_sksparse(A: sp.csc_matrix):
-    """Supernodal CHOLMOD in the given (natural) order; the factor as CSC arrays."""
-    from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
-
-    t0 = time.perf_counter()
-    try:
-        F = cholesky(A, ordering_method="natural", mode="supernodal")
-    except CholmodNotPositiveDefiniteError as exc:
-        raise _singular(getattr(exc, "column", "?")) from exc
-    if not np.array_equal(F.P(), np.arange(A.shape[0])):
-        raise CondensationError("CHOLMOD did not keep the surface-last order")
-    t_factor = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    L = F.L()
-    del F
-    return (L.indptr, L.indices, L.data), t_factor, time.perf_counter() - t0
 
 
 def _factor_cvxopt(A: sp.csc_matrix):
@@ -198,36 +214,57 @@ def _trailing_block(indptr, indices, data, n: int, nt: int) -> np.ndarray:
     return L_TT
 
 
-def greens_functions(factor: SurfaceFactor, areas: np.ndarray):
+def greens_functions(factor: SurfaceFactor, areas: np.ndarray, *, overwrite: bool = True,
+                     lapack_route: str | None = None):
     r"""Green's functions Ξ (traction → displacement) and support reactions.
 
     Parameters
     ----------
     factor : from :func:`surface_factor`.
     areas : vertex areas a of the free (contact) vertices, in the order of ``free``.
+    overwrite : work in the factor's storage (it is consumed: ``factor.L_TT`` becomes None).
+    lapack_route : 'native' (our C: in place, one pass for the mirror and the scaling; the
+        default when built) or 'scipy' (SciPy's LAPACK on copies); same numbers.
 
     Returns
     -------
     Xi : (3 n, 3 n) with block (i, j) the displacement of vertex i per unit traction at
-        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)`.
+        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)`.  With the native route Ξ and the
+        reactions are (non-contiguous) views of the factor's storage: no 3n x 3n copy.
     reactions : (3 n_fixed, 3 n), the nodal forces the support exerts per unit traction
         at vertex j (equilibrium: they sum to :math:`-a_j p_j`).
     """
-    nf = factor.L_FF.shape[0]
-    W, info = lapack.dtrtri(factor.L_FF, lower=1)
-    if info != 0:
-        raise CondensationError(f"the condensed surface stiffness is singular (LAPACK trtri info={info})")
+    from precompute import native
+
+    nf = factor.n_free
     a = np.repeat(np.asarray(areas, float), 3)
     if len(a) != nf:
         raise CondensationError(f"{len(a) // 3} vertex areas for {nf // 3} free vertices")
-    # trtri leaves the (zero) upper triangle of L_FF as it was, so W is lower triangular
-    reactions = (factor.L_UF @ W) * a[None, :]
+    L_TT = factor.L_TT if overwrite else np.array(factor.L_TT, order="F")
+    if overwrite:
+        factor.L_TT = None
+    route = lapack_route or ("native" if native.available() else "scipy")
+    if route == "native":
+        # W = L_FF⁻¹ (trtri), reactions L_UF W (trmm), G = Wᵀ W (lauum), Ξ = G diag(a) in one pass;
+        # Ξ and the reactions are views of the factor's storage (row stride > row length)
+        Xi, reactions, times, info = native.greens(L_TT, nf, a)
+        if info != 0:
+            raise CondensationError(f"the condensed surface stiffness is singular (LAPACK info={info})")
+        log.info("greens (native): trtri %.2fs, reactions %.2fs, lauum %.2fs, mirror %.2fs",
+                 times["trtri_s"], times["reactions_s"], times["lauum_s"], times["mirror_s"])
+        return Xi, reactions
+    W, info = lapack.dtrtri(np.asfortranarray(L_TT[:nf, :nf]), lower=1, overwrite_c=1)
+    if info != 0:
+        raise CondensationError(f"the condensed surface stiffness is singular (LAPACK trtri info={info})")
+    # trmm reads only the lower triangle of W: reactions L_UF W
+    reactions = blas.dtrmm(1.0, W, np.asfortranarray(L_TT[nf:, :nf]), side=1, lower=1) * a[None, :]
+    del L_TT
     G, info = lapack.dlauum(W, lower=1, overwrite_c=1)  # lower triangle of Wᵀ W = S⁻¹
     if info != 0:
         raise CondensationError(f"LAPACK lauum failed (info={info})")
     _mirror_lower(G)  # reciprocity is tested against separate solves, not this mirror
     G *= a[None, :]
-    return G, reactions
+    return np.ascontiguousarray(G), np.ascontiguousarray(reactions)
 
 
 def _mirror_lower(G: np.ndarray, block: int = 512) -> None:

@@ -17,6 +17,7 @@ Cholesky factorisation and blocked solves, 3 n_c right-hand sides in all.
 from __future__ import annotations
 
 import logging
+import os
 import time
 
 import numpy as np
@@ -84,7 +85,7 @@ def greens_by_solves(K: sp.spmatrix, B: sp.spmatrix, edges: np.ndarray, contact:
     Dirichlet nodes: the fixed vertices and the edges joining two of them.  Reactions on the edge
     nodes are split half and half to their end vertices (same total force and moment).
     """
-    from precompute.condense import CondensationError, cholmod_backend
+    from precompute.condense import CondensationError
     from precompute.elasticity import dofs
 
     N = B.shape[1]
@@ -99,7 +100,7 @@ def greens_by_solves(K: sp.spmatrix, B: sp.spmatrix, edges: np.ndarray, contact:
     A = Kc[free][:, free].tocsc()
     Bv = sp.kron(B[:, contact], sp.identity(3), format="csr")  # (3 n_nodes, 3 n_c)
     t0 = time.perf_counter()
-    backend = cholmod_backend(backend)
+    backend = _solver_backend(backend)
     if backend == "sksparse":
         from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
 
@@ -150,3 +151,14 @@ def greens_by_solves(K: sp.spmatrix, B: sp.spmatrix, edges: np.ndarray, contact:
     log.info("P2 (%s): %d dofs, factor %.2fs, %d solves %.2fs", backend, len(free), t_factor, nc3, t_solve)
     return Xi, R, {"dofs": int(len(free)), "backend": backend, "factor_s": t_factor, "solve_s": t_solve,
                    "element": "P2"}
+
+
+def _solver_backend(prefer: str | None) -> str:
+    """scikit-sparse (system CHOLMOD, threaded BLAS, fast multi-RHS solves) when importable and not
+    ruled out by ``PMASK_CHOLMOD=cvxopt``; else cvxopt's bundled CHOLMOD."""
+    import importlib.util
+
+    choice = prefer or os.environ.get("PMASK_CHOLMOD")
+    if choice != "cvxopt" and importlib.util.find_spec("sksparse") is not None:
+        return "sksparse"
+    return "cvxopt"

@@ -46,13 +46,26 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
             f.attrs[k] = v
         for name, arr in small.items():
             f.create_dataset(name, data=arr)
-        big = {"greens/Xi": np.asarray(Xi, dtype), "greens/reactions": np.asarray(reactions, dtype),
-               "volume/points": np.asarray(volume_points, float), "volume/tets": np.asarray(tets, np.int64)}
-        for name, arr in big.items():
-            chunks = _chunks(arr.shape)
-            f.create_dataset(name, data=arr, chunks=chunks, fletcher32=chunks is not None)
+        big = {"greens/Xi": (Xi, dtype), "greens/reactions": (reactions, dtype),
+               "volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
+        for name, (arr, dt) in big.items():
+            _write_blocks(f, name, np.asarray(arr), dt)
 
     write_atomic_hdf5(path, fill)
+
+
+def _write_blocks(f, name, arr, dtype, block_bytes=8 << 20) -> None:
+    """A chunked, checksummed dataset written ~8 MiB of rows at a time: ``arr`` may be a strided view
+    (Ξ from the native route) and ``dtype`` narrower than it without a full-size copy."""
+    chunks = _chunks(arr.shape)
+    if chunks is None:
+        f.create_dataset(name, data=np.asarray(arr, dtype))
+        return
+    ds = f.create_dataset(name, shape=arr.shape, dtype=dtype, chunks=chunks, fletcher32=True)
+    row_bytes = max(1, int(np.prod(arr.shape[1:])) * arr.itemsize)
+    step = max(chunks[0], (block_bytes // row_bytes) // chunks[0] * chunks[0])
+    for i0 in range(0, arr.shape[0], step):
+        ds[i0:i0 + step] = np.asarray(arr[i0:i0 + step], dtype)
 
 
 def _chunks(shape):

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Optional fast path for the precompute: CHOLMOD from Debian's SuiteSparse, linked to a threaded
-# OpenBLAS, through scikit-sparse 0.4.16 (0.5 needs SuiteSparse 7, which Debian does not ship).
-# Measured on the default kidney: factor + extraction 1.5 s instead of 4.0 s with cvxopt's bundled,
-# single-threaded CHOLMOD.  Anything missing (no root, no apt, a failed build) leaves the cvxopt
-# path in place: the results are the same to 1e-14, only slower.
+# OpenBLAS.  P1 uses it through our C (tools/build_native.sh, precompute/native.py); P2's blocked
+# solves through scikit-sparse 0.4.16 (0.5 needs SuiteSparse 7, which Debian does not ship).
+# Anything missing (no root, no apt, a failed build) leaves the cvxopt path in place: the results
+# are the same to 1e-12, only slower.
 set -u
 PIP="$1"
 have() { dpkg -s "$1" >/dev/null 2>&1; }

@@ -1,0 +1,250 @@
+/* The P1 Green's-function stage in place: CHOLMOD's supernodal factor with the surface last,
+ * then LAPACK on its dense trailing supernode, without copying the factor.
+ *
+ * Built by tools/install_cholmod.sh against Debian's SuiteSparse and the system LAPACK
+ * (threaded OpenBLAS), loaded with ctypes by precompute/native.py.  The maths is the one in
+ * precompute/condense.py; this file only removes copies:
+ *
+ *   pmask_factor   A (lower CSC, already permuted: interior, free surface, fixed surface)
+ *                  -> supernodal L = chol(A) in that order (the interior reordered by
+ *                  constrained AMD, which sees the surface coupling), and a pointer to the
+ *                  trailing nt x nt block of L, column-major with leading dimension nt.
+ *                  When the trailing columns are one supernode (always, for a connected
+ *                  surface: the block is dense) that pointer is CHOLMOD's own storage.
+ *   pmask_greens   on such a block (from pmask_factor or a checkpoint), in place: W = L_FF^-1
+ *                  (trtri), reactions L_UF W (trmm), G = W^T W (lauum), then the mirror and the
+ *                  area scaling in one tiled pass, so that the block holds Xi^T and the
+ *                  reactions: no new 3n x 3n array (its first touch costs 0.1-0.4 s here).
+ *   pmask_free     frees what pmask_factor returned.
+ */
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include <cholmod.h>
+
+void dtrtri_(const char *uplo, const char *diag, const int *n, double *a, const int *lda, int *info,
+             size_t, size_t);
+void dlauum_(const char *uplo, const int *n, double *a, const int *lda, int *info, size_t);
+void dtrmm_(const char *side, const char *uplo, const char *transa, const char *diag, const int *m,
+            const int *n, const double *alpha, const double *a, const int *lda, double *b, const int *ldb,
+            size_t, size_t, size_t, size_t);
+
+typedef struct {
+    cholmod_common c;
+    cholmod_factor *L;
+    double *block;     /* the trailing block (inside L->x, or malloc'ed when copied) */
+    long ld;           /* its leading dimension */
+    int owns_block;
+} pm_factor;
+
+static double now(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return t.tv_sec + 1e-9 * t.tv_nsec;
+}
+
+void pmask_free(pm_factor *f)
+{
+    if (f == NULL)
+        return;
+    if (f->owns_block)
+        free(f->block);
+    if (f->L != NULL)
+        cholmod_l_free_factor(&f->L, &f->c);
+    cholmod_l_finish(&f->c);
+    free(f);
+}
+
+/* Returns 0 and *out (a handle) and *block on success; k > 0 if A is not positive definite at
+ * column k-1; -1 on a CHOLMOD failure (out of memory, say).  times: order, analyse, numeric,
+ * locate/copy, nnz(L) as stored, 1 if the block is CHOLMOD's own storage (0: gathered). */
+int pmask_factor(long n, long *Ap, long *Ai, double *Ax, long nt, int constrained, pm_factor **out,
+                 double **block, long *ld, double *times)
+{
+    cholmod_sparse A;
+    pm_factor *f = calloc(1, sizeof *f);
+    long off = n - nt, k, s, j, r, *Perm = NULL;
+    int status = 0;
+    double t0;
+
+    *out = NULL;
+    *block = NULL;
+    if (f == NULL)
+        return -1;
+    cholmod_l_start(&f->c);
+    f->c.print = 0;
+    f->c.supernodal = CHOLMOD_SUPERNODAL;
+    f->c.postorder = 0;          /* keep the surface last and in the given order */
+    f->c.nmethods = 1;
+
+    memset(&A, 0, sizeof A);
+    A.nrow = A.ncol = (size_t)n;
+    A.nzmax = (size_t)Ap[n];
+    A.p = Ap;
+    A.i = Ai;
+    A.x = Ax;
+    A.stype = -1;                /* the lower triangle holds the symmetric matrix */
+    A.itype = CHOLMOD_LONG;
+    A.xtype = CHOLMOD_REAL;
+    A.dtype = CHOLMOD_DOUBLE;
+    A.sorted = 1;
+    A.packed = 1;
+
+    t0 = now();
+    if (constrained) {
+        /* constrained AMD: interior (set 0) before the surface (set 1), ordered with the
+         * surface coupling in view, which lowers the interior's update to the dense block */
+        long *Cmember = malloc(sizeof(long) * n), *P = malloc(sizeof(long) * n);
+        Perm = malloc(sizeof(long) * n);
+        if (Cmember && P && Perm) {
+            for (k = 0; k < n; k++)
+                Cmember[k] = k >= off;
+            if (cholmod_l_camd(&A, NULL, 0, Cmember, P, &f->c)) {
+                for (k = 0, j = 0; k < n; k++)
+                    if (P[k] < off)
+                        Perm[j++] = P[k];
+                for (k = off; k < n; k++)
+                    Perm[k] = k;   /* the surface keeps its order */
+            } else {
+                free(Perm);
+                Perm = NULL;
+            }
+        }
+        free(Cmember);
+        free(P);
+    }
+    f->c.method[0].ordering = Perm ? CHOLMOD_GIVEN : CHOLMOD_NATURAL;
+    times[0] = now() - t0;
+
+    t0 = now();
+    f->L = cholmod_l_analyze_p(&A, Perm, NULL, 0, &f->c);
+    free(Perm);
+    times[1] = now() - t0;
+    if (f->L == NULL) {
+        pmask_free(f);
+        return -1;
+    }
+    t0 = now();
+    cholmod_l_factorize(&A, f->L, &f->c);
+    times[2] = now() - t0;
+    if (f->c.status == CHOLMOD_NOT_POSDEF) {
+        status = (int)f->L->minor + 1;
+    } else if (f->c.status != CHOLMOD_OK || !f->L->is_super) {
+        status = -1;
+    }
+    if (status != 0) {
+        pmask_free(f);
+        return status;
+    }
+
+    t0 = now();
+    {
+        cholmod_factor *L = f->L;
+        long *super = L->super, *pi = L->pi, *px = L->px, *Ls = L->s, *LP = L->Perm;
+        double *Lx = L->x;
+        long last = (long)L->nsuper - 1;
+        for (k = off; k < n; k++)
+            if (LP[k] != k)
+                status = -1;  /* CHOLMOD moved the surface: should not happen */
+        long j0 = off - super[last], nsrow = pi[last + 1] - pi[last];
+        if (status == 0 && j0 >= 0 && nsrow - j0 == nt && Ls[pi[last] + j0] == off) {
+            /* the surface columns lie in the last supernode (with, after relaxed amalgamation,
+             * a few interior columns before them): use the block where it is */
+            f->block = Lx + px[last] + j0 * nsrow + j0;
+            f->ld = nsrow;
+            times[5] = 1.0;
+        } else if (status == 0) {
+            f->block = malloc(sizeof(double) * nt * nt);
+            f->owns_block = 1;
+            f->ld = nt;
+            if (f->block == NULL)
+                status = -1;
+            for (s = 0; s <= last && status == 0; s++) {
+                long k1 = super[s], k2 = super[s + 1], nsrow = pi[s + 1] - pi[s];
+                if (k2 <= off)
+                    continue;
+                for (j = (k1 > off ? 0 : off - k1); j < k2 - k1; j++) {
+                    double *col = Lx + px[s] + j * nsrow, *dst = f->block + (k1 + j - off) * nt;
+                    long *rows = Ls + pi[s];
+                    memset(dst, 0, sizeof(double) * nt);
+                    for (r = j; r < nsrow; r++)
+                        dst[rows[r] - off] = col[r];
+                }
+            }
+        }
+        times[4] = (double)L->xsize;
+    }
+    times[3] = now() - t0;
+    if (status != 0) {
+        pmask_free(f);
+        return status;
+    }
+    *out = f;
+    *block = f->block;
+    *ld = f->ld;
+    return 0;
+}
+
+/* B: nt x nt column-major (leading dimension ldb >= nt), lower-triangular L_TT on entry.
+ * a: nf areas.  On return, in place (no new memory):
+ *   B[0:nf, 0:nf] = diag(a) G with G = S^-1 = (L_FF L_FF^T)^-1, all of it (column-major), so that
+ *                   its transpose, read row-major, is Xi = G diag(a): Xi[i, j] = B[j + i ldb];
+ *   B[nf:nt, 0:nf] = the support reactions (L_UF L_FF^-1) diag(a).
+ * Returns LAPACK's info of trtri (k > 0: S singular at k) or of lauum. */
+int pmask_greens(double *B, long ldb, long nt, long nf, const double *a, double *times)
+{
+    int n = (int)nf, m = (int)(nt - nf), ld = (int)ldb, info = 0;
+    const double one = 1.0;
+    enum { T = 64 };
+    double tile[T * T];
+    long i0, j0, i, j;
+    double t0 = now();
+
+    dtrtri_("L", "N", &n, B, &ld, &info, 1, 1);
+    times[0] = now() - t0;
+    if (info != 0)
+        return info;
+    t0 = now();
+    if (m > 0) {
+        dtrmm_("R", "L", "N", "N", &m, &n, &one, B, &ld, B + nf, &ld, 1, 1, 1, 1);
+        for (j = 0; j < nf; j++)
+            for (i = nf; i < nt; i++)
+                B[i + j * ldb] *= a[j];
+    }
+    times[1] = now() - t0;
+    t0 = now();
+    dlauum_("L", &n, B, &ld, &info, 1);
+    times[2] = now() - t0;
+    if (info != 0)
+        return info;
+    t0 = now();
+    /* M = diag(a) G from the lower triangle of G, tile by tile: an off-diagonal tile (rows I, cols J,
+     * I > J) gives M[I, J] = a_I G[I, J] in place and M[J, I] = a_J G[I, J]^T into the upper tile;
+     * a diagonal tile goes through a copy. */
+    for (j0 = 0; j0 < nf; j0 += T) {
+        long j1 = j0 + T < nf ? j0 + T : nf;
+        for (i0 = j0; i0 < nf; i0 += T) {
+            long i1 = i0 + T < nf ? i0 + T : nf;
+            if (i0 == j0) {
+                for (j = j0; j < j1; j++)
+                    for (i = j; i < i1; i++)
+                        tile[(i - i0) + (j - j0) * T] = B[i + j * ldb];
+                for (j = j0; j < j1; j++)
+                    for (i = i0; i < i1; i++) {
+                        double g = i >= j ? tile[(i - i0) + (j - j0) * T] : tile[(j - i0) + (i - j0) * T];
+                        B[i + j * ldb] = a[i] * g;
+                    }
+            } else {
+                for (j = j0; j < j1; j++)
+                    for (i = i0; i < i1; i++) {
+                        double g = B[i + j * ldb];
+                        B[j + i * ldb] = a[j] * g;
+                        B[i + j * ldb] = a[i] * g;
+                    }
+            }
+        }
+    }
+    times[3] = now() - t0;
+    return 0;
+}
