@@ -160,7 +160,7 @@ def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, 
     factor_ck = work / "factor.npz"
     if factor_ck.exists():
         ck = np.load(factor_ck)
-        factor = condense.SurfaceFactor(L_TT=np.asfortranarray(ck["L_TT"]), n_free=int(ck["n_free"]),
+        factor = condense.SurfaceFactor(L_TT=np.asfortranarray(ck["L_TT_T"].T), n_free=int(ck["n_free"]),
                                         stats=json.loads(str(ck["stats"])))
         resumed.append("factor")
         timings["assemble"] = 0.0
@@ -176,7 +176,9 @@ def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, 
         del K
         timings["factor"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        _save_npz(factor_ck, L_TT=factor.L_TT, n_free=factor.n_free, stats=json.dumps(factor.stats))
+        # saved transposed: the block is column-major with a leading dimension > nt (a view into
+        # CHOLMOD's supernode), and numpy writes a non-contiguous array in C order, row by row
+        _save_npz(factor_ck, L_TT_T=factor.L_TT.T, n_free=factor.n_free, stats=json.dumps(factor.stats))
         timings["checkpoint"] = time.perf_counter() - t0
     _checkpoint_reached("factor")
     bar.update()

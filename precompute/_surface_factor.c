@@ -7,7 +7,7 @@
  *
  *   pmask_factor   A (lower CSC, already permuted: interior, free surface, fixed surface)
  *                  -> supernodal L = chol(A) in that order (the interior reordered by
- *                  constrained AMD, which sees the surface coupling), and a pointer to the
+ *                  METIS), and a pointer to the
  *                  trailing nt x nt block of L, column-major with leading dimension nt.
  *                  When the trailing columns are one supernode (always, for a connected
  *                  surface: the block is dense) that pointer is CHOLMOD's own storage.
@@ -58,14 +58,15 @@ void pmask_free(pm_factor *f)
 
 /* Returns 0 and *out (a handle) and *block on success; k > 0 if A is not positive definite at
  * column k-1; -1 on a CHOLMOD failure (out of memory, say).  times: order, analyse, numeric,
- * locate/copy, nnz(L) as stored, 1 if the block is CHOLMOD's own storage (0: gathered). */
-int pmask_factor(long n, long *Ap, long *Ai, double *Ax, long nt, int constrained, pm_factor **out,
+ * locate/copy, nnz(L) as stored, 1 if the block is CHOLMOD's own storage (0: gathered), the interior
+ * order used (0 as given, 1 constrained AMD, 2 METIS). */
+int pmask_factor(long n, long *Ap, long *Ai, double *Ax, long nt, int reorder, pm_factor **out,
                  double **block, long *ld, double *times)
 {
     cholmod_sparse A;
     pm_factor *f = calloc(1, sizeof *f);
     long off = n - nt, k, s, j, r, *Perm = NULL;
-    int status = 0;
+    int status = 0, ordered = 0;
     double t0;
 
     *out = NULL;
@@ -92,30 +93,50 @@ int pmask_factor(long n, long *Ap, long *Ai, double *Ax, long nt, int constraine
     A.packed = 1;
 
     t0 = now();
-    if (constrained) {
-        /* constrained AMD: interior (set 0) before the surface (set 1), ordered with the
-         * surface coupling in view, which lowers the interior's update to the dense block */
+    if (reorder && off > 0) {
+        /* the interior by METIS nested dissection of its own graph (A_II); measured on the kidney
+         * it leaves 20-35 % fewer flops to the interior's elimination and its update of the
+         * dense block than AMD or constrained AMD; constrained AMD if METIS fails */
         long *Cmember = malloc(sizeof(long) * n), *P = malloc(sizeof(long) * n);
+        cholmod_sparse *Aii = cholmod_l_allocate_sparse(off, off, Ap[off], 1, 1, -1, CHOLMOD_PATTERN, &f->c);
         Perm = malloc(sizeof(long) * n);
-        if (Cmember && P && Perm) {
-            for (k = 0; k < n; k++)
-                Cmember[k] = k >= off;
-            if (cholmod_l_camd(&A, NULL, 0, Cmember, P, &f->c)) {
-                for (k = 0, j = 0; k < n; k++)
-                    if (P[k] < off)
-                        Perm[j++] = P[k];
+        if (Cmember && P && Perm && Aii) {
+            long *Bp = Aii->p, *Bi = Aii->i, q = 0;
+            for (j = 0; j < off; j++) {      /* rows are sorted: the interior ones come first */
+                Bp[j] = q;
+                for (k = Ap[j]; k < Ap[j + 1] && Ai[k] < off; k++)
+                    Bi[q++] = Ai[k];
+            }
+            Bp[off] = q;
+            f->c.metis_nswitch = 0;          /* METIS 5 does not have the 4.0.1 fault this avoids */
+            if (cholmod_l_metis(Aii, NULL, 0, 0, Perm, &f->c)) {
+                ordered = 2;
+            } else {
+                f->c.status = CHOLMOD_OK;
+                for (k = 0; k < n; k++)
+                    Cmember[k] = k >= off;
+                if (cholmod_l_camd(&A, NULL, 0, Cmember, P, &f->c)) {
+                    for (k = 0, j = 0; k < n; k++)
+                        if (P[k] < off)
+                            Perm[j++] = P[k];
+                    ordered = 1;
+                }
+            }
+            if (ordered)
                 for (k = off; k < n; k++)
                     Perm[k] = k;   /* the surface keeps its order */
-            } else {
-                free(Perm);
-                Perm = NULL;
-            }
         }
+        if (!ordered) {
+            free(Perm);
+            Perm = NULL;
+        }
+        cholmod_l_free_sparse(&Aii, &f->c);
         free(Cmember);
         free(P);
     }
     f->c.method[0].ordering = Perm ? CHOLMOD_GIVEN : CHOLMOD_NATURAL;
     times[0] = now() - t0;
+    times[6] = ordered;
 
     t0 = now();
     f->L = cholmod_l_analyze_p(&A, Perm, NULL, 0, &f->c);

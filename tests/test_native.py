@@ -28,11 +28,12 @@ def lower(A) -> sp.csc_matrix:
     return low
 
 
-@pytest.mark.parametrize("constrained", [True, False])
-def test_trailing_block_is_the_cholesky_factor_of_the_schur_complement(constrained):
+@pytest.mark.parametrize("reorder", [True, False])
+def test_trailing_block_is_the_cholesky_factor_of_the_schur_complement(reorder):
     A = laplacian_3d(7, 0)
     nt = 60  # the last 60 grid points: a slab, coupled through the interior into one dense block
-    L_TT, stats = native.factor(lower(A), nt, constrained=constrained)
+    L_TT, stats = native.factor(lower(A), nt, reorder=reorder)
+    assert stats["interior_order"] == ("METIS" if reorder else "given")
     assert stats["in_place"] and not L_TT.flags.owndata  # CHOLMOD's own storage, no copy
     expect = np.linalg.cholesky(schur(A.toarray(), nt))
     assert np.abs(np.tril(L_TT) - expect).max() < 1e-12 * np.abs(expect).max()
