@@ -80,7 +80,7 @@ def main() -> None:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # GiB
     res = {"size": size, "wall_s": wall, "peak_rss_gib": peak, **{k: s[k] for k in (
         "timings", "volume_vertices", "tets", "surface_vertices", "free", "fixed", "contact", "size_bytes", "dofs",
-        "backend")}}
+        "backend", "factor_stats")}}
     res["dense_floor_s"] = dense_floor(3 * s["contact"])
     if "--baseline" in sys.argv:
         res["baseline"] = baseline(out)

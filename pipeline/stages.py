@@ -331,4 +331,4 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             "volume_vertices": len(model.points), "tets": len(model.tets), "surface_vertices": len(spoints),
             "free": len(reg.free), "fixed": len(reg.fixed), "contact": len(reg.contact),
             "size_bytes": out.stat().st_size, "dofs": factor_stats.get("dofs"),
-            "backend": factor_stats.get("backend"), "element": spec.element}
+            "backend": factor_stats.get("backend"), "element": spec.element, "factor_stats": factor_stats}

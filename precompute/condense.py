@@ -164,6 +164,7 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     return SurfaceFactor(L_TT=L_TT, n_free=nf,
                          stats={"dofs": n, "nnz_L": nnz, "backend": backend, "order_s": t_order,
                                 "interior_order": st["interior_order"] if backend == "native" else "AMD",
+                                "numeric_s": st["numeric_s"] if backend == "native" else None,
                                 "factor_s": t_factor, "extract_s": t_extract})
 
 
@@ -254,6 +255,7 @@ def greens_functions(factor: SurfaceFactor, areas: np.ndarray, *, overwrite: boo
             raise CondensationError(f"the condensed surface stiffness is singular (LAPACK info={info})")
         log.info("greens (native): trtri %.2fs, reactions %.2fs, lauum %.2fs, mirror %.2fs",
                  times["trtri_s"], times["reactions_s"], times["lauum_s"], times["mirror_s"])
+        factor.stats["greens_s"] = times
         return Xi, reactions
     W, info = lapack.dtrtri(np.asfortranarray(L_TT[:nf, :nf]), lower=1, overwrite_c=1)
     if info != 0:
