@@ -9,7 +9,7 @@ SRC="$(dirname "$0")/../precompute/_surface_factor.c"
 DEST="$VENV/lib/pmask/libpmask_surface_factor.so"
 mkdir -p "$(dirname "$DEST")"
 if [ -f /usr/include/suitesparse/cholmod.h ] && command -v gcc >/dev/null 2>&1; then
-  if gcc -O2 -Wall -shared -fPIC -I/usr/include/suitesparse "$SRC" -lcholmod -llapack -lblas \
+  if gcc -O2 -Wall -shared -fPIC -pthread -I/usr/include/suitesparse "$SRC" -lcholmod -llapack -lblas \
        -o "$DEST.tmp" 2>"$DEST.log"; then
     mv "$DEST.tmp" "$DEST"
     rm -f "$DEST.log"
