@@ -31,6 +31,10 @@ void dtrmm_(const char *side, const char *uplo, const char *transa, const char *
             const int *n, const double *alpha, const double *a, const int *lda, double *b, const int *ldb,
             size_t, size_t, size_t, size_t);
 
+/* bumped whenever a signature below changes; precompute/native.py refuses a library built from
+ * another version (a stale build in the venv) instead of calling it with the wrong arguments */
+int pmask_abi_version(void) { return 2; }
+
 typedef struct {
     cholmod_common c;
     cholmod_factor *L;

@@ -18,6 +18,9 @@ import numpy as np
 LIBRARY = Path(sys.prefix) / "lib" / "pmask" / "libpmask_surface_factor.so"
 SOURCE = Path(__file__).with_name("_surface_factor.c")
 
+#: must equal pmask_abi_version() in _surface_factor.c
+ABI_VERSION = 2
+
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
 _c_long, _c_int, _p = ctypes.c_long, ctypes.c_int, ctypes.c_void_p
@@ -29,7 +32,14 @@ def _lib():
         return None
     try:
         lib = ctypes.CDLL(str(LIBRARY))
-    except OSError:
+        abi = lib.pmask_abi_version()
+    except (OSError, AttributeError):
+        abi = None
+    if abi != ABI_VERSION:
+        import warnings
+
+        warnings.warn(f"{LIBRARY} is from another version of this code (stale build); run make venv to rebuild "
+                      "it. Using the slower pip-only route meanwhile.", RuntimeWarning, stacklevel=2)
         return None
     lib.pmask_factor.argtypes = [_c_long, _I64, _I64, _F64, _c_long, _c_int, ctypes.POINTER(_p),
                                  ctypes.POINTER(ctypes.POINTER(ctypes.c_double)), ctypes.POINTER(_c_long), _F64]

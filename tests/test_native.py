@@ -80,3 +80,24 @@ def test_not_positive_definite_is_reported():
 def test_bad_block_is_refused():
     with pytest.raises(ValueError, match="column-major"):
         native.greens(np.zeros((6, 6)), 3, np.ones(3))  # C order
+
+
+def test_stale_library_is_refused(tmp_path, monkeypatch):
+    """A library built from another version of the C source is not called (wrong signatures would
+    crash); the precompute falls back to the pip-only route with a warning that says what to do."""
+    import shutil
+    import subprocess
+
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    src = tmp_path / "old.c"
+    src.write_text("int pmask_abi_version(void) { return 1; }\n")
+    lib = tmp_path / "libold.so"
+    subprocess.run(["gcc", "-shared", "-fPIC", str(src), "-o", str(lib)], check=True)
+    monkeypatch.setattr(native, "LIBRARY", lib)
+    native._lib.cache_clear()
+    try:
+        with pytest.warns(RuntimeWarning, match="make venv"):
+            assert not native.available()
+    finally:
+        native._lib.cache_clear()
