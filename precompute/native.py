@@ -63,9 +63,12 @@ class _Owner:
         self._lib, self._handle = lib, handle
 
     def __del__(self):
-        if self._handle:
-            self._lib.pmask_free(self._handle)
-            self._handle = None
+        handle, self._handle = self._handle, None
+        if handle:
+            try:
+                self._lib.pmask_free(handle)
+            except Exception:  # interpreter shutdown: the process's memory goes with it
+                pass
 
 
 def factor(A, nt: int, *, reorder: bool = True):
