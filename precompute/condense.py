@@ -95,7 +95,8 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
 def cholmod_backend(prefer: str | None = None) -> str:
     """'native' (our C over Debian's CHOLMOD and threaded OpenBLAS, built by ``make venv``) when
     installed, else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS; pip-only, slower).
-    ``PMASK_CHOLMOD=cvxopt`` forces the latter."""
+    ``PMASK_CHOLMOD=cvxopt`` forces the latter (and SciPy's LAPACK for the inverse: the whole
+    pip-only route, as on a machine without SuiteSparse)."""
     from precompute import native
 
     choice = prefer or os.environ.get("PMASK_CHOLMOD")
@@ -227,7 +228,8 @@ def greens_functions(factor: SurfaceFactor, areas: np.ndarray, *, overwrite: boo
     areas : vertex areas a of the free (contact) vertices, in the order of ``free``.
     overwrite : work in the factor's storage (it is consumed: ``factor.L_TT`` becomes None).
     lapack_route : 'native' (our C: in place, one pass for the mirror and the scaling; the
-        default when built) or 'scipy' (SciPy's LAPACK on copies); same numbers.
+        default when built, unless ``PMASK_CHOLMOD=cvxopt`` asks for the pip-only route) or
+        'scipy' (SciPy's LAPACK on copies); same numbers.
 
     Returns
     -------
@@ -246,7 +248,8 @@ def greens_functions(factor: SurfaceFactor, areas: np.ndarray, *, overwrite: boo
     L_TT = factor.L_TT if overwrite else np.array(factor.L_TT, order="F")
     if overwrite:
         factor.L_TT = None
-    route = lapack_route or ("native" if native.available() else "scipy")
+    pip_only = os.environ.get("PMASK_CHOLMOD") == "cvxopt"  # behave as without SuiteSparse
+    route = lapack_route or ("native" if native.available() and not pip_only else "scipy")
     if route == "native":
         # W = L_FF⁻¹ (trtri), reactions L_UF W (trmm), G = Wᵀ W (lauum), Ξ = G diag(a) in one pass;
         # Ξ and the reactions are views of the factor's storage (row stride > row length)
