@@ -351,8 +351,8 @@ def markdown(res: dict) -> str:
                       f"ordering, symbolic analysis) {rest:.2f} s."]
     c = res["cvxopt_default"]
     t = c["timings"]
-    L += ["", f"The same default kidney with the pip-only CHOLMOD (cvxopt, single-threaded BLAS; used when "
-              f"SuiteSparse cannot be installed): factor {t['factor']:.2f} s, total {sum(t.values()):.2f} s. "
+    L += ["", f"The same default kidney on the pip-only route (cvxopt's CHOLMOD with a single-threaded BLAS, "
+              f"SciPy's LAPACK on copies; what runs when SuiteSparse cannot be installed): factor {t['factor']:.2f} s, total {sum(t.values()):.2f} s. "
               f"Rows above: CHOLMOD backend `{res['precompute'][0].get('backend')}`."]
     s = res["scaling"]
     L += ["", f"Scaling: total time ∝ n_free^{s['time_vs_free_exponent']:.2f}, "
