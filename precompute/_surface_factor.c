@@ -129,7 +129,6 @@ int pmask_factor(long n, long *Ap, long *Ai, double *Ax, long nt, int reorder, p
                     Bi[q++] = Ai[k];
             }
             Bp[off] = q;
-            f->c.metis_nswitch = 0;          /* METIS 5 does not have the 4.0.1 fault this avoids */
             if (cholmod_l_metis(Aii, NULL, 0, 0, Perm, &f->c)) {
                 ordered = 2;
             } else {
