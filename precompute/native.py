@@ -74,8 +74,8 @@ class _Owner:
 def factor(A, nt: int, *, reorder: bool = True):
     """Supernodal Cholesky of the lower-triangular CSC ``A`` in its order, the interior part (all
     but the last ``nt``) reordered by METIS when ``reorder`` (constrained AMD if METIS fails);
-    returns the trailing (nt, nt) block of L as a column-major view into CHOLMOD's storage, and
-    timings.
+    returns the trailing (nt, nt) block of L as a column-major view into CHOLMOD's storage (into a
+    gathered copy when those columns span several supernodes: a body in pieces), and timings.
 
     Raises ``ArithmeticError(column)`` when A is not positive definite, ``MemoryError`` when
     CHOLMOD fails otherwise.
@@ -107,10 +107,11 @@ def greens(L_TT: np.ndarray, nf: int, areas: np.ndarray):
     place: ``L_TT`` ((nt, nt), column-major with any leading dimension) is overwritten and the
     results are views of it (Ξ = its transposed top-left block).
     Returns Xi, reactions, timings, info (LAPACK's: k > 0 means singular at k)."""
+    if L_TT.ndim != 2 or L_TT.shape[0] != L_TT.shape[1]:
+        raise ValueError("L_TT must be a square, writeable, column-major float64 array")
     nt = L_TT.shape[0]
     ld = L_TT.strides[1] // 8
-    if not (L_TT.dtype == np.float64 and L_TT.flags.writeable and L_TT.strides[0] == 8 and ld >= nt
-            and L_TT.shape == (nt, nt)):
+    if not (L_TT.dtype == np.float64 and L_TT.flags.writeable and L_TT.strides[0] == 8 and ld >= nt):
         raise ValueError("L_TT must be a square, writeable, column-major float64 array")
     a = np.ascontiguousarray(areas, dtype=np.float64)
     if len(a) != nf:
