@@ -73,7 +73,7 @@ class _Owner:
 
 def factor(A, nt: int, *, reorder: bool = True):
     """Supernodal Cholesky of the lower-triangular CSC ``A`` in its order, the interior part (all
-    but the last ``nt``) reordered by METIS when ``reorder`` (constrained AMD if METIS fails);
+    but the last ``nt``) reordered by METIS when ``reorder`` (AMD if METIS fails);
     returns the trailing (nt, nt) block of L as a column-major view into CHOLMOD's storage (into a
     gathered copy when those columns span several supernodes: a body in pieces), and timings.
 
@@ -99,7 +99,7 @@ def factor(A, nt: int, *, reorder: bool = True):
     L_TT = np.ndarray((nt, nt), np.float64, buffer=buf, strides=(8, 8 * ld))
     return L_TT, {"order_s": times[0], "analyse_s": times[1], "numeric_s": times[2],
                   "locate_s": times[3], "stored_L": int(times[4]), "in_place": bool(times[5]),
-                  "interior_order": ("given", "constrained AMD", "METIS")[int(times[6])]}
+                  "interior_order": ("given", "AMD", "METIS")[int(times[6])]}
 
 
 def greens(L_TT: np.ndarray, nf: int, areas: np.ndarray):
