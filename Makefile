@@ -19,7 +19,7 @@ $(BIN)/.installed: pyproject.toml tools/install_cholmod.sh
 	touch $@
 
 # the C over CHOLMOD (precompute/native.py); rebuilt when its source changes
-$(NATIVE): $(BIN)/.installed precompute/_surface_factor.c tools/build_native.sh
+$(NATIVE): $(BIN)/.installed precompute/_selected_inverse.c tools/build_native.sh
 	bash tools/build_native.sh $(VENV)
 	touch $@
 

@@ -153,15 +153,13 @@ def build_mesh(spec: Spec):
 
 
 def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, bar, label):
-    """P1: assemble, factorise with the surface last (checkpointed), then Ξ by dense algebra."""
+    """P1: assemble, factorise (checkpointed), then Ξ: selected inversion, or the dense Schur complement."""
     from precompute import condense, elasticity
 
     t0 = time.perf_counter()
     factor_ck = work / "factor.npz"
     if factor_ck.exists():
-        ck = np.load(factor_ck)
-        factor = condense.SurfaceFactor(L_TT=np.asfortranarray(ck["L_TT_T"].T), n_free=int(ck["n_free"]),
-                                        stats=json.loads(str(ck["stats"])))
+        factor = condense.factor_from_arrays(np.load(factor_ck))
         resumed.append("factor")
         timings["assemble"] = 0.0
         timings["factor"] = time.perf_counter() - t0
@@ -176,9 +174,7 @@ def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, 
         del K
         timings["factor"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        # saved transposed: the block is column-major with a leading dimension > nt (a view into
-        # CHOLMOD's supernode), and numpy writes a non-contiguous array in C order, row by row
-        _save_npz(factor_ck, L_TT_T=factor.L_TT.T, n_free=factor.n_free, stats=json.dumps(factor.stats))
+        _save_npz(factor_ck, **condense.factor_arrays(factor))
         timings["checkpoint"] = time.perf_counter() - t0
     _checkpoint_reached("factor")
     bar.update()

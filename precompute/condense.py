@@ -14,21 +14,31 @@ eq. 10), so
 
 .. math::  \Xi = G\,\mathrm{diag}(a), \qquad a_i \Xi_{ij} = a_j \Xi_{ji}^T .
 
-How S is formed (the dense-algebra route): the sparse stiffness is permuted
-to ``[interior (fill-reducing order), free surface, fixed surface]`` and
-factorised by CHOLMOD's supernodal Cholesky with exactly that order.  The
-trailing block of the factor is dense; its free-surface part :math:`L_{FF}` satisfies
-:math:`L_{FF} L_{FF}^T = S`, so :math:`G = L_{FF}^{-T} L_{FF}^{-1}` by LAPACK
-(trtri + lauum).  A positive diagonal added to the fixed block makes the
-matrix definite without changing the free blocks, and the fixed rows of the
-factor give the support reactions for free: with :math:`W = L_{FF}^{-1}`,
-the nodal forces the support exerts for unit nodal loads are
-:math:`S_{UF} G = L_{UF} W`.
+Two routes, the same numbers (tested):
 
-Two routes, same numbers (tested): the native one (:mod:`precompute.native`,
-C over the system's CHOLMOD) orders the interior by METIS, uses the trailing
-block where CHOLMOD stores it and runs the LAPACK steps on it in place; the
-pip-only one (cvxopt's CHOLMOD, AMD) copies the block out and uses SciPy.
+*Selected inversion* (the native route, :mod:`precompute.native`, C over the
+system's CHOLMOD).  :math:`K_{FF}` over every unconstrained dof is factorised
+once, :math:`P K_{FF} P^T = L L^T` with a METIS nested-dissection order, and
+the surface block of its inverse is
+
+.. math::  G = E^T K_{FF}^{-1} E = W^T W, \qquad W = L^{-1} P E,
+
+with E the unit columns of the free surface dofs.  A column of W is non-zero
+only on its elimination-tree path, so with postordered supernodes each
+supernode's rows of W meet one contiguous range of surface dofs and
+:math:`W^T W` is one symmetric rank-k update (dsyrk) per supernode: ~13 Gflop
+at the default kidney against ~82 Gflop to invert the dense S (n³).
+Reactions come from the same inverse: the support's nodal forces are
+:math:`K_{UF} u_F`, and :math:`K_{UF}` touches only the free dofs next to the
+support, so those dofs join the selected set.
+
+*Dense Schur complement* (the pip-only route: cvxopt's CHOLMOD, SciPy's
+LAPACK).  The stiffness is permuted to ``[interior (AMD), free surface, fixed
+surface]``, factorised in that order, and the trailing block gives
+:math:`L_{SS} L_{SS}^T = S`, so :math:`G = L_{SS}^{-T} L_{SS}^{-1}` (trtri +
+lauum).  A positive diagonal added to the fixed block makes the matrix
+definite without changing the others, and the fixed rows of the factor give
+the reactions :math:`S_{US} G = L_{US} L_{SS}^{-1}` (code: ``L_FF``, ``L_UF``).
 """
 from __future__ import annotations
 
@@ -74,6 +84,51 @@ class SurfaceFactor:
         return np.array(self.L_TT[self.n_free:, :self.n_free])
 
 
+@dataclass
+class SparseFactor:
+    """CHOLMOD's supernodal factor of K_FF (every unconstrained dof), for selected inversion.
+
+    L : the factor's arrays (:data:`precompute.native.FACTOR_ARRAYS`).
+    want : dofs of K_FF whose block of the inverse is needed: the contact dofs (the first
+        ``n_contact``, in the order of ``free``), then the other dofs that ``coupling`` touches.
+    coupling : K_UF restricted to the ``want`` columns (3 n_fixed x len(want)): reactions = K_UF u.
+    """
+
+    L: dict
+    want: np.ndarray
+    n_contact: int
+    coupling: sp.csr_matrix
+    stats: dict = field(default_factory=dict)
+
+
+def factor_arrays(factor) -> dict:
+    """Everything a factor holds, as named arrays (for a checkpoint); :func:`factor_from_arrays` inverts it."""
+    import json
+
+    if isinstance(factor, SparseFactor):
+        c = factor.coupling
+        return {"kind": "sparse", **{f"L_{k}": v for k, v in factor.L.items()}, "want": factor.want,
+                "n_contact": factor.n_contact, "coupling_data": c.data, "coupling_indices": c.indices,
+                "coupling_indptr": c.indptr, "coupling_shape": np.array(c.shape), "stats": json.dumps(factor.stats)}
+    # saved transposed: the block is column-major (maybe strided), and numpy writes a
+    # non-contiguous array in C order, row by row
+    return {"kind": "dense", "L_TT_T": factor.L_TT.T, "n_free": factor.n_free, "stats": json.dumps(factor.stats)}
+
+
+def factor_from_arrays(ck) -> "SparseFactor | SurfaceFactor":
+    import json
+
+    from precompute import native
+
+    stats = json.loads(str(ck["stats"]))
+    if str(ck["kind"]) == "sparse":
+        coupling = sp.csr_matrix((ck["coupling_data"], ck["coupling_indices"], ck["coupling_indptr"]),
+                                 shape=tuple(ck["coupling_shape"]))
+        return SparseFactor(L={k: ck[f"L_{k}"] for k in native.FACTOR_ARRAYS}, want=ck["want"],
+                            n_contact=int(ck["n_contact"]), coupling=coupling, stats=stats)
+    return SurfaceFactor(L_TT=np.asfortranarray(ck["L_TT_T"].T), n_free=int(ck["n_free"]), stats=stats)
+
+
 def node_graph(n_vertices: int, tets: np.ndarray) -> sp.csr_matrix:
     """Vertex adjacency (with diagonal) of a tet mesh."""
     rows = np.repeat(tets, 4, axis=1).ravel()
@@ -116,15 +171,15 @@ def cholmod_backend(prefer: str | None = None) -> str:
 
 
 def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free: np.ndarray,
-                   fixed: np.ndarray, *, backend: str | None = None) -> SurfaceFactor:
-    """Factorise K with the ``free`` (contact) and ``fixed`` vertices last; return the trailing block.
+                   fixed: np.ndarray, *, backend: str | None = None) -> "SparseFactor | SurfaceFactor":
+    """Factorise the stiffness for the Green's functions of the ``free`` (contact) vertices.
 
     ``interior`` (everything to eliminate, including free surface vertices a
     probe cannot touch), ``free`` and ``fixed`` are disjoint vertex index
     arrays that together cover every vertex of the mesh (``fixed`` non-empty).
-    The interior is ordered by AMD, or with the native backend by METIS nested
-    dissection (measured: 7 % fewer flops in all at the default kidney, 19 % at
-    3,882 free vertices).
+    The native backend returns a :class:`SparseFactor` (K_FF in METIS order, for
+    selected inversion); the pip-only one a :class:`SurfaceFactor` (the dense
+    trailing block with the surface ordered last, the interior by AMD).
     """
     n_vertices = K.shape[0] // 3
     if len(fixed) == 0:
@@ -133,12 +188,11 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
             np.unique(np.concatenate([interior, free, fixed]))) != n_vertices:
         raise CondensationError("interior, free and fixed vertex sets must partition the mesh")
     backend = cholmod_backend(backend)
-    t0 = time.perf_counter()
     if backend == "native":
-        order = interior  # reordered inside, by METIS on the interior's graph
-    else:
-        graph = node_graph(n_vertices, tets)
-        order = interior[amd_order(graph[interior][:, interior])]
+        return _sparse_factor(sp.csr_matrix(K), interior, free, fixed)
+    t0 = time.perf_counter()
+    graph = node_graph(n_vertices, tets)
+    order = interior[amd_order(graph[interior][:, interior])]
     perm = np.concatenate([dofs(order), dofs(free), dofs(fixed)])
     n, nf, nu = len(perm), 3 * len(free), 3 * len(fixed)
     nt = nf + nu
@@ -148,29 +202,48 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     A = sp.tril(Kp + sp.diags(shift), format="csc")
     A.sort_indices()
     t_order = time.perf_counter() - t0
+    (indptr, indices, data), t_factor, t_extract = _factor_cvxopt(A)
     t0 = time.perf_counter()
-    if backend == "native":
-        from precompute import native
-
-        try:
-            L_TT, st = native.factor(A, nt)
-        except ArithmeticError as exc:
-            raise _singular(exc.args[0]) from None
-        t_factor, t_extract, nnz = time.perf_counter() - t0, st["locate_s"], st["stored_L"]
-        log.info("interior order: %s", st["interior_order"])
-    else:
-        (indptr, indices, data), t_factor, t_extract = _factor_cvxopt(A)
-        t0 = time.perf_counter()
-        L_TT = _trailing_block(indptr, indices, data, n, nt)
-        t_extract += time.perf_counter() - t0
-        nnz = int(indptr[-1])
-    log.info("factor (%s): %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
-             backend, n, nnz, t_order, t_factor, t_extract)
+    L_TT = _trailing_block(indptr, indices, data, n, nt)
+    t_extract += time.perf_counter() - t0
+    nnz = int(indptr[-1])
+    log.info("factor (cvxopt): %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
+             n, nnz, t_order, t_factor, t_extract)
     return SurfaceFactor(L_TT=L_TT, n_free=nf,
-                         stats={"dofs": n, "nnz_L": nnz, "backend": backend, "order_s": t_order,
-                                "interior_order": st["interior_order"] if backend == "native" else "AMD",
-                                "numeric_s": st["numeric_s"] if backend == "native" else None,
-                                "factor_s": t_factor, "extract_s": t_extract})
+                         stats={"dofs": n, "nnz_L": nnz, "backend": backend, "route": "dense Schur complement",
+                                "order": "AMD", "order_s": t_order, "factor_s": t_factor, "extract_s": t_extract})
+
+
+def _sparse_factor(K: sp.csr_matrix, interior, free, fixed) -> SparseFactor:
+    from precompute import native
+
+    t0 = time.perf_counter()
+    keep = np.sort(np.concatenate([dofs(interior), dofs(free)]))  # the unconstrained dofs F
+    pos = np.full(K.shape[0], -1, np.int64)
+    pos[keep] = np.arange(len(keep))
+    KF = K[keep]
+    A = sp.tril(KF[:, keep], format="csc")
+    A.sort_indices()
+    K_UF = K[dofs(fixed)][:, keep]
+    contact = pos[dofs(free)]
+    touched = np.flatnonzero(np.asarray(abs(K_UF).sum(axis=0)).ravel())
+    want = np.concatenate([contact, np.setdiff1d(touched, contact)])
+    coupling = sp.csr_matrix(K_UF[:, want])
+    t_setup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    try:
+        L, st = native.factor(A)
+    except ArithmeticError as exc:
+        raise _singular(exc.args[0]) from None
+    t_factor = time.perf_counter() - t0
+    log.info("factor (native, %s): %d dofs, nnz(L) = %.3g, %.2f Gflop, %.2fs", st["order"], len(keep),
+             st["stored_L"], st["factor_flops"] / 1e9, t_factor)
+    return SparseFactor(L=L, want=want, n_contact=len(contact), coupling=coupling,
+                        stats={"dofs": len(keep), "nnz_L": st["stored_L"], "backend": "native",
+                               "route": "selected inversion", "order": st["order"], "setup_s": t_setup,
+                               "analyse_s": st["analyse_s"], "numeric_s": st["numeric_s"], "factor_s": t_factor,
+                               "factor_flops": st["factor_flops"], "supernodes": st["supernodes"],
+                               "selected_dofs": len(want)})
 
 
 def _singular(column) -> CondensationError:
@@ -222,48 +295,48 @@ def _trailing_block(indptr, indices, data, n: int, nt: int) -> np.ndarray:
     return L_TT
 
 
-def greens_functions(factor: SurfaceFactor, areas: np.ndarray, *, overwrite: bool = True,
-                     lapack_route: str | None = None):
+def greens_functions(factor: "SparseFactor | SurfaceFactor", areas: np.ndarray, *, overwrite: bool = True):
     r"""Green's functions Ξ (traction → displacement) and support reactions.
 
     Parameters
     ----------
     factor : from :func:`surface_factor`.
     areas : vertex areas a of the free (contact) vertices, in the order of ``free``.
-    overwrite : work in the factor's storage (it is consumed: ``factor.L_TT`` becomes None).
-    lapack_route : 'native' (our C: in place, one pass for the mirror and the scaling; the
-        default when built, unless ``PMASK_CHOLMOD=cvxopt`` asks for the pip-only route) or
-        'scipy' (SciPy's LAPACK on copies); same numbers.
+    overwrite : a dense factor's block may be worked on in place (it is consumed:
+        ``factor.L_TT`` becomes None).
 
     Returns
     -------
     Xi : (3 n, 3 n) with block (i, j) the displacement of vertex i per unit traction at
-        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)`.  With the native route Ξ and the
-        reactions are (non-contiguous) views of the factor's storage: no 3n x 3n copy.
+        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)` (with the native route a view of a slightly
+        larger array that also holds the rows the reactions need).
     reactions : (3 n_fixed, 3 n), the nodal forces the support exerts per unit traction
         at vertex j (equilibrium: they sum to :math:`-a_j p_j`).
     """
-    from precompute import native
-
-    nf = factor.n_free
     a = np.repeat(np.asarray(areas, float), 3)
+    if isinstance(factor, SparseFactor):
+        from precompute import native
+
+        nc = factor.n_contact
+        if len(a) != nc:
+            raise CondensationError(f"{len(a) // 3} vertex areas for {nc // 3} free vertices")
+        scale = np.concatenate([a, np.ones(len(factor.want) - nc)])
+        D, st = native.selected_inverse(factor.L, factor.want, scale)
+        t0 = time.perf_counter()
+        rows = np.unique(factor.coupling.indices)  # the dofs next to the support
+        reactions = factor.coupling[:, rows] @ D[rows, :nc]  # K_UF u for every load
+        st["reactions_s"] = time.perf_counter() - t0
+        log.info("greens (selected inversion): %.1f Gflop, solve %.2fs, syrk %.2fs, permute %.2fs, "
+                 "reactions %.2fs", st["flops"] / 1e9, st["solve_s"], st["syrk_s"], st["permute_s"],
+                 st["reactions_s"])
+        factor.stats["greens_s"] = st
+        return D[:nc, :nc], np.ascontiguousarray(reactions)
+    nf = factor.n_free
     if len(a) != nf:
         raise CondensationError(f"{len(a) // 3} vertex areas for {nf // 3} free vertices")
     L_TT = factor.L_TT if overwrite else np.array(factor.L_TT, order="F")
     if overwrite:
         factor.L_TT = None
-    pip_only = os.environ.get("PMASK_CHOLMOD") == "cvxopt"  # behave as without SuiteSparse
-    route = lapack_route or ("native" if native.available() and not pip_only else "scipy")
-    if route == "native":
-        # W = L_FF⁻¹ (trtri), reactions L_UF W (trmm), G = Wᵀ W (lauum), Ξ = G diag(a) in one pass;
-        # Ξ and the reactions are views of the factor's storage (row stride > row length)
-        Xi, reactions, times, info = native.greens(L_TT, nf, a)
-        if info != 0:
-            raise CondensationError(f"the condensed surface stiffness is singular (LAPACK info={info})")
-        log.info("greens (native): trtri %.2fs, reactions %.2fs, lauum %.2fs, mirror %.2fs",
-                 times["trtri_s"], times["reactions_s"], times["lauum_s"], times["mirror_s"])
-        factor.stats["greens_s"] = times
-        return Xi, reactions
     W, info = lapack.dtrtri(np.asfortranarray(L_TT[:nf, :nf]), lower=1, overwrite_c=1)
     if info != 0:
         raise CondensationError(f"the condensed surface stiffness is singular (LAPACK trtri info={info})")

@@ -1,9 +1,9 @@
-"""ctypes binding of ``_surface_factor.c``: the P1 Green's-function stage without copies.
+"""ctypes binding of ``_selected_inverse.c``: the P1 Green's-function stage by selected inversion.
 
-The shared library is compiled by ``tools/install_cholmod.sh`` (``make venv``) when Debian's
+The shared library is compiled by ``tools/build_native.sh`` (``make venv``) when Debian's
 SuiteSparse headers are present; :func:`available` says whether it was.  Without it
-:mod:`precompute.condense` runs the same algebra through scikit-sparse or cvxopt and SciPy's
-LAPACK, with the same numbers (tested).
+:mod:`precompute.condense` forms the dense Schur complement through cvxopt's CHOLMOD and inverts it
+with SciPy's LAPACK: the same numbers (tested), more flops.
 """
 from __future__ import annotations
 
@@ -15,11 +15,14 @@ from pathlib import Path
 import numpy as np
 
 #: where ``make venv`` puts the compiled library (inside the venv, never in the source tree)
-LIBRARY = Path(sys.prefix) / "lib" / "pmask" / "libpmask_surface_factor.so"
-SOURCE = Path(__file__).with_name("_surface_factor.c")
+LIBRARY = Path(sys.prefix) / "lib" / "pmask" / "libpmask_selinv.so"
+SOURCE = Path(__file__).with_name("_selected_inverse.c")
 
-#: must equal pmask_abi_version() in _surface_factor.c
-ABI_VERSION = 2
+#: must equal pmask_abi_version() in _selected_inverse.c
+ABI_VERSION = 3
+
+#: the supernodal factor's arrays, in pmask_factor_arrays' order
+FACTOR_ARRAYS = ("super", "pi", "px", "s", "x", "perm")
 
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
@@ -41,11 +44,13 @@ def _lib():
         warnings.warn(f"{LIBRARY} is from another version of this code (stale build); run make venv to rebuild "
                       "it. Using the slower pip-only route meanwhile.", RuntimeWarning, stacklevel=2)
         return None
-    lib.pmask_factor.argtypes = [_c_long, _I64, _I64, _F64, _c_long, _c_int, ctypes.POINTER(_p),
-                                 ctypes.POINTER(ctypes.POINTER(ctypes.c_double)), ctypes.POINTER(_c_long), _F64]
+    lib.pmask_factor.argtypes = [_c_long, _I64, _I64, _F64, ctypes.POINTER(_p), _F64]
     lib.pmask_factor.restype = _c_int
-    lib.pmask_greens.argtypes = [_p, _c_long, _c_long, _c_long, _F64, _F64]
-    lib.pmask_greens.restype = _c_int
+    lib.pmask_factor_arrays.argtypes = [_p, _I64, ctypes.POINTER(_p)]
+    lib.pmask_factor_arrays.restype = None
+    lib.pmask_selinv.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _F64, _I64, _c_long, _I64, _F64,
+                                 _p, _F64]
+    lib.pmask_selinv.restype = _c_int
     lib.pmask_free.argtypes = [_p]
     lib.pmask_free.restype = None
     return lib
@@ -57,7 +62,7 @@ def available() -> bool:
 
 
 class _Owner:
-    """Keeps CHOLMOD's factor alive while a numpy view of its trailing block exists."""
+    """Keeps CHOLMOD's factor alive while numpy views of its arrays exist."""
 
     def __init__(self, lib, handle):
         self._lib, self._handle = lib, handle
@@ -71,55 +76,70 @@ class _Owner:
                 pass
 
 
-def factor(A, nt: int, *, reorder: bool = True):
-    """Supernodal Cholesky of the lower-triangular CSC ``A`` in its order, the interior part (all
-    but the last ``nt``) reordered by METIS when ``reorder`` (AMD if METIS fails);
-    returns the trailing (nt, nt) block of L as a column-major view into CHOLMOD's storage (into a
-    gathered copy when those columns span several supernodes: a body in pieces), and timings.
+def _view(address: int, dtype, count: int, owner) -> np.ndarray:
+    ctype = ctypes.c_double if dtype == np.float64 else ctypes.c_int64
+    buf = (ctype * max(count, 1)).from_address(address)
+    buf._owner = owner  # freed with the last view
+    return np.frombuffer(buf, dtype=dtype, count=count)
 
-    Raises ``ArithmeticError(column)`` when A is not positive definite, ``MemoryError`` when
-    CHOLMOD fails otherwise.
+
+def factor(A):
+    """CHOLMOD's supernodal Cholesky P A Pᵀ = L Lᵀ of the lower-triangular CSC ``A`` (METIS nested
+    dissection, AMD if METIS fails; supernodes postordered).
+
+    Returns the factor as a dict of numpy arrays (:data:`FACTOR_ARRAYS`: views into CHOLMOD's storage,
+    kept alive by the views) and stats.  Raises ``ArithmeticError(column)`` when A is not positive
+    definite, ``MemoryError`` when CHOLMOD fails otherwise.
     """
     lib = _lib()
     n = A.shape[0]
     indptr = np.ascontiguousarray(A.indptr, dtype=np.int64)
     indices = np.ascontiguousarray(A.indices, dtype=np.int64)
     data = np.ascontiguousarray(A.data, dtype=np.float64)
-    handle, block, ld, times = _p(), ctypes.POINTER(ctypes.c_double)(), _c_long(), np.zeros(7)
-    status = lib.pmask_factor(n, indptr, indices, data, nt, int(reorder), ctypes.byref(handle),
-                              ctypes.byref(block), ctypes.byref(ld), times)
+    handle, times = _p(), np.zeros(5)
+    status = lib.pmask_factor(n, indptr, indices, data, ctypes.byref(handle), times)
     if status > 0:
         raise ArithmeticError(status - 1)
     if status < 0:
         raise MemoryError("CHOLMOD could not factorise the stiffness matrix (out of memory?)")
     owner = _Owner(lib, handle)
-    ld = ld.value
-    buf = (ctypes.c_double * ((nt - 1) * ld + nt)).from_address(ctypes.addressof(block.contents))
-    buf._owner = owner  # freed with the last view
-    L_TT = np.ndarray((nt, nt), np.float64, buffer=buf, strides=(8, 8 * ld))
-    return L_TT, {"order_s": times[0], "analyse_s": times[1], "numeric_s": times[2],
-                  "locate_s": times[3], "stored_L": int(times[4]), "in_place": bool(times[5]),
-                  "interior_order": ("given", "AMD", "METIS")[int(times[6])]}
+    sizes, ptrs = np.zeros(3, np.int64), (_p * 6)()
+    lib.pmask_factor_arrays(handle, sizes, ptrs)
+    nsuper, ns, nx = (int(v) for v in sizes)
+    counts = (nsuper + 1, nsuper + 1, nsuper + 1, ns, nx, n)
+    arrays = {name: _view(ptrs[k], np.float64 if name == "x" else np.int64, counts[k], owner)
+              for k, name in enumerate(FACTOR_ARRAYS)}
+    return arrays, {"analyse_s": times[0], "numeric_s": times[1], "stored_L": int(times[2]),
+                    "order": ("given", "AMD", "METIS")[int(times[3])], "factor_flops": float(times[4]),
+                    "supernodes": nsuper}
 
 
-def greens(L_TT: np.ndarray, nf: int, areas: np.ndarray):
-    """Ξ = (L_FF L_FFᵀ)⁻¹ diag(a) and reactions (L_UF L_FF⁻¹) diag(a) from the trailing block, in
-    place: ``L_TT`` ((nt, nt), column-major with any leading dimension) is overwritten and the
-    results are views of it (Ξ = its transposed top-left block).
-    Returns Xi, reactions, timings, info (LAPACK's: k > 0 means singular at k)."""
-    if L_TT.ndim != 2 or L_TT.shape[0] != L_TT.shape[1]:
-        raise ValueError("L_TT must be a square, writeable, column-major float64 array")
-    nt = L_TT.shape[0]
-    ld = L_TT.strides[1] // 8
-    if not (L_TT.dtype == np.float64 and L_TT.flags.writeable and L_TT.strides[0] == 8 and ld >= nt):
-        raise ValueError("L_TT must be a square, writeable, column-major float64 array")
-    a = np.ascontiguousarray(areas, dtype=np.float64)
-    if len(a) != nf:
-        raise ValueError(f"{len(a)} areas for {nf} free dofs")
-    times = np.zeros(4)
-    info = _lib().pmask_greens(L_TT.ctypes.data, ld, nt, nf, a, times)
-    return L_TT[:nf, :nf].T, L_TT[nf:, :nf], {"trtri_s": times[0], "reactions_s": times[1], "lauum_s": times[2],
-                                              "mirror_s": times[3]}, info
+def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray):
+    """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j from the supernodal factor ``L`` (:func:`factor`'s
+    arrays, or the same loaded from a checkpoint): Wᵀ W with W = L⁻¹ P E, one dsyrk per supernode.
+
+    Returns X ((nw, nw), C order) and timings/counts.
+    """
+    lib = _lib()
+    arr = {k: np.ascontiguousarray(L[k], dtype=np.float64 if k == "x" else np.int64) for k in FACTOR_ARRAYS}
+    n, nsuper = len(arr["perm"]), len(arr["super"]) - 1
+    want = np.ascontiguousarray(want, dtype=np.int64)
+    scale = np.ascontiguousarray(scale, dtype=np.float64)
+    nw = len(want)
+    if scale.shape != (nw,):
+        raise ValueError(f"{len(scale)} scale factors for {nw} wanted dofs")
+    D = np.zeros((nw, nw))
+    times = np.zeros(6)
+    status = lib.pmask_selinv(n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
+                              nw, want, scale, D.ctypes.data, times)
+    if status == -2:
+        raise ValueError("wanted dofs must be distinct indices of the factorised matrix")
+    if status == -3:
+        raise ValueError("the factor's supernodes are not postordered")
+    if status != 0:
+        raise MemoryError("out of memory in the selected inversion")
+    return D, {"setup_s": times[0], "solve_s": times[1], "syrk_s": times[2], "permute_s": times[3],
+               "flops": float(times[4]), "W_doubles": int(times[5])}
 
 
 def cholmod_version() -> str | None:

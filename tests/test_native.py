@@ -16,70 +16,84 @@ def laplacian_3d(k: int, seed: int) -> sp.csc_matrix:
     return (L + sp.diags(np.random.default_rng(seed).uniform(0.1, 1.0, k ** 3))).tocsc()
 
 
-def schur(A: np.ndarray, nt: int) -> np.ndarray:
-    n = A.shape[0]
-    I, T = slice(0, n - nt), slice(n - nt, n)
-    return A[T, T] - A[T, I] @ np.linalg.solve(A[I, I], A[I, T])
-
-
 def lower(A) -> sp.csc_matrix:
     low = sp.tril(A, format="csc")
     low.sort_indices()
     return low
 
 
-@pytest.mark.parametrize("reorder", [True, False])
-def test_trailing_block_is_the_cholesky_factor_of_the_schur_complement(reorder):
+def dense_factor(L: dict) -> np.ndarray:
+    """The supernodal arrays read back into a dense lower-triangular L."""
+    n = len(L["perm"])
+    out = np.zeros((n, n))
+    for s in range(len(L["super"]) - 1):
+        k1, k2 = L["super"][s], L["super"][s + 1]
+        rows = L["s"][L["pi"][s]:L["pi"][s + 1]]
+        block = L["x"][L["px"][s]:L["px"][s] + len(rows) * (k2 - k1)].reshape(k2 - k1, len(rows)).T
+        out[np.ix_(rows, np.arange(k1, k2))] = block
+    return np.tril(out)
+
+
+def test_factor_arrays_are_the_cholesky_factor_in_metis_order():
     A = laplacian_3d(7, 0)
-    nt = 60  # the last 60 grid points: a slab, coupled through the interior into one dense block
-    L_TT, stats = native.factor(lower(A), nt, reorder=reorder)
-    assert stats["interior_order"] == ("METIS" if reorder else "given")
-    assert stats["in_place"] and not L_TT.flags.owndata  # CHOLMOD's own storage, no copy
-    expect = np.linalg.cholesky(schur(A.toarray(), nt))
-    assert np.abs(np.tril(L_TT) - expect).max() < 1e-12 * np.abs(expect).max()
-    assert stats["stored_L"] > 0
+    L, stats = native.factor(lower(A))
+    assert stats["order"] == "METIS" and stats["supernodes"] > 1
+    assert not L["x"].flags.owndata  # CHOLMOD's own storage, no copy
+    p = L["perm"]
+    assert sorted(p) == list(range(A.shape[0])) and np.any(p != np.arange(A.shape[0]))
+    Ld = dense_factor(L)
+    Ap = A.toarray()[np.ix_(p, p)]
+    assert np.abs(Ld @ Ld.T - Ap).max() < 1e-12 * np.abs(Ap).max()
 
 
-def test_disconnected_trailing_block_is_copied():
-    """Two decoupled bodies: the trailing columns span several supernodes and are gathered."""
+@pytest.mark.parametrize("k, nw, seed", [(7, 60, 1), (6, 216, 2), (5, 1, 3), (6, 0, 4)])
+def test_selected_inverse_matches_the_dense_inverse(k, nw, seed):
+    """Any wanted set, in any order (here a random one; all dofs; one; none), any scaling."""
+    A = laplacian_3d(k, seed)
+    rng = np.random.default_rng(seed)
+    want = rng.permutation(A.shape[0])[:nw]
+    scale = rng.uniform(0.5, 2.0, nw)
+    L, _ = native.factor(lower(A))
+    X, st = native.selected_inverse(L, want, scale)
+    G = np.linalg.inv(A.toarray())[np.ix_(want, want)]
+    assert X.shape == (nw, nw) and X.flags.c_contiguous
+    if nw:
+        assert np.abs(X - G * scale[None, :]).max() < 1e-12 * np.abs(G).max() * scale.max()
+        assert st["flops"] > 0
+    # the same from arrays that went through a file (a checkpoint) instead of CHOLMOD's memory
+    X2, _ = native.selected_inverse({k_: np.array(v) for k_, v in L.items()}, want, scale)
+    assert np.array_equal(X, X2)
+
+
+def test_selected_inverse_of_bodies_in_pieces():
+    """Two decoupled bodies: the elimination tree is a forest, the inverse block-diagonal."""
     B1, B2 = laplacian_3d(5, 1), laplacian_3d(4, 2)
-    n1, n2, t1, t2 = B1.shape[0], B2.shape[0], 20, 15
-    # order: interior of 1, interior of 2, trailing of 1, trailing of 2
     A = sp.block_diag([B1, B2]).tocsc()
-    perm = np.r_[0:n1 - t1, n1:n1 + n2 - t2, n1 - t1:n1, n1 + n2 - t2:n1 + n2]
-    Ap = A[perm][:, perm].tocsc()
-    L_TT, stats = native.factor(lower(Ap), t1 + t2)
-    assert not stats["in_place"]
-    expect = np.linalg.cholesky(schur(Ap.toarray(), t1 + t2))
-    assert np.abs(np.tril(L_TT) - expect).max() < 1e-12 * np.abs(expect).max()
-    assert np.abs(L_TT[t1:, :t1]).max() == 0.0  # no coupling between the bodies
-
-
-def test_greens_in_place_matches_dense_inverse():
-    A = laplacian_3d(7, 3)
-    nf, nu = 45, 15
-    L_TT, _ = native.factor(lower(A), nf + nu)
-    a = np.random.default_rng(4).uniform(0.5, 2.0, nf)
-    Xi, R, _, info = native.greens(L_TT, nf, a)
-    assert info == 0
-    S = schur(A.toarray(), nf + nu)
-    G = np.linalg.inv(S[:nf, :nf])
-    assert np.abs(Xi - G * a[None, :]).max() < 1e-12 * np.abs(G).max() * a.max()
-    assert np.abs(R - S[nf:, :nf] @ G * a[None, :]).max() < 1e-11 * np.abs(R).max()
-    # reciprocity a_i Xi_ij = a_j Xi_ji holds to rounding: the mirror copies, the scaling differs
-    assert np.abs(a[:, None] * Xi - (a[:, None] * Xi).T).max() < 1e-14 * np.abs(a[:, None] * Xi).max()
+    n1 = B1.shape[0]
+    want = np.r_[np.arange(0, n1, 3), np.arange(n1, A.shape[0], 2)]
+    L, _ = native.factor(lower(A))
+    X, _ = native.selected_inverse(L, want, np.ones(len(want)))
+    G = np.linalg.inv(A.toarray())[np.ix_(want, want)]
+    assert np.abs(X - G).max() < 1e-12 * np.abs(G).max()
+    m1 = int(np.sum(want < n1))
+    assert np.abs(X[:m1, m1:]).max() == 0.0  # nothing couples the bodies
 
 
 def test_not_positive_definite_is_reported():
     A = laplacian_3d(4, 5).tolil()
     A[10, 10] = -5.0
     with pytest.raises(ArithmeticError):
-        native.factor(lower(A.tocsc()), 8)
+        native.factor(lower(A.tocsc()))
 
 
-def test_bad_block_is_refused():
-    with pytest.raises(ValueError, match="column-major"):
-        native.greens(np.zeros((6, 6)), 3, np.ones(3))  # C order
+def test_bad_wanted_dofs_are_refused():
+    L, _ = native.factor(lower(laplacian_3d(4, 6)))
+    with pytest.raises(ValueError, match="distinct"):
+        native.selected_inverse(L, np.array([3, 5, 3]), np.ones(3))
+    with pytest.raises(ValueError, match="distinct"):
+        native.selected_inverse(L, np.array([0, 64]), np.ones(2))  # 64 dofs: 0..63
+    with pytest.raises(ValueError, match="scale"):
+        native.selected_inverse(L, np.array([0, 1]), np.ones(3))
 
 
 def test_stale_library_is_refused(tmp_path, monkeypatch):
@@ -91,7 +105,7 @@ def test_stale_library_is_refused(tmp_path, monkeypatch):
     if shutil.which("gcc") is None:
         pytest.skip("no gcc")
     src = tmp_path / "old.c"
-    src.write_text("int pmask_abi_version(void) { return 1; }\n")
+    src.write_text("int pmask_abi_version(void) { return 2; }\n")
     lib = tmp_path / "libold.so"
     subprocess.run(["gcc", "-shared", "-fPIC", str(src), "-o", str(lib)], check=True)
     monkeypatch.setattr(native, "LIBRARY", lib)
