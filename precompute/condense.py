@@ -327,8 +327,8 @@ def greens_functions(factor: "SparseFactor | SurfaceFactor", areas: np.ndarray, 
         reactions = factor.coupling[:, rows] @ D[rows, :nc]  # K_UF u for every load
         st["reactions_s"] = time.perf_counter() - t0
         log.info("greens (selected inversion): %.1f Gflop, solve %.2fs, syrk %.2fs, permute %.2fs, "
-                 "reactions %.2fs", st["flops"] / 1e9, st["solve_s"], st["syrk_s"], st["permute_s"],
-                 st["reactions_s"])
+                 "reactions %.2fs, prefault wait %.2fs", st["flops"] / 1e9, st["solve_s"], st["syrk_s"], st["permute_s"],
+                 st["reactions_s"], st["prefault_wait_s"])
         factor.stats["greens_s"] = st
         return D[:nc, :nc], np.ascontiguousarray(reactions)
     nf = factor.n_free

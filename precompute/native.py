@@ -129,7 +129,7 @@ def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray):
     if scale.shape != (nw,):
         raise ValueError(f"{len(scale)} scale factors for {nw} wanted dofs")
     D = np.zeros((nw, nw))
-    times = np.zeros(6)
+    times = np.zeros(7)
     status = lib.pmask_selinv(n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
                               nw, want, scale, D.ctypes.data, times)
     if status == -2:
@@ -139,7 +139,7 @@ def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray):
     if status != 0:
         raise MemoryError("out of memory in the selected inversion")
     return D, {"setup_s": times[0], "solve_s": times[1], "syrk_s": times[2], "permute_s": times[3],
-               "flops": float(times[4]), "W_doubles": int(times[5])}
+               "flops": float(times[4]), "W_doubles": int(times[5]), "prefault_wait_s": times[6]}
 
 
 def cholmod_version() -> str | None:
