@@ -151,10 +151,10 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
 
 
 def cholmod_backend(prefer: str | None = None) -> str:
-    """'native' (our C over Debian's CHOLMOD and threaded OpenBLAS, built by ``make venv``) when
-    installed, else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS; pip-only, slower).
-    ``PMASK_CHOLMOD=cvxopt`` forces the latter (and SciPy's LAPACK for the inverse: the whole
-    pip-only route, as on a machine without SuiteSparse)."""
+    """'native' (selected inversion: our C over Debian's CHOLMOD and threaded OpenBLAS, built by
+    ``make venv``) when installed, else 'cvxopt' (the dense Schur complement: CHOLMOD bundled with a
+    single-threaded OpenBLAS, SciPy's LAPACK; pip-only, slower).  ``PMASK_CHOLMOD=cvxopt`` forces the
+    latter, as on a machine without SuiteSparse."""
     from precompute import native
 
     choice = prefer or os.environ.get("PMASK_CHOLMOD")
