@@ -48,7 +48,7 @@ def add_precompute(sub) -> None:
                    help="further model parameter (repeatable), e.g. --param h_load=0.00125")
     p.add_argument("--float32", action="store_true", help="store Ξ in single precision (half the size)")
     p.add_argument("--element", choices=("P1", "P2"), default="P1",
-                   help="tetrahedra: P1 (default, dense Schur route) or P2 (quadratic; small contact regions)")
+                   help="tetrahedra: P1 (default; Ξ by selected inversion) or P2 (quadratic; small contact regions)")
     p.add_argument("-o", "--out", help="artifact path (default artifacts/MODEL.h5)")
     p.add_argument("--force", action="store_true", help="recompute even if the artifact is up to date")
     p.set_defaults(func=cmd_precompute)
