@@ -2,6 +2,8 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from precompute import native
 
@@ -63,6 +65,22 @@ def test_selected_inverse_matches_the_dense_inverse(k, nw, seed):
     # the same from arrays that went through a file (a checkpoint) instead of CHOLMOD's memory
     X2, _ = native.selected_inverse({k_: np.array(v) for k_, v in L.items()}, want, scale)
     assert np.array_equal(X, X2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 90), density=st.floats(0.0, 0.3), frac=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1))
+def test_selected_inverse_of_random_sparse_matrices(n, density, frac, seed):
+    """Any sparsity (diagonal, banded-like, dense-ish, many components), any wanted set."""
+    rng = np.random.default_rng(seed)
+    R = sp.random(n, n, density=density, random_state=rng)
+    A = R + R.T
+    A = (A + sp.diags(np.asarray(abs(A).sum(axis=1)).ravel() + rng.uniform(0.1, 1.0, n))).tocsc()  # SPD
+    want = rng.permutation(n)[:int(frac * n)]
+    scale = rng.uniform(0.5, 2.0, len(want))
+    L, _ = native.factor(lower(A))
+    X, _ = native.selected_inverse(L, want, scale)
+    G = np.linalg.inv(A.toarray())[np.ix_(want, want)]
+    assert np.abs(X - G * scale[None, :]).max(initial=0.0) <= 1e-12 * max(np.abs(G).max(initial=0.0), 1e-300) * 2
 
 
 def test_selected_inverse_of_bodies_in_pieces():
