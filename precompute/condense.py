@@ -42,6 +42,7 @@ the reactions :math:`S_{US} G = L_{US} L_{SS}^{-1}` (code: ``L_FF``, ``L_UF``).
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -63,25 +64,16 @@ class CondensationError(ValueError):
 
 @dataclass
 class SurfaceFactor:
-    """Trailing Cholesky block of the stiffness with the surface ordered last.
+    """Trailing Cholesky block of the stiffness with the surface ordered last (pip-only route).
 
-    L_TT : (nt, nt) column-major (any leading dimension), lower triangle valid; its first
-        ``n_free`` rows and columns are L_FF (L_FF L_FFᵀ = S, the free-surface Schur
-        complement), the rows below them L_UF (S_UF = L_UF L_FFᵀ).  With the native backend
-        it is a view into CHOLMOD's own storage.
+    L_TT : (nt, nt) column-major, lower triangle valid; its first ``n_free`` rows and columns
+        are L_FF (L_FF L_FFᵀ = S, the free-surface Schur complement), the rows below them L_UF
+        (S_UF = L_UF L_FFᵀ).
     """
 
     L_TT: np.ndarray
     n_free: int
     stats: dict = field(default_factory=dict)
-
-    @property
-    def L_FF(self) -> np.ndarray:
-        return np.tril(self.L_TT[:self.n_free, :self.n_free])
-
-    @property
-    def L_UF(self) -> np.ndarray:
-        return np.array(self.L_TT[self.n_free:, :self.n_free])
 
 
 @dataclass
@@ -103,21 +95,16 @@ class SparseFactor:
 
 def factor_arrays(factor) -> dict:
     """Everything a factor holds, as named arrays (for a checkpoint); :func:`factor_from_arrays` inverts it."""
-    import json
-
     if isinstance(factor, SparseFactor):
         c = factor.coupling
         return {"kind": "sparse", **{f"L_{k}": v for k, v in factor.L.items()}, "want": factor.want,
                 "n_contact": factor.n_contact, "coupling_data": c.data, "coupling_indices": c.indices,
                 "coupling_indptr": c.indptr, "coupling_shape": np.array(c.shape), "stats": json.dumps(factor.stats)}
-    # saved transposed: the block is column-major (maybe strided), and numpy writes a
-    # non-contiguous array in C order, row by row
+    # saved transposed: numpy writes a column-major array's transpose without a copy
     return {"kind": "dense", "L_TT_T": factor.L_TT.T, "n_free": factor.n_free, "stats": json.dumps(factor.stats)}
 
 
 def factor_from_arrays(ck) -> "SparseFactor | SurfaceFactor":
-    import json
-
     from precompute import native
 
     stats = json.loads(str(ck["stats"]))
