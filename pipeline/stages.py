@@ -153,7 +153,7 @@ def build_mesh(spec: Spec):
 
 
 def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, bar, label):
-    """P1: assemble, factorise (checkpointed), then Ξ: selected inversion, or the dense Schur complement."""
+    """P1: assemble, factorise K_FF (checkpointed), then Ξ by selected inversion."""
     from precompute import condense, elasticity
 
     t0 = time.perf_counter()
@@ -205,13 +205,13 @@ def _bytes(n: float) -> str:
 
 def check_memory(n_contact: int, element: str) -> None:
     """Refuse, before any heavy work, a contact region whose dense Ξ cannot be computed in this
-    machine's memory.  Peak working set per byte of Ξ (3 n_c)² float64, measured: ~1.6 for the
-    selected inversion (its result buffer also holds the rows next to the support), ~3 for the
-    pip-only dense route and P2 (factor block, inverse and copies)."""
+    machine's memory.  Peak working set per byte of Ξ (3 n_c)² float64: ~1.6 measured for the
+    native selected inversion (its result buffer also holds the rows next to the support), ~2.5 for
+    the pip-only one (a permuted copy), ~3 for P2 (Ξ, solves and copies)."""
     from precompute import condense
 
     xi = 8.0 * (3 * n_contact) ** 2
-    factor = 1.6 if element == "P1" and condense.cholmod_backend() == "native" else 3.0
+    factor = (1.6 if condense.cholmod_backend() == "native" else 2.5) if element == "P1" else 3.0
     avail = available_memory()
     if avail is not None and xi * factor > avail:
         raise ValueError(

@@ -14,12 +14,9 @@ eq. 10), so
 
 .. math::  \Xi = G\,\mathrm{diag}(a), \qquad a_i \Xi_{ij} = a_j \Xi_{ji}^T .
 
-Two routes, the same numbers (tested):
-
-*Selected inversion* (the native route, :mod:`precompute.native`, C over the
-system's CHOLMOD).  :math:`K_{FF}` over every unconstrained dof is factorised
-once, :math:`P K_{FF} P^T = L L^T` with a METIS nested-dissection order, and
-the surface block of its inverse is
+How G is formed (selected inversion): :math:`K_{FF}` over every unconstrained
+dof is factorised once, :math:`P K_{FF} P^T = L L^T` in a fill-reducing order,
+and the surface block of its inverse is
 
 .. math::  G = E^T K_{FF}^{-1} E = W^T W, \qquad W = L^{-1} P E,
 
@@ -27,18 +24,15 @@ with E the unit columns of the free surface dofs.  A column of W is non-zero
 only on its elimination-tree path, so with postordered supernodes each
 supernode's rows of W meet one contiguous range of surface dofs and
 :math:`W^T W` is one symmetric rank-k update (dsyrk) per supernode: ~13 Gflop
-at the default kidney against ~82 Gflop to invert the dense S (n³).
-Reactions come from the same inverse: the support's nodal forces are
-:math:`K_{UF} u_F`, and :math:`K_{UF}` touches only the free dofs next to the
-support, so those dofs join the selected set.
+at the default kidney against ~82 Gflop to form the dense Schur complement S
+and invert it (n³).  Reactions come from the same inverse: the support's
+nodal forces are :math:`K_{UF} u_F`, and :math:`K_{UF}` touches only the free
+dofs next to the support, so those dofs join the selected set.
 
-*Dense Schur complement* (the pip-only route: cvxopt's CHOLMOD, SciPy's
-LAPACK).  The stiffness is permuted to ``[interior (AMD), free surface, fixed
-surface]``, factorised in that order, and the trailing block gives
-:math:`L_{SS} L_{SS}^T = S`, so :math:`G = L_{SS}^{-T} L_{SS}^{-1}` (trtri +
-lauum).  A positive diagonal added to the fixed block makes the matrix
-definite without changing the others, and the fixed rows of the factor give
-the reactions :math:`S_{US} G = L_{US} L_{SS}^{-1}` (code: ``L_FF``, ``L_UF``).
+Two backends, the same algorithm and the same numbers (tested): the native one
+(:mod:`precompute.native`: C over the system's CHOLMOD, METIS order, the
+inverse in place) and the pip-only one (cvxopt's CHOLMOD in an AMD order of the
+vertex graph, :mod:`precompute.selinv` in numpy and SciPy's BLAS).
 """
 from __future__ import annotations
 
@@ -49,10 +43,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg.blas as blas
-import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 
+from precompute import selinv
 from precompute.elasticity import dofs
 
 log = logging.getLogger(__name__)
@@ -63,24 +56,10 @@ class CondensationError(ValueError):
 
 
 @dataclass
-class SurfaceFactor:
-    """Trailing Cholesky block of the stiffness with the surface ordered last (pip-only route).
-
-    L_TT : (nt, nt) column-major, lower triangle valid; its first ``n_free`` rows and columns
-        are L_FF (L_FF L_FFᵀ = S, the free-surface Schur complement), the rows below them L_UF
-        (S_UF = L_UF L_FFᵀ).
-    """
-
-    L_TT: np.ndarray
-    n_free: int
-    stats: dict = field(default_factory=dict)
-
-
-@dataclass
 class SparseFactor:
-    """CHOLMOD's supernodal factor of K_FF (every unconstrained dof), for selected inversion.
+    """The supernodal Cholesky factor of K_FF (every unconstrained dof), for selected inversion.
 
-    L : the factor's arrays (:data:`precompute.native.FACTOR_ARRAYS`).
+    L : the factor's arrays (:data:`precompute.selinv.FACTOR_ARRAYS`, CHOLMOD's layout).
     want : dofs of K_FF whose block of the inverse is needed: the contact dofs (the first
         ``n_contact``, in the order of ``free``), then the other dofs that ``coupling`` touches.
     coupling : K_UF restricted to the ``want`` columns (3 n_fixed x len(want)): reactions = K_UF u.
@@ -93,27 +72,20 @@ class SparseFactor:
     stats: dict = field(default_factory=dict)
 
 
-def factor_arrays(factor) -> dict:
+def factor_arrays(factor: SparseFactor) -> dict:
     """Everything a factor holds, as named arrays (for a checkpoint); :func:`factor_from_arrays` inverts it."""
-    if isinstance(factor, SparseFactor):
-        c = factor.coupling
-        return {"kind": "sparse", **{f"L_{k}": v for k, v in factor.L.items()}, "want": factor.want,
-                "n_contact": factor.n_contact, "coupling_data": c.data, "coupling_indices": c.indices,
-                "coupling_indptr": c.indptr, "coupling_shape": np.array(c.shape), "stats": json.dumps(factor.stats)}
-    # saved transposed: numpy writes a column-major array's transpose without a copy
-    return {"kind": "dense", "L_TT_T": factor.L_TT.T, "n_free": factor.n_free, "stats": json.dumps(factor.stats)}
+    c = factor.coupling
+    return {**{f"L_{k}": v for k, v in factor.L.items()}, "want": factor.want, "n_contact": factor.n_contact,
+            "coupling_data": c.data, "coupling_indices": c.indices, "coupling_indptr": c.indptr,
+            "coupling_shape": np.array(c.shape), "stats": json.dumps(factor.stats)}
 
 
-def factor_from_arrays(ck) -> "SparseFactor | SurfaceFactor":
-    from precompute import native
-
-    stats = json.loads(str(ck["stats"]))
-    if str(ck["kind"]) == "sparse":
-        coupling = sp.csr_matrix((ck["coupling_data"], ck["coupling_indices"], ck["coupling_indptr"]),
-                                 shape=tuple(ck["coupling_shape"]))
-        return SparseFactor(L={k: ck[f"L_{k}"] for k in native.FACTOR_ARRAYS}, want=ck["want"],
-                            n_contact=int(ck["n_contact"]), coupling=coupling, stats=stats)
-    return SurfaceFactor(L_TT=np.asfortranarray(ck["L_TT_T"].T), n_free=int(ck["n_free"]), stats=stats)
+def factor_from_arrays(ck) -> SparseFactor:
+    """The factor saved by :func:`factor_arrays` (``ck``: the loaded npz)."""
+    coupling = sp.csr_matrix((ck["coupling_data"], ck["coupling_indices"], ck["coupling_indptr"]),
+                             shape=tuple(ck["coupling_shape"]))
+    return SparseFactor(L={k: ck[f"L_{k}"] for k in selinv.FACTOR_ARRAYS}, want=ck["want"],
+                        n_contact=int(ck["n_contact"]), coupling=coupling, stats=json.loads(str(ck["stats"])))
 
 
 def node_graph(n_vertices: int, tets: np.ndarray) -> sp.csr_matrix:
@@ -138,10 +110,10 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
 
 
 def cholmod_backend(prefer: str | None = None) -> str:
-    """'native' (selected inversion: our C over Debian's CHOLMOD and threaded OpenBLAS, built by
-    ``make venv``) when installed, else 'cvxopt' (the dense Schur complement: CHOLMOD bundled with a
-    single-threaded OpenBLAS, SciPy's LAPACK; pip-only, slower).  ``PMASK_CHOLMOD=cvxopt`` forces the
-    latter, as on a machine without SuiteSparse."""
+    """'native' (our C over Debian's CHOLMOD with METIS and threaded OpenBLAS, built by ``make venv``)
+    when installed, else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS, AMD, and the
+    selected inversion in numpy; pip-only, slower).  ``PMASK_CHOLMOD=cvxopt`` forces the latter, as
+    on a machine without SuiteSparse."""
     from precompute import native
 
     choice = prefer or os.environ.get("PMASK_CHOLMOD")
@@ -158,15 +130,15 @@ def cholmod_backend(prefer: str | None = None) -> str:
 
 
 def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free: np.ndarray,
-                   fixed: np.ndarray, *, backend: str | None = None) -> "SparseFactor | SurfaceFactor":
-    """Factorise the stiffness for the Green's functions of the ``free`` (contact) vertices.
+                   fixed: np.ndarray, *, backend: str | None = None) -> SparseFactor:
+    """Factorise K_FF for the Green's functions of the ``free`` (contact) vertices.
 
     ``interior`` (everything to eliminate, including free surface vertices a
     probe cannot touch), ``free`` and ``fixed`` are disjoint vertex index
     arrays that together cover every vertex of the mesh (``fixed`` non-empty).
-    The native backend returns a :class:`SparseFactor` (K_FF in METIS order, for
-    selected inversion); the pip-only one a :class:`SurfaceFactor` (the dense
-    trailing block with the surface ordered last, the interior by AMD).
+    Native backend: CHOLMOD with METIS; pip-only: cvxopt's CHOLMOD with AMD on
+    the vertex graph (METIS's nested dissection halves the selected inversion's
+    flops at the default kidney).
     """
     n_vertices = K.shape[0] // 3
     if len(fixed) == 0:
@@ -175,42 +147,13 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
             np.unique(np.concatenate([interior, free, fixed]))) != n_vertices:
         raise CondensationError("interior, free and fixed vertex sets must partition the mesh")
     backend = cholmod_backend(backend)
-    if backend == "native":
-        return _sparse_factor(sp.csr_matrix(K), interior, free, fixed)
+    K = sp.csr_matrix(K)
     t0 = time.perf_counter()
-    graph = node_graph(n_vertices, tets)
-    order = interior[amd_order(graph[interior][:, interior])]
-    perm = np.concatenate([dofs(order), dofs(free), dofs(fixed)])
-    n, nf, nu = len(perm), 3 * len(free), 3 * len(fixed)
-    nt = nf + nu
-    Kp = sp.csr_matrix(K)[perm][:, perm]
-    shift = np.zeros(n)
-    shift[n - nu:] = Kp.diagonal()[n - nu:]  # makes the fixed block definite; leaves L_FF, L_UF unchanged
-    A = sp.tril(Kp + sp.diags(shift), format="csc")
-    A.sort_indices()
-    t_order = time.perf_counter() - t0
-    (indptr, indices, data), t_factor, t_extract = _factor_cvxopt(A)
-    t0 = time.perf_counter()
-    L_TT = _trailing_block(indptr, indices, data, n, nt)
-    t_extract += time.perf_counter() - t0
-    nnz = int(indptr[-1])
-    log.info("factor (cvxopt): %d dofs, nnz(L) = %.3g, order %.2fs, factor %.2fs, extract %.2fs",
-             n, nnz, t_order, t_factor, t_extract)
-    return SurfaceFactor(L_TT=L_TT, n_free=nf,
-                         stats={"dofs": n, "nnz_L": nnz, "backend": backend, "route": "dense Schur complement",
-                                "order": "AMD", "order_s": t_order, "factor_s": t_factor, "extract_s": t_extract})
-
-
-def _sparse_factor(K: sp.csr_matrix, interior, free, fixed) -> SparseFactor:
-    from precompute import native
-
-    t0 = time.perf_counter()
-    keep = np.sort(np.concatenate([dofs(interior), dofs(free)]))  # the unconstrained dofs F
+    verts = np.sort(np.concatenate([interior, free]))
+    keep = dofs(verts)  # the unconstrained dofs F, sorted
     pos = np.full(K.shape[0], -1, np.int64)
     pos[keep] = np.arange(len(keep))
-    KF = K[keep]
-    A = sp.tril(KF[:, keep], format="csc")
-    A.sort_indices()
+    K_FF = K[keep][:, keep]
     K_UF = K[dofs(fixed)][:, keep]
     contact = pos[dofs(free)]
     touched = np.flatnonzero(np.asarray(abs(K_UF).sum(axis=0)).ravel())
@@ -218,15 +161,30 @@ def _sparse_factor(K: sp.csr_matrix, interior, free, fixed) -> SparseFactor:
     coupling = sp.csr_matrix(K_UF[:, want])
     t_setup = time.perf_counter() - t0
     t0 = time.perf_counter()
-    try:
-        L, st = native.factor(A)
-    except ArithmeticError as exc:
-        raise _singular(exc.args[0]) from None
+    if backend == "native":
+        from precompute import native
+
+        A = sp.tril(K_FF, format="csc")
+        A.sort_indices()
+        try:
+            L, st = native.factor(A)
+        except ArithmeticError as exc:
+            raise _singular(exc.args[0]) from None
+    else:
+        graph = node_graph(n_vertices, tets)[verts][:, verts]
+        p = dofs(amd_order(graph))  # positions in keep: vertex k's dofs are 3k, 3k+1, 3k+2
+        t_order = time.perf_counter() - t0
+        A = sp.tril(K_FF[p][:, p], format="csc")
+        A.sort_indices()
+        (colptr, rowind, values), t_numeric, _ = _factor_cvxopt(A)
+        L = selinv.supernodal(colptr, rowind, values, p)
+        st = {"order": "AMD", "analyse_s": t_order, "numeric_s": t_numeric, "stored_L": len(L["x"]),
+              "factor_flops": None, "supernodes": len(L["super"]) - 1}
     t_factor = time.perf_counter() - t0
-    log.info("factor (native, %s): %d dofs, nnz(L) = %.3g, %.2f Gflop, %.2fs", st["order"], len(keep),
-             st["stored_L"], st["factor_flops"] / 1e9, t_factor)
+    log.info("factor (%s, %s): %d dofs, %d stored in L, %d supernodes, %.2fs", backend, st["order"], len(keep),
+             st["stored_L"], st["supernodes"], t_factor)
     return SparseFactor(L=L, want=want, n_contact=len(contact), coupling=coupling,
-                        stats={"dofs": len(keep), "nnz_L": st["stored_L"], "backend": "native",
+                        stats={"dofs": len(keep), "nnz_L": st["stored_L"], "backend": backend,
                                "route": "selected inversion", "order": st["order"], "setup_s": t_setup,
                                "analyse_s": st["analyse_s"], "numeric_s": st["numeric_s"], "factor_s": t_factor,
                                "factor_flops": st["factor_flops"], "supernodes": st["supernodes"],
@@ -241,7 +199,8 @@ def _singular(column) -> CondensationError:
 
 
 def _factor_cvxopt(A: sp.csc_matrix):
-    """The same through cvxopt's bundled CHOLMOD (user order only, no postordering)."""
+    """CSC Cholesky factor of the lower-triangular A in its own order by cvxopt's bundled CHOLMOD
+    (supernodal numeric, then converted: rows sorted, relaxed supernodes' zeros stored)."""
     import cvxopt
     import cvxopt.cholmod as cholmod
 
@@ -268,80 +227,41 @@ def _factor_cvxopt(A: sp.csc_matrix):
     return (colptr, rowind, values), t_factor, time.perf_counter() - t0
 
 
-def _trailing_block(indptr, indices, data, n: int, nt: int) -> np.ndarray:
-    """Dense lower-triangular trailing nt x nt block of a CSC factor (Fortran order, for LAPACK)."""
-    L_TT = np.zeros((nt, nt), order="F")
-    off = n - nt
-    for j in range(nt):
-        a, b = indptr[off + j], indptr[off + j + 1]
-        rows = indices[a:b] - off
-        if len(rows) == nt - j and rows[0] == j and np.all(rows[1:] - rows[:-1] == 1):
-            L_TT[j:, j] = data[a:b]  # the dense block: a contiguous column copy
-        else:
-            L_TT[rows, j] = data[a:b]
-    return L_TT
-
-
-def greens_functions(factor: "SparseFactor | SurfaceFactor", areas: np.ndarray, *, overwrite: bool = True):
+def greens_functions(factor: SparseFactor, areas: np.ndarray, *, backend: str | None = None):
     r"""Green's functions Ξ (traction → displacement) and support reactions.
 
     Parameters
     ----------
     factor : from :func:`surface_factor`.
     areas : vertex areas a of the free (contact) vertices, in the order of ``free``.
-    overwrite : a dense factor's block may be worked on in place (it is consumed:
-        ``factor.L_TT`` becomes None).
+    backend : 'native' (C) or 'cvxopt' (numpy: :mod:`precompute.selinv`) for the inverse; any
+        factor works with either.  Default as :func:`cholmod_backend`.
 
     Returns
     -------
     Xi : (3 n, 3 n) with block (i, j) the displacement of vertex i per unit traction at
-        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)` (with the native route a view of a slightly
-        larger array that also holds the rows the reactions need).
+        vertex j: :math:`\Xi = G\,\mathrm{diag}(a)` (a view of a slightly larger array that also
+        holds the rows the reactions need).
     reactions : (3 n_fixed, 3 n), the nodal forces the support exerts per unit traction
         at vertex j (equilibrium: they sum to :math:`-a_j p_j`).
     """
+    from precompute import native
+
     a = np.repeat(np.asarray(areas, float), 3)
-    if isinstance(factor, SparseFactor):
-        from precompute import native
-
-        nc = factor.n_contact
-        if len(a) != nc:
-            raise CondensationError(f"{len(a) // 3} vertex areas for {nc // 3} free vertices")
-        scale = np.concatenate([a, np.ones(len(factor.want) - nc)])
+    nc = factor.n_contact
+    if len(a) != nc:
+        raise CondensationError(f"{len(a) // 3} vertex areas for {nc // 3} free vertices")
+    scale = np.concatenate([a, np.ones(len(factor.want) - nc)])
+    if cholmod_backend(backend) == "native":
         D, st = native.selected_inverse(factor.L, factor.want, scale)
+    else:
         t0 = time.perf_counter()
-        rows = np.unique(factor.coupling.indices)  # the dofs next to the support
-        reactions = factor.coupling[:, rows] @ D[rows, :nc]  # K_UF u for every load
-        st["reactions_s"] = time.perf_counter() - t0
-        log.info("greens (selected inversion): %.1f Gflop, solve %.2fs, syrk %.2fs, permute %.2fs, "
-                 "reactions %.2fs, prefault wait %.2fs", st["flops"] / 1e9, st["solve_s"], st["syrk_s"], st["permute_s"],
-                 st["reactions_s"], st["prefault_wait_s"])
-        factor.stats["greens_s"] = st
-        return D[:nc, :nc], np.ascontiguousarray(reactions)
-    nf = factor.n_free
-    if len(a) != nf:
-        raise CondensationError(f"{len(a) // 3} vertex areas for {nf // 3} free vertices")
-    L_TT = factor.L_TT if overwrite else np.array(factor.L_TT, order="F")
-    if overwrite:
-        factor.L_TT = None
-    W, info = lapack.dtrtri(np.asfortranarray(L_TT[:nf, :nf]), lower=1, overwrite_c=1)
-    if info != 0:
-        raise CondensationError(f"the condensed surface stiffness is singular (LAPACK trtri info={info})")
-    # trmm reads only the lower triangle of W: reactions L_UF W
-    reactions = blas.dtrmm(1.0, W, np.asfortranarray(L_TT[nf:, :nf]), side=1, lower=1) * a[None, :]
-    del L_TT
-    G, info = lapack.dlauum(W, lower=1, overwrite_c=1)  # lower triangle of Wᵀ W = S⁻¹
-    if info != 0:
-        raise CondensationError(f"LAPACK lauum failed (info={info})")
-    _mirror_lower(G)  # reciprocity is tested against separate solves, not this mirror
-    G *= a[None, :]
-    return np.ascontiguousarray(G), np.ascontiguousarray(reactions)
-
-
-def _mirror_lower(G: np.ndarray, block: int = 512) -> None:
-    """Copy the strict lower triangle of G onto its upper triangle, in place, block by block."""
-    n = G.shape[0]
-    for i0 in range(0, n, block):
-        i1 = min(i0 + block, n)
-        G[i0:i1, i0:i1] = np.tril(G[i0:i1, i0:i1]) + np.tril(G[i0:i1, i0:i1], -1).T
-        G[i0:i1, i1:] = G[i1:, i0:i1].T
+        D, st = selinv.selected_inverse(factor.L, factor.want, scale)
+        st["selinv_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rows = np.unique(factor.coupling.indices)  # the dofs next to the support
+    reactions = factor.coupling[:, rows] @ D[rows, :nc]  # K_UF u for every load
+    st["reactions_s"] = time.perf_counter() - t0
+    log.info("greens (selected inversion): %s", ", ".join(f"{k} {v:.3g}" for k, v in st.items()))
+    factor.stats["greens_s"] = st
+    return D[:nc, :nc], np.ascontiguousarray(reactions)

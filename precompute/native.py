@@ -2,8 +2,8 @@
 
 The shared library is compiled by ``tools/build_native.sh`` (``make venv``) when Debian's
 SuiteSparse headers are present; :func:`available` says whether it was.  Without it
-:mod:`precompute.condense` forms the dense Schur complement through cvxopt's CHOLMOD and inverts it
-with SciPy's LAPACK: the same numbers (tested), more flops.
+:mod:`precompute.condense` runs the same algorithm through cvxopt's CHOLMOD and :mod:`precompute.selinv`
+(numpy and SciPy's BLAS): the same numbers (tested), slower.
 """
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from precompute.selinv import FACTOR_ARRAYS  # the supernodal layout, in pmask_factor_arrays' order
+
 #: where ``make venv`` puts the compiled library (inside the venv, never in the source tree)
 LIBRARY = Path(sys.prefix) / "lib" / "pmask" / "libpmask_selinv.so"
 SOURCE = Path(__file__).with_name("_selected_inverse.c")
@@ -21,8 +23,6 @@ SOURCE = Path(__file__).with_name("_selected_inverse.c")
 #: must equal pmask_abi_version() in _selected_inverse.c
 ABI_VERSION = 3
 
-#: the supernodal factor's arrays, in pmask_factor_arrays' order
-FACTOR_ARRAYS = ("super", "pi", "px", "s", "x", "perm")
 
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")

@@ -54,3 +54,31 @@ def full_solve(points, tets, E, nu, fixed_vertices, loads):
 def relerr(a, b) -> float:
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(b))
 
+
+
+def laplacian_3d(k: int, seed: int):
+    """SPD: a k^3 grid Laplacian plus a random positive diagonal (CSC)."""
+    import scipy.sparse as sp
+
+    one = sp.diags([-np.ones(k - 1), 2 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
+    eye = sp.identity(k)
+    L = (sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one))
+    return (L + sp.diags(np.random.default_rng(seed).uniform(0.1, 1.0, k ** 3))).tocsc()
+
+
+def random_spd(n: int, density: float, rng):
+    """SPD by diagonal dominance, any sparsity (CSC)."""
+    import scipy.sparse as sp
+
+    R = sp.random(n, n, density=density, random_state=rng)
+    A = R + R.T
+    return (A + sp.diags(np.asarray(abs(A).sum(axis=1)).ravel() + rng.uniform(0.1, 1.0, n))).tocsc()
+
+
+def lower(A):
+    """The lower triangle in CSC with sorted rows (what CHOLMOD reads)."""
+    import scipy.sparse as sp
+
+    low = sp.tril(A, format="csc")
+    low.sort_indices()
+    return low

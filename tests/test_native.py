@@ -5,23 +5,10 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import laplacian_3d, lower, random_spd
 from precompute import native
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="native CHOLMOD library not built")
-
-
-def laplacian_3d(k: int, seed: int) -> sp.csc_matrix:
-    """SPD: a k^3 grid Laplacian plus a random positive diagonal."""
-    one = sp.diags([-np.ones(k - 1), 2 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
-    eye = sp.identity(k)
-    L = (sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one))
-    return (L + sp.diags(np.random.default_rng(seed).uniform(0.1, 1.0, k ** 3))).tocsc()
-
-
-def lower(A) -> sp.csc_matrix:
-    low = sp.tril(A, format="csc")
-    low.sort_indices()
-    return low
 
 
 def dense_factor(L: dict) -> np.ndarray:
@@ -72,9 +59,7 @@ def test_selected_inverse_matches_the_dense_inverse(k, nw, seed):
 def test_selected_inverse_of_random_sparse_matrices(n, density, frac, seed):
     """Any sparsity (diagonal, banded-like, dense-ish, many components), any wanted set."""
     rng = np.random.default_rng(seed)
-    R = sp.random(n, n, density=density, random_state=rng)
-    A = R + R.T
-    A = (A + sp.diags(np.asarray(abs(A).sum(axis=1)).ravel() + rng.uniform(0.1, 1.0, n))).tocsc()  # SPD
+    A = random_spd(n, density, rng)
     want = rng.permutation(n)[:int(frac * n)]
     scale = rng.uniform(0.5, 2.0, len(want))
     L, _ = native.factor(lower(A))

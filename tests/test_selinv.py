@@ -1,0 +1,84 @@
+"""The pip-only selected inversion (precompute/selinv.py): postorder, packing, inverse; and the C twin."""
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from conftest import laplacian_3d, lower, random_spd
+from precompute import native, selinv
+from precompute.condense import _factor_cvxopt
+
+
+def cvxopt_factor(A, rng):
+    """selinv's factor of A in a random order (cvxopt's CHOLMOD, relaxed supernodes), as the pipeline builds it."""
+    p = rng.permutation(A.shape[0])
+    (colptr, rowind, values), _, _ = _factor_cvxopt(lower(A[p][:, p]))
+    return selinv.supernodal(colptr, rowind, values, p)
+
+
+@settings(max_examples=50, deadline=None)
+@given(parent_seed=st.integers(0, 2**32 - 1), n=st.integers(1, 200))
+def test_postorder_puts_children_first_and_keeps_subtrees_contiguous(parent_seed, n):
+    rng = np.random.default_rng(parent_seed)
+    up = np.array([rng.integers(i + 1, n) if i < n - 1 and rng.random() > 0.1 else -1 for i in range(n)])
+    label = rng.permutation(n)  # a random forest under random labels
+    parent = np.full(n, -1)
+    parent[label] = np.where(up >= 0, label[np.maximum(up, 0)], -1)
+    post = selinv.postorder(parent)
+    assert sorted(post) == list(range(n))
+    where = np.empty(n, int)
+    where[post] = np.arange(n)
+    size = np.ones(n, int)
+    for v in post:  # children first, so their sizes are final here
+        if parent[v] >= 0:
+            assert where[parent[v]] > where[v]
+            size[parent[v]] += size[v]
+    first = where.copy()
+    for v in post:
+        if parent[v] >= 0:
+            first[parent[v]] = min(first[parent[v]], first[v])
+    assert np.array_equal(where - first + 1, size)  # each subtree is the range ending at its root
+
+
+def test_packed_factor_is_the_cholesky_factor_of_the_postordered_matrix():
+    A = laplacian_3d(6, 7)
+    L = cvxopt_factor(A, np.random.default_rng(7))
+    n = A.shape[0]
+    dense = np.zeros((n, n))
+    for s in range(len(L["super"]) - 1):
+        k1, k2 = L["super"][s], L["super"][s + 1]
+        rows = L["s"][L["pi"][s]:L["pi"][s + 1]]
+        dense[np.ix_(rows, np.arange(k1, k2))] = L["x"][L["px"][s]:L["px"][s] + len(rows) * (k2 - k1)].reshape(
+            k2 - k1, len(rows)).T
+    dense = np.tril(dense)
+    p = L["perm"]
+    assert np.abs(dense @ dense.T - A.toarray()[np.ix_(p, p)]).max() < 1e-12
+    assert len(L["super"]) - 1 < n  # columns did merge into supernodes
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 90), density=st.floats(0.0, 0.3), frac=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1))
+def test_selected_inverse_matches_the_dense_inverse(n, density, frac, seed):
+    rng = np.random.default_rng(seed)
+    A = random_spd(n, density, rng)
+    want = rng.permutation(n)[:int(frac * n)]
+    scale = rng.uniform(0.5, 2.0, len(want))
+    L = cvxopt_factor(A, rng)
+    X, _ = selinv.selected_inverse(L, want, scale)
+    G = np.linalg.inv(A.toarray())[np.ix_(want, want)]
+    assert X.flags.c_contiguous and X.shape == (len(want), len(want))
+    assert np.abs(X - G * scale[None, :]).max(initial=0.0) <= 2e-12 * max(np.abs(G).max(initial=0.0), 1e-300)
+    if native.available():  # the C twin on the same factor: the same algorithm
+        Xc, _ = native.selected_inverse(L, want, scale)
+        assert np.abs(Xc - X).max(initial=0.0) <= 1e-13 * max(np.abs(G).max(initial=0.0), 1e-300)
+
+
+def test_bad_input_is_refused():
+    L = cvxopt_factor(laplacian_3d(3, 1), np.random.default_rng(1))
+    with pytest.raises(ValueError, match="distinct"):
+        selinv.selected_inverse(L, np.array([1, 1]), np.ones(2))
+    with pytest.raises(ValueError, match="scale"):
+        selinv.selected_inverse(L, np.array([1, 2]), np.ones(1))
+    bad = dict(L, super=L["super"][::-1].copy())
+    with pytest.raises(ValueError):
+        selinv.selected_inverse(bad, np.array([1]), np.ones(1))
