@@ -187,18 +187,6 @@ def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, 
     return Xi, reactions, {**factor.stats, "element": "P1"}
 
 
-def available_memory() -> int | None:
-    """Bytes this process can still allocate without swapping (Linux: MemAvailable), None if unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
 def _bytes(n: float) -> str:
     return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
@@ -212,7 +200,7 @@ def check_memory(n_contact: int, element: str) -> None:
 
     xi = 8.0 * (3 * n_contact) ** 2
     factor = (1.6 if condense.cholmod_backend() == "native" else 2.5) if element == "P1" else 3.0
-    avail = available_memory()
+    avail = condense.available_memory()
     if avail is not None and xi * factor > avail:
         raise ValueError(
             f"Ξ of {n_contact} contact vertices is a dense {3 * n_contact} x {3 * n_contact} matrix "
@@ -314,7 +302,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     check_memory(len(reg.contact), spec.element)
 
     if spec.element == "P2":
-        # P2: one sparse factorisation and blocked solves (no dense Schur route, no factor checkpoint)
+        # P2: one sparse factorisation and blocked solves (no factor checkpoint)
         from precompute import p2
 
         t0 = time.perf_counter()

@@ -109,6 +109,18 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
     return np.array(cvxopt.amd.order(A), dtype=np.int64).ravel()
 
 
+def available_memory() -> int | None:
+    """Bytes this process can still allocate without swapping (Linux: MemAvailable), None if unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def cholmod_backend(prefer: str | None = None) -> str:
     """'native' (our C over Debian's CHOLMOD with METIS and threaded OpenBLAS, built by ``make venv``)
     when installed, else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS, AMD, and the
@@ -161,25 +173,12 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
     coupling = sp.csr_matrix(K_UF[:, want])
     t_setup = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if backend == "native":
-        from precompute import native
-
-        A = sp.tril(K_FF, format="csc")
-        A.sort_indices()
-        try:
-            L, st = native.factor(A)
-        except ArithmeticError as exc:
-            raise _singular(exc.args[0]) from None
-    else:
-        graph = node_graph(n_vertices, tets)[verts][:, verts]
-        p = dofs(amd_order(graph))  # positions in keep: vertex k's dofs are 3k, 3k+1, 3k+2
-        t_order = time.perf_counter() - t0
-        A = sp.tril(K_FF[p][:, p], format="csc")
-        A.sort_indices()
-        (colptr, rowind, values), t_numeric, _ = _factor_cvxopt(A)
-        L = selinv.supernodal(colptr, rowind, values, p)
-        st = {"order": "AMD", "analyse_s": t_order, "numeric_s": t_numeric, "stored_L": len(L["x"]),
-              "factor_flops": None, "supernodes": len(L["super"]) - 1}
+    order = None
+    if backend != "native":  # AMD of the vertex graph: the 3 dofs of a vertex stay together
+        order = dofs(amd_order(node_graph(n_vertices, tets)[verts][:, verts]))
+    L, st = sparse_cholesky(K_FF, backend=backend, order=order)
+    if order is not None:
+        st["order"] = "AMD (vertex graph)"
     t_factor = time.perf_counter() - t0
     log.info("factor (%s, %s): %d dofs, %d stored in L, %d supernodes, %.2fs", backend, st["order"], len(keep),
              st["stored_L"], st["supernodes"], t_factor)
@@ -189,6 +188,47 @@ def surface_factor(K: sp.spmatrix, tets: np.ndarray, interior: np.ndarray, free:
                                "analyse_s": st["analyse_s"], "numeric_s": st["numeric_s"], "factor_s": t_factor,
                                "factor_flops": st["factor_flops"], "supernodes": st["supernodes"],
                                "selected_dofs": len(want)})
+
+
+def sparse_cholesky(A: sp.spmatrix, *, backend: str | None = None, order: np.ndarray | None = None):
+    """Supernodal Cholesky P A Pᵀ = L Lᵀ of a symmetric positive definite A, for :func:`inverse_block`.
+
+    Native: CHOLMOD's METIS order; pip-only: ``order`` if given, else AMD of A's pattern, through
+    cvxopt's CHOLMOD, postordered and packed by :func:`precompute.selinv.supernodal`.
+    Returns the factor's arrays and stats; raises :class:`CondensationError` if A is singular."""
+    backend = cholmod_backend(backend)
+    A = sp.csc_matrix(A)
+    if backend == "native":
+        from precompute import native
+
+        low = sp.tril(A, format="csc")
+        low.sort_indices()
+        try:
+            return native.factor(low)
+        except ArithmeticError as exc:
+            raise _singular(exc.args[0]) from None
+    t0 = time.perf_counter()
+    p = amd_order(A) if order is None else np.asarray(order, np.int64)
+    t_order = time.perf_counter() - t0
+    low = sp.tril(A[p][:, p], format="csc")
+    low.sort_indices()
+    (colptr, rowind, values), t_numeric, _ = _factor_cvxopt(low)
+    L = selinv.supernodal(colptr, rowind, values, p)
+    return L, {"order": "AMD" if order is None else "given", "analyse_s": t_order, "numeric_s": t_numeric,
+               "stored_L": len(L["x"]), "factor_flops": None, "supernodes": len(L["super"]) - 1}
+
+
+def inverse_block(L: dict, want: np.ndarray, scale: np.ndarray, *, backend: str | None = None):
+    """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j (C order) from :func:`sparse_cholesky`'s factor, by the
+    C library (native) or :mod:`precompute.selinv`; returns X and timings."""
+    from precompute import native
+
+    if cholmod_backend(backend) == "native":
+        return native.selected_inverse(L, want, scale)
+    t0 = time.perf_counter()
+    X, st = selinv.selected_inverse(L, want, scale)
+    st["selinv_s"] = time.perf_counter() - t0
+    return X, st
 
 
 def _singular(column) -> CondensationError:
@@ -245,19 +285,12 @@ def greens_functions(factor: SparseFactor, areas: np.ndarray, *, backend: str | 
     reactions : (3 n_fixed, 3 n), the nodal forces the support exerts per unit traction
         at vertex j (equilibrium: they sum to :math:`-a_j p_j`).
     """
-    from precompute import native
-
     a = np.repeat(np.asarray(areas, float), 3)
     nc = factor.n_contact
     if len(a) != nc:
         raise CondensationError(f"{len(a) // 3} vertex areas for {nc // 3} free vertices")
     scale = np.concatenate([a, np.ones(len(factor.want) - nc)])
-    if cholmod_backend(backend) == "native":
-        D, st = native.selected_inverse(factor.L, factor.want, scale)
-    else:
-        t0 = time.perf_counter()
-        D, st = selinv.selected_inverse(factor.L, factor.want, scale)
-        st["selinv_s"] = time.perf_counter() - t0
+    D, st = inverse_block(factor.L, factor.want, scale, backend=backend)
     t0 = time.perf_counter()
     rows = np.unique(factor.coupling.indices)  # the dofs next to the support
     reactions = factor.coupling[:, rows] @ D[rows, :nc]  # K_UF u for every load

@@ -115,14 +115,14 @@ def test_unwritable_output_folder(tmp_path, capsys):
 def test_a_contact_region_too_large_for_memory_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
     """The dense Ξ of loop1's 73 free vertices is 384 kB; with 100 kB available the run stops after
     meshing, says how much it needs and what to change, and writes nothing."""
-    import pipeline.stages as stages
+    import precompute.condense as condense
 
-    monkeypatch.setattr(stages, "available_memory", lambda: 100_000)
+    monkeypatch.setattr(condense, "available_memory", lambda: 100_000)
     out = tmp_path / "x.h5"
     err = cli_error(capsys, ["precompute", "loop1", "-o", str(out)])
     assert "dense 219 x 219" in err and "MiB" in err and "--contact" in err and "--size" in err
     assert not out.exists()
-    monkeypatch.setattr(stages, "available_memory", lambda: None)  # unknown: no refusal
+    monkeypatch.setattr(condense, "available_memory", lambda: None)  # unknown: no refusal
     assert main(["-q", "precompute", "loop1", "-o", str(out)]) == 0 and out.exists()
 
 

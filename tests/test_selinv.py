@@ -4,16 +4,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import laplacian_3d, lower, random_spd
+from conftest import laplacian_3d, random_spd
 from precompute import native, selinv
-from precompute.condense import _factor_cvxopt
+from precompute.condense import sparse_cholesky
 
 
-def cvxopt_factor(A, rng):
-    """selinv's factor of A in a random order (cvxopt's CHOLMOD, relaxed supernodes), as the pipeline builds it."""
-    p = rng.permutation(A.shape[0])
-    (colptr, rowind, values), _, _ = _factor_cvxopt(lower(A[p][:, p]))
-    return selinv.supernodal(colptr, rowind, values, p)
+def cvxopt_factor(A, rng=None):
+    """The pip-only factor (cvxopt's CHOLMOD, relaxed supernodes, postordered and packed here) in a
+    random order, or in AMD order without ``rng``."""
+    order = None if rng is None else rng.permutation(A.shape[0])
+    L, stats = sparse_cholesky(A, backend="cvxopt", order=order)
+    assert stats["order"] == ("AMD" if rng is None else "given")
+    return L
 
 
 @settings(max_examples=50, deadline=None)
@@ -42,7 +44,7 @@ def test_postorder_puts_children_first_and_keeps_subtrees_contiguous(parent_seed
 
 def test_packed_factor_is_the_cholesky_factor_of_the_postordered_matrix():
     A = laplacian_3d(6, 7)
-    L = cvxopt_factor(A, np.random.default_rng(7))
+    L = cvxopt_factor(A)
     n = A.shape[0]
     dense = np.zeros((n, n))
     for s in range(len(L["super"]) - 1):
