@@ -131,7 +131,8 @@ def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.n
     sub = ncol.copy()  # columns in each subtree
     for s in range(ns):  # children precede parents
         if sub[s] != sup[s + 1] - fc[s]:
-            raise ValueError(f"the factor's supernodes are not postordered (supernode {s}: columns {sup[s]}:{sup[s + 1]}, subtree from {fc[s]}, {sub[s]} columns)")
+            raise ValueError(f"the factor's supernodes are not postordered (supernode {s}: columns "
+                             f"{sup[s]}:{sup[s + 1]}, its subtree from column {fc[s]} has {sub[s]} columns)")
         if parent[s] >= 0:
             fc[parent[s]] = min(fc[parent[s]], fc[s])
             sub[parent[s]] += sub[s]
