@@ -23,7 +23,7 @@ and the surface block of its inverse is
 with E the unit columns of the free surface dofs.  A column of W is non-zero
 only on its elimination-tree path, so with postordered supernodes each
 supernode's rows of W meet one contiguous range of surface dofs and
-:math:`W^T W` is one symmetric rank-k update (dsyrk) per supernode: ~13 Gflop
+:math:`W^T W` is one symmetric rank-k update (dsyrk) per supernode: ~14 Gflop
 at the default kidney against ~82 Gflop to form the dense Schur complement S
 and invert it (n³).  Reactions come from the same inverse: the support's
 nodal forces are :math:`K_{UF} u_F`, and :math:`K_{UF}` touches only the free
