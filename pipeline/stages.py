@@ -46,7 +46,7 @@ class Spec:
     r_max : largest mask radius [m] the runtime may use (None: model default).
     edge_length : target edge length [m] when remeshing a --surface.
     dtype : storage precision of Ξ, "float64" or "float32" (half the size; see README).
-    element : "P1" (dense Schur route) or "P2" (blocked solves; for small contact regions).
+    element : "P1" (selected inversion) or "P2" (blocked solves; for small contact regions).
     """
 
     model: str

@@ -10,9 +10,10 @@ f_k = Σ_j (∫ ψ_k φ_j dΓ) p_j.  On a triangle of area A (ψ_k = φ_k(2φ_k 
 
 (a P1 traction puts no net force on the corners; the column sums are a_j = ∫ φ_j dΓ).  So Ξ, the
 displacement of contact vertex i per unit traction at contact vertex j, is read from solves with
-these load columns.  P2 has ~4x the surface nodes of P1, which makes the dense Schur route 60x
-dearer; P2 is meant for small contact regions (the half-space checks) and uses one sparse
-Cholesky factorisation and blocked solves, 3 n_c right-hand sides in all.
+these load columns.  P2 has ~4x the surface nodes of P1: selecting every loaded node for P1's
+selected inversion was measured at 1 Tflop and no faster than solves at the default kidney, so P2
+is meant for small contact regions (the half-space checks) and uses one sparse Cholesky
+factorisation and blocked solves, 3 n_c right-hand sides in all.
 """
 from __future__ import annotations
 
