@@ -193,9 +193,9 @@ def _bytes(n: float) -> str:
 
 def check_memory(n_contact: int, element: str) -> None:
     """Refuse, before any heavy work, a contact region whose dense Ξ cannot be computed in this
-    machine's memory.  Peak working set per byte of Ξ (3 n_c)² float64: ~1.6 measured for the
+    machine's memory.  Peak working set per byte of Ξ (3 n_c)² float64, measured: ~1.6 for the
     native selected inversion (its result buffer also holds the rows next to the support), ~2.5 for
-    the pip-only one (a permuted copy), ~3 for P2 (Ξ, solves and copies)."""
+    the pip-only one (a permuted copy); ~3 assumed for P2 (Ξ, solves and copies)."""
     from precompute import condense
 
     xi = 8.0 * (3 * n_contact) ** 2

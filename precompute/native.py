@@ -23,7 +23,6 @@ SOURCE = Path(__file__).with_name("_selected_inverse.c")
 #: must equal pmask_abi_version() in _selected_inverse.c
 ABI_VERSION = 3
 
-
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
 _c_long, _c_int, _p = ctypes.c_long, ctypes.c_int, ctypes.c_void_p
