@@ -12,7 +12,7 @@ from meshes import kidney, loop
 from pipeline.cli import main
 from pipeline.stages import Spec, input_hash, run
 from precompute.surface import boundary_surface
-from runtime.artifact import ArtifactError, read_artifact
+from runtime.artifact import read_artifact
 from runtime.geometry import vertex_areas
 
 
