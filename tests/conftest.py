@@ -82,3 +82,15 @@ def lower(A):
     low = sp.tril(A, format="csc")
     low.sort_indices()
     return low
+
+
+def dense_factor(L: dict) -> np.ndarray:
+    """The supernodal arrays read back into a dense lower-triangular L."""
+    n = len(L["perm"])
+    out = np.zeros((n, n))
+    for s in range(len(L["super"]) - 1):
+        k1, k2 = L["super"][s], L["super"][s + 1]
+        rows = L["s"][L["pi"][s]:L["pi"][s + 1]]
+        block = L["x"][L["px"][s]:L["px"][s] + len(rows) * (k2 - k1)].reshape(k2 - k1, len(rows)).T
+        out[np.ix_(rows, np.arange(k1, k2))] = block
+    return np.tril(out)

@@ -2,25 +2,11 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
-from conftest import laplacian_3d, lower, random_spd
+from conftest import dense_factor, laplacian_3d, lower
 from precompute import native
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="native CHOLMOD library not built")
-
-
-def dense_factor(L: dict) -> np.ndarray:
-    """The supernodal arrays read back into a dense lower-triangular L."""
-    n = len(L["perm"])
-    out = np.zeros((n, n))
-    for s in range(len(L["super"]) - 1):
-        k1, k2 = L["super"][s], L["super"][s + 1]
-        rows = L["s"][L["pi"][s]:L["pi"][s + 1]]
-        block = L["x"][L["px"][s]:L["px"][s] + len(rows) * (k2 - k1)].reshape(k2 - k1, len(rows)).T
-        out[np.ix_(rows, np.arange(k1, k2))] = block
-    return np.tril(out)
 
 
 def test_factor_arrays_are_the_cholesky_factor_in_metis_order():
@@ -52,20 +38,6 @@ def test_selected_inverse_matches_the_dense_inverse(k, nw, seed):
     # the same from arrays that went through a file (a checkpoint) instead of CHOLMOD's memory
     X2, _ = native.selected_inverse({k_: np.array(v) for k_, v in L.items()}, want, scale)
     assert np.array_equal(X, X2)
-
-
-@settings(max_examples=60, deadline=None)
-@given(n=st.integers(1, 90), density=st.floats(0.0, 0.3), frac=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1))
-def test_selected_inverse_of_random_sparse_matrices(n, density, frac, seed):
-    """Any sparsity (diagonal, banded-like, dense-ish, many components), any wanted set."""
-    rng = np.random.default_rng(seed)
-    A = random_spd(n, density, rng)
-    want = rng.permutation(n)[:int(frac * n)]
-    scale = rng.uniform(0.5, 2.0, len(want))
-    L, _ = native.factor(lower(A))
-    X, _ = native.selected_inverse(L, want, scale)
-    G = np.linalg.inv(A.toarray())[np.ix_(want, want)]
-    assert np.abs(X - G * scale[None, :]).max(initial=0.0) <= 1e-12 * max(np.abs(G).max(initial=0.0), 1e-300) * 2
 
 
 def test_selected_inverse_of_bodies_in_pieces():

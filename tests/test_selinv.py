@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import laplacian_3d, random_spd
+from conftest import dense_factor, laplacian_3d, lower, random_spd
 from precompute import native, selinv
 from precompute.condense import sparse_cholesky
 
@@ -46,13 +46,7 @@ def test_packed_factor_is_the_cholesky_factor_of_the_postordered_matrix():
     A = laplacian_3d(6, 7)
     L = cvxopt_factor(A)
     n = A.shape[0]
-    dense = np.zeros((n, n))
-    for s in range(len(L["super"]) - 1):
-        k1, k2 = L["super"][s], L["super"][s + 1]
-        rows = L["s"][L["pi"][s]:L["pi"][s + 1]]
-        dense[np.ix_(rows, np.arange(k1, k2))] = L["x"][L["px"][s]:L["px"][s] + len(rows) * (k2 - k1)].reshape(
-            k2 - k1, len(rows)).T
-    dense = np.tril(dense)
+    dense = dense_factor(L)
     p = L["perm"]
     assert np.abs(dense @ dense.T - A.toarray()[np.ix_(p, p)]).max() < 1e-12
     assert len(L["super"]) - 1 < n  # columns did merge into supernodes
@@ -61,6 +55,7 @@ def test_packed_factor_is_the_cholesky_factor_of_the_postordered_matrix():
 @settings(max_examples=60, deadline=None)
 @given(n=st.integers(1, 90), density=st.floats(0.0, 0.3), frac=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1))
 def test_selected_inverse_matches_the_dense_inverse(n, density, frac, seed):
+    """Any sparsity (diagonal, banded-like, dense-ish, many components), any wanted set, both twins."""
     rng = np.random.default_rng(seed)
     A = random_spd(n, density, rng)
     want = rng.permutation(n)[:int(frac * n)]
@@ -70,9 +65,12 @@ def test_selected_inverse_matches_the_dense_inverse(n, density, frac, seed):
     G = np.linalg.inv(A.toarray())[np.ix_(want, want)]
     assert X.flags.c_contiguous and X.shape == (len(want), len(want))
     assert np.abs(X - G * scale[None, :]).max(initial=0.0) <= 2e-12 * max(np.abs(G).max(initial=0.0), 1e-300)
-    if native.available():  # the C twin on the same factor: the same algorithm
-        Xc, _ = native.selected_inverse(L, want, scale)
+    if native.available():
+        Xc, _ = native.selected_inverse(L, want, scale)  # the C twin on the same factor
         assert np.abs(Xc - X).max(initial=0.0) <= 1e-13 * max(np.abs(G).max(initial=0.0), 1e-300)
+        Ln, _ = native.factor(lower(A))  # and on CHOLMOD's own factor (METIS order)
+        Xn, _ = native.selected_inverse(Ln, want, scale)
+        assert np.abs(Xn - G * scale[None, :]).max(initial=0.0) <= 2e-12 * max(np.abs(G).max(initial=0.0), 1e-300)
 
 
 def test_bad_input_is_refused():
