@@ -1,37 +1,50 @@
-# One command for each job; the first one creates .venv and installs everything.
+# One command for each job.  The first `make` creates .venv and installs the package into it; it
+# never changes the system: `make system-deps` (as root, printing what it installs) adds the C
+# libraries and the browser the fast routes and the viewer tests use.
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 MODEL  ?= kidney
 ARGS   ?=
+EXTRAS ?= precompute,figures,test
+PIP    := $(BIN)/pip install --quiet -c constraints.txt
 
-.PHONY: venv precompute test bench reference figures stroke clean
+.PHONY: venv system-deps precompute test test-slow test-pip bench reference figures stroke clean distclean
 
-NATIVE := $(VENV)/lib/pmask/.built
+## make system-deps: Debian packages for the native routes (root; prints what it installs)
+SYSTEM_PACKAGES := gcc libsuitesparse-dev libopenblas0-pthread
+system-deps:
+	@echo "installing with apt-get: $(SYSTEM_PACKAGES)"
+	apt-get update
+	DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $(SYSTEM_PACKAGES)
 
-venv: $(BIN)/.installed $(NATIVE)
+venv: $(VENV)/.installed
 
-$(BIN)/.installed: pyproject.toml tools/install_cholmod.sh
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
-	bash tools/install_cholmod.sh $(BIN)/pip
-	touch $@
-
-# the C over CHOLMOD (precompute/native.py); rebuilt when its source changes
-$(NATIVE): $(BIN)/.installed precompute/_selected_inverse.c tools/build_native.sh
-	bash tools/build_native.sh $(VENV)
+# the package in editable mode; the build backend (setup.py) compiles the C extensions in place
+$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c)
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip "setuptools>=77" wheel
+	$(PIP) --no-build-isolation -e '.[$(EXTRAS)]'
+	@$(BIN)/pmask --version
 	touch $@
 
 ## make precompute MODEL=kidney [ARGS="--force ..."]: write artifacts/$(MODEL).h5
 precompute: venv
 	$(BIN)/pmask precompute $(MODEL) $(ARGS)
 
-## make test: the whole test suite (what CI runs)
+## make test: the fast test suite (what a developer runs; CI runs it and the slow tests)
 test: venv
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
-## make bench: precompute and runtime benchmarks -> bench/results.json, bench/results.md
+## make test-slow: the long solves and the P2 reference rows
+test-slow: venv
+	$(BIN)/python -m pytest -q -m slow $(PYTEST_ARGS)
+
+## make test-pip: the Green's-function and runtime tests again on the pip-only route
+test-pip: venv
+	PMASK_CHOLMOD=cvxopt $(BIN)/python -m pytest -q tests/test_greens.py tests/test_runtime.py tests/test_selinv.py
+
+## make bench: precompute and runtime benchmarks -> bench/results.json, bench/results.md, README table
 bench: venv
 	$(BIN)/python bench/run.py
 
@@ -40,10 +53,14 @@ reference: venv
 	$(BIN)/pmask reference $(if $(REMESH),--remesh,)
 	git diff --stat -- tests/reference || true
 
-## make figures: the Figure 6 maps of the kidney and the 1 kHz stroke traces into docs/
+## make figures: the paper's figures for the kidney and the stroke traces into docs/
 figures: venv
 	$(BIN)/pmask figures $(MODEL) --out docs
 	$(BIN)/python examples/stroke.py artifacts/$(MODEL).h5 --out docs
 
+## make clean: build products and caches (keeps artifacts/); make distclean: also artifacts/ and .venv
 clean:
-	rm -rf $(VENV) artifacts .pytest_cache .hypothesis
+	rm -rf build *.egg-info .pytest_cache .hypothesis
+	find precompute runtime -name '*.so' -delete
+distclean: clean
+	rm -rf $(VENV) artifacts

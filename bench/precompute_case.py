@@ -20,8 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 
 def dense_floor(n: int) -> float:
     import scipy.linalg.lapack as lapack
@@ -48,8 +46,8 @@ def baseline(out: Path) -> dict:
     """scipy splu (defaults) on K_FF, one solve per column of unit nodal forces at the contact dofs."""
     import scipy.sparse.linalg as spla
 
-    from precompute.elasticity import dofs, stiffness_matrix
-    from runtime.artifact import read_artifact
+    from pmask.precompute.elasticity import dofs, stiffness_matrix
+    from pmask.runtime.artifact import read_artifact
 
     d = read_artifact(out)
     P, T = d["volume/points"], d["volume/tets"]
@@ -79,7 +77,7 @@ def baseline(out: Path) -> dict:
 
 
 def main() -> None:
-    from pipeline.stages import Spec, run
+    from pmask.pipeline.stages import Spec, run
 
     size, out = float(sys.argv[1]), Path(sys.argv[2])
     dtype = "float32" if "--float32" in sys.argv else "float64"

@@ -18,7 +18,6 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-sys.path.insert(0, str(ROOT))
 
 #: kidney size parameter -> about 500, 1,500 and 4,000 free surface vertices
 SIZES = (0.0085, 0.005, 0.003)
@@ -48,7 +47,7 @@ def drop_page_cache() -> bool:
 LOAD_SNIPPET = """
 import json, sys, time
 t0 = time.perf_counter()
-from runtime import Model
+from pmask.runtime import Model
 t1 = time.perf_counter()
 m = Model.load(sys.argv[1])
 t2 = time.perf_counter()
@@ -78,7 +77,7 @@ def load_bench(path: Path) -> dict:
 
 CHECK_SNIPPET = """
 import json, sys, time
-from runtime.artifact import read_artifact
+from pmask.runtime.artifact import read_artifact
 ts = {}
 for verify in (False, True, False, True):
     t0 = time.perf_counter(); read_artifact(sys.argv[1], verify=verify); ts.setdefault(verify, []).append(time.perf_counter() - t0)
@@ -93,7 +92,7 @@ def check_cost(path: Path) -> dict:
 def gmsh_ellipsoid(n_target: int, axes=(0.055, 0.03, 0.02)):
     """A gmsh (frontal-Delaunay) surface mesh of an ellipsoid with about n_target vertices: the synthetic
     surfaces of the query benchmarks, with a mesher's valences (a UV sphere's pole fans are not)."""
-    from precompute.meshing import gmsh_session
+    from pmask.precompute.meshing import gmsh_session
 
     a, b, c = axes
     p = 1.6075
@@ -121,7 +120,7 @@ def gmsh_ellipsoid(n_target: int, axes=(0.055, 0.03, 0.02)):
 
 
 def synthetic_stiffness(n: int):
-    from runtime import SurfaceStiffness
+    from pmask.runtime import SurfaceStiffness
 
     pts, tris = gmsh_ellipsoid(n)
     rng = np.random.default_rng(1)
@@ -166,7 +165,7 @@ def jitter_reference(target_us: float, steps=20000) -> dict:
 
 
 def step_bench(stiff, path) -> dict:
-    from runtime import HapticContact, Status
+    from pmask.runtime import HapticContact, Status
 
     h = HapticContact(stiff)
     for p in path[:50]:
@@ -229,10 +228,9 @@ def main() -> None:
     res["scaling"] = {"time_vs_free_exponent": float(np.polyfit(np.log(free), np.log(tot), 1)[0]),
                       "time_vs_condensed_dofs_exponent": float(np.polyfit(np.log(dofs), np.log(tot), 1)[0])}
     # runtime: load + K_i on the real kidneys; per-step and batch on real and synthetic tables
-    from runtime import Model
+    from pmask.runtime import Model
 
-    sys.path.insert(0, str(ROOT / "examples"))
-    import stroke
+    from pmask.pipeline import strokes as stroke
 
     for n_free, path in sorted(arts.items()):
         print(f"runtime kidney {n_free} ...", flush=True)
@@ -270,7 +268,7 @@ def include_in_readme(table: str) -> None:
         readme.write_text(head + start + "\n" + table + end + rest.split(end, 1)[1])
 
 def float32_effect(p64: Path, p32: Path, r32: dict) -> dict:
-    from runtime import Model
+    from pmask.runtime import Model
 
     out = {}
     for name, p in (("float64", p64), ("float32", p32)):

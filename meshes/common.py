@@ -12,7 +12,7 @@ class ModelMesh:
 
     points : (N, 3) vertex positions in metres.
     tets : (M, 4) positively oriented linear tetrahedra.
-    fixed : selector string for the support region Λu (see ``precompute.selectors``).
+    fixed : selector string for the support region Λu (see ``pmask.precompute.selectors``).
     contact : selector string for the region a probe can touch, or None for every free vertex.
     material : default Young's modulus ``E`` [Pa] and Poisson ratio ``nu``.
     groups : named boolean point masks (gmsh physical groups) usable as ``group:NAME``.

@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshes.common import ModelMesh
-from precompute.meshing import gmsh_session, tets_from_gmsh
+from pmask.errors import InputError
+
+from pmask.meshes.common import ModelMesh
+from pmask.precompute.meshing import gmsh_session, tets_from_gmsh
 
 LOAD_RADIUS = 0.01  # m, the mask radius r the analytic checks use
 
@@ -31,7 +33,7 @@ def build(load_radius: float = LOAD_RADIUS, h_load: float | None = None, far: fl
     r = float(load_radius)
     h = float(h_load) if h_load is not None else r / 8
     if not (r > 0 and h > 0 and far >= 2 and fine > 0 and grading > 0):
-        raise ValueError("halfspace: load_radius, h_load, fine and grading must be > 0 and far >= 2")
+        raise InputError("halfspace: load_radius, h_load, fine and grading must be > 0 and far >= 2")
     R = far * r
     with gmsh_session("halfspace") as gmsh:
         occ = gmsh.model.occ

@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshes.common import ModelMesh
-from precompute.meshing import gmsh_session, tets_from_gmsh
+from pmask.errors import InputError
+
+from pmask.meshes.common import ModelMesh
+from pmask.precompute.meshing import gmsh_session, tets_from_gmsh
 
 SEMI_AXES = (0.055, 0.030, 0.020)  # m
 HILUM_CENTRE = (0.0, -0.041, 0.0)  # m
@@ -26,7 +28,7 @@ DEFAULT_SIZE = 0.005
 def build(size: float = DEFAULT_SIZE) -> ModelMesh:
     """Mesh the kidney with largest edge ``size`` [m] (curvature refines below it)."""
     if not size > 0:
-        raise ValueError(f"kidney: size must be > 0 m, got {size}")
+        raise InputError(f"kidney: size must be > 0 m, got {size}")
     with gmsh_session("kidney") as gmsh:
         occ = gmsh.model.occ
         body = occ.addSphere(0, 0, 0, 1.0)

@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshes.common import ModelMesh
-from precompute.meshing import volume_inside_surface
+from pmask.errors import InputError
+
+from pmask.meshes.common import ModelMesh
+from pmask.precompute.meshing import volume_inside_surface
 
 SEMI_AXES = (0.04, 0.02, 0.02)  # m
 RINGS, SEGMENTS = 4, 8
@@ -81,7 +83,7 @@ def surface(level: int) -> tuple[np.ndarray, np.ndarray]:
 def build(level: int = 0) -> ModelMesh:
     """Tet mesh inside the level-``level`` surface, fixed on the cap x >= 0.3 a."""
     if level < 0 or int(level) != level:
-        raise ValueError(f"loop level must be a whole number >= 0, got {level}")
+        raise InputError(f"loop level must be a whole number >= 0, got {level}")
     spts, stris = surface(int(level))
     points, tets = volume_inside_surface(spts, stris)
     if not np.allclose(points[:len(spts)], spts):

@@ -1,7 +1,9 @@
-"""``pmask`` command line (also ``python -m pipeline``).
+"""``pmask`` command line (also ``python -m pmask.pipeline``).
 
-Subcommands: ``precompute``, ``models``, ``info``.  Errors print one line and
-exit non-zero; ``--verbose`` shows the traceback.
+Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``reference``, ``figures``.  An error the
+user can fix (:class:`pmask.errors.PmaskError`) prints one line and exits with 2; anything else is a
+bug in pmask and shows its traceback with a request to report it.  ``--verbose`` shows the traceback
+of every error.
 """
 from __future__ import annotations
 
@@ -9,13 +11,12 @@ import argparse
 import json
 import logging
 import sys
+import traceback
 from pathlib import Path
 
+from pmask.errors import InputError, PmaskError
+
 log = logging.getLogger("pmask")
-
-#: exceptions that are the user's to fix: one line, no traceback
-USER_ERRORS = (ValueError, OSError, KeyError)
-
 
 def _param(text: str):
     key, sep, value = text.partition("=")
@@ -55,10 +56,10 @@ def add_precompute(sub) -> None:
 
 
 def cmd_precompute(args) -> int:
-    from pipeline.stages import Spec, run
+    from pmask.pipeline.stages import Spec, run
 
     if args.model is None and not (args.surface or args.volume):
-        raise ValueError("name a model (see 'pmask models') or give --surface FILE or --volume FILE")
+        raise InputError("name a model (see 'pmask models') or give --surface FILE or --volume FILE")
     label = args.model or Path(args.surface or args.volume).stem
     params = dict(args.param)
     if args.size is not None:
@@ -88,7 +89,7 @@ def add_models(sub) -> None:
 
 
 def cmd_models(args) -> int:
-    from pipeline.models import MODELS
+    from pmask.pipeline.models import MODELS
 
     for name, (_, desc) in MODELS.items():
         print(f"{name:10s} {desc}")
@@ -103,7 +104,7 @@ def add_info(sub) -> None:
 
 
 def cmd_info(args) -> int:
-    from runtime.artifact import read_artifact
+    from pmask.runtime.artifact import read_artifact
 
     d = read_artifact(args.artifact)
     a = d["attrs"]
@@ -133,7 +134,7 @@ def add_reference(sub) -> None:
 
 
 def cmd_reference(args) -> int:
-    from pipeline.reference import REFERENCE_DIR, regenerate
+    from pmask.pipeline.reference import REFERENCE_DIR, regenerate
 
     diffs = regenerate(Path(args.dir) if args.dir else REFERENCE_DIR, remesh=args.remesh)
     for name, d in diffs.items():
@@ -154,14 +155,14 @@ def add_figures(sub) -> None:
 
 
 def cmd_figures(args) -> int:
-    from pipeline.figures import figure6
-    from pipeline.truth import figure6_numbers
-    from runtime import Model
+    from pmask.pipeline.figures import figure6
+    from pmask.pipeline.truth import figure6_numbers
+    from pmask.runtime import Model
 
     path = Path(args.model)
     if path.suffix != ".h5":
-        from pipeline.models import get_model
-        from pipeline.stages import Spec, run
+        from pmask.pipeline.models import get_model
+        from pmask.pipeline.stages import Spec, run
 
         get_model(args.model)
         path = Path("artifacts") / f"{args.model}.h5"
@@ -199,8 +200,8 @@ def add_export(sub) -> None:
 
 
 def cmd_export(args) -> int:
-    from pipeline.export import export_surface
-    from runtime import Model
+    from pmask.pipeline.export import export_surface
+    from pmask.runtime import Model
 
     out = export_surface(Model.load(args.artifact), Path(args.out), mask=args.mask, radius=args.radius,
                          contact_vertex=args.contact_vertex, force=args.force)
@@ -210,12 +211,30 @@ def cmd_export(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=version_line())
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (add_precompute, add_models, add_info, add_export, add_reference, add_figures):
         add(sub)
     return parser
+
+
+def version_line() -> str:
+    """``pmask --version``: the version and which compiled parts this installation has."""
+    import importlib.util
+
+    import pmask
+
+    def built(name):
+        try:
+            return importlib.util.find_spec(name) is not None
+        except ImportError:
+            return False
+
+    parts = {"selected inversion (C over CHOLMOD)": built("pmask.precompute._selinv")}
+    have = ", ".join(f"{k}: {'built' if v else 'not built, pip-only fallback'}" for k, v in parts.items())
+    return f"pmask {pmask.__version__} ({have})"
 
 
 def main(argv=None) -> int:
@@ -227,13 +246,19 @@ def main(argv=None) -> int:
         logging.getLogger("skfem").setLevel(logging.WARNING)
     try:
         return args.func(args)
-    except USER_ERRORS as exc:
+    except PmaskError as exc:
         if args.verbose:
             raise
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"pmask: error: {msg}", file=sys.stderr)
+        print(f"pmask: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("pmask: interrupted; run the same command again to resume from the last finished stage",
               file=sys.stderr)
         return 130
+    except Exception:  # not the user's to fix: a bug in pmask
+        if args.verbose:
+            raise
+        traceback.print_exc()
+        print(f"pmask: internal error: this is a bug in pmask, not in your input; please report it with the "
+              f"command line above and `{version_line()}`", file=sys.stderr)
+        return 3

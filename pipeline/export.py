@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pmask.errors import InputError
+
 
 def export_surface(model, out: Path, *, mask: str = "linear", radius: float | None = None,
                    contact_vertex: int | None = None, force=None) -> Path:
@@ -16,7 +18,7 @@ def export_surface(model, out: Path, *, mask: str = "linear", radius: float | No
     """
     import meshio
 
-    from pipeline.truth import vertex_norms
+    from pmask.pipeline.truth import vertex_norms
 
     n = len(model.points)
     radius = 2.0 * model.mean_edge_length if radius is None else radius
@@ -30,7 +32,7 @@ def export_surface(model, out: Path, *, mask: str = "linear", radius: float | No
         data[name] = v
     if contact_vertex is not None:
         if not 0 <= contact_vertex < n:
-            raise ValueError(f"contact vertex {contact_vertex} out of range [0, {n})")
+            raise InputError(f"contact vertex {contact_vertex} out of range [0, {n})")
         f = np.asarray(force if force is not None else [0.0, 0.0, -0.1], float)
         t = int(np.flatnonzero(np.any(model.triangles == contact_vertex, axis=1))[0])
         b = (model.triangles[t] == contact_vertex).astype(float)

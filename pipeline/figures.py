@@ -14,8 +14,8 @@ def figure6(model, out: Path, radius_factor: float = 2.0, numbers: dict | None =
     import matplotlib.pyplot as plt
     from matplotlib.tri import Triangulation
 
-    from pipeline.truth import vertex_norms
-    from runtime.geometry import triangle_normals
+    from pmask.pipeline.truth import vertex_norms
+    from pmask.runtime.geometry import triangle_normals
 
     r = radius_factor * model.mean_edge_length
     verts = model.contact[model.core]

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 from functools import partial
 
-from meshes import halfspace, kidney, loop
+from pmask.meshes import halfspace, kidney, loop
+
+from pmask.errors import InputError
 
 #: name -> (builder, one-line description)
 MODELS = {
@@ -15,7 +17,7 @@ MODELS = {
 }
 
 
-class UnknownModelError(ValueError):
+class UnknownModelError(InputError):
     """A model name that is not registered."""
 
 

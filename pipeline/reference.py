@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from meshes import halfspace, kidney, loop
-from meshes.common import load_model_mesh, save_model_mesh
+from pmask.meshes import halfspace, kidney, loop
+from pmask.meshes.common import load_model_mesh, save_model_mesh
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,7 @@ def ensure_meshes(mesh_dir: Path, remesh: bool = False) -> None:
 
 def artifact_for(name: str, mesh_dir: Path, work: Path, nu: float | None = None, element: str = "P1") -> Path:
     """Precompute (or reuse) the artifact of a stored mesh."""
-    from pipeline.stages import Spec, run
+    from pmask.pipeline.stages import Spec, run
 
     out = work / (f"{name}_{element}" + ("" if nu is None else f"_nu{nu:g}") + ".h5")
     run(Spec(model=name, volume=str(mesh_dir / f"{name}.npz"), nu=nu, element=element), out)
@@ -53,8 +53,8 @@ def artifact_for(name: str, mesh_dir: Path, work: Path, nu: float | None = None,
 
 
 def figure5_table(mesh_dir: Path, work: Path):
-    from pipeline.truth import figure5_row
-    from runtime import Model
+    from pmask.pipeline.truth import figure5_row
+    from pmask.runtime import Model
 
     models = [Model.load(artifact_for(f"loop{k}", mesh_dir, work)) for k in range(4)]
     radius = models[0].mean_edge_length
@@ -74,8 +74,8 @@ def figure5_table(mesh_dir: Path, work: Path):
 
 
 def halfspace_table(mesh_dir: Path, work: Path):
-    from pipeline.truth import analytic_centre_stiffness, centre_stiffness
-    from runtime import Model
+    from pmask.pipeline.truth import analytic_centre_stiffness, centre_stiffness
+    from pmask.runtime import Model
 
     rows = []
     cases = [(element, nu, k) for element, divisions in (("P1", HALFSPACE_DIVISIONS), ("P2", HALFSPACE_P2_DIVISIONS))
@@ -102,28 +102,24 @@ def halfspace_table(mesh_dir: Path, work: Path):
 
 
 def kidney_tables(mesh_dir: Path, work: Path):
-    import sys
-
-    from pipeline.truth import figure6_numbers, vertex_norms
-    from runtime import Model
+    from pmask.pipeline import strokes
+    from pmask.pipeline.truth import figure6_numbers, vertex_norms
+    from pmask.runtime import Model
 
     m = Model.load(artifact_for("kidney", mesh_dir, work))
     f6 = figure6_numbers(m, 2.0)
-    sys.path.insert(0, str(ROOT / "examples"))
-    import stroke
-
-    strokes = {}
+    smooth = {}
     for name, stiff in (("single", m.stiffness("single")), ("masked", m.stiffness("linear", f6["radius"]))):
-        forces, status = stroke.run_stroke(stiff, stroke.stroke_path())
-        strokes[name] = stroke.smoothness(forces, status)
+        forces, status = strokes.run_stroke(stiff, strokes.stroke_path())
+        smooth[name] = strokes.smoothness(forces, status)
     rows = [{"stiffness": name, "rank_correlation_with_area": f6[name]["rank_correlation_with_area"],
              "vertex_roughness": f6[name]["roughness"], "median_norm_N_per_m": f6[name]["median_norm"],
-             "stroke_roughness": strokes[name]["roughness"], "stroke_rms_step_N": strokes[name]["rms_step"],
-             "stroke_mean_force_N": strokes[name]["mean_force"]} for name in ("single", "masked")]
+             "stroke_roughness": smooth[name]["roughness"], "stroke_rms_step_N": smooth[name]["rms_step"],
+             "stroke_mean_force_N": smooth[name]["mean_force"]} for name in ("single", "masked")]
     meta6 = {"table": "paper Figure 6: what the stiffness maps show", "model": "kidney (default resolution)",
              "resolution": f"{len(m.points)} surface vertices, {len(m.free)} free",
              "mask": f"single vertex; linear cone r = 2 x mean edge = {f6['radius']:.6e} m",
-             "stroke": "examples/stroke.py: y = 12 mm, x = -45..45 mm, 1.5 mm deep, 35 mm/s, 1 kHz",
+             "stroke": "pmask.pipeline.strokes: y = 12 mm, x = -45..45 mm, 1.5 mm deep, 35 mm/s, 1 kHz",
              "units": "N/m, N; roughness relative"}
     small = Model.load(artifact_for("kidney_small", mesh_dir, work))
     r = 2.0 * small.mean_edge_length

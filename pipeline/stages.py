@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from meshes.common import ModelMesh, load_model_mesh, save_model_mesh
-from runtime.artifact import FORMAT_VERSION
+from pmask.errors import InputError, OutputError, ResourceError
+from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
+from pmask.runtime.artifact import FORMAT_VERSION
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ def library_versions() -> dict:
             out[name] = md.version(name)
         except md.PackageNotFoundError:
             out[name] = None
-    from precompute import native
+    from pmask.precompute import native
 
     out["cholmod"] = native.cholmod_version()
     return out
@@ -134,13 +135,13 @@ def _save_npz(path: Path, **arrays) -> None:
 
 def build_mesh(spec: Spec):
     """Stage 1: the volume mesh and its regions from a model or a user's file."""
-    from pipeline.models import get_model
-    from precompute import meshing
+    from pmask.pipeline.models import get_model
+    from pmask.precompute import meshing
 
     scale = UNITS[spec.units]
     if spec.surface:
         if spec.edge_length is None:
-            raise ValueError("--surface needs --edge-length (target edge length in the file's units)")
+            raise InputError("--surface needs --edge-length (target edge length in the file's units)")
         points, tets = meshing.remesh_surface(Path(spec.surface), edge_length=spec.edge_length * scale, scale=scale)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", info={"source": Path(spec.surface).name})
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
@@ -154,7 +155,7 @@ def build_mesh(spec: Spec):
 
 def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, bar, label):
     """P1: assemble, factorise K_FF (checkpointed), then Ξ by selected inversion."""
-    from precompute import condense, elasticity
+    from pmask.precompute import condense, elasticity
 
     t0 = time.perf_counter()
     factor_ck = work / "factor.npz"
@@ -196,13 +197,13 @@ def check_memory(n_contact: int, element: str) -> None:
     machine's memory.  Peak working set per byte of Ξ (3 n_c)² float64, measured: ~1.6 for the
     native selected inversion (its result buffer also holds the rows next to the support), ~2.5 for
     the pip-only one (a permuted copy); ~3 assumed for P2 (Ξ, solves and copies)."""
-    from precompute import condense
+    from pmask.precompute import condense
 
     xi = 8.0 * (3 * n_contact) ** 2
     factor = (1.6 if condense.cholmod_backend() == "native" else 2.5) if element == "P1" else 3.0
     avail = condense.available_memory()
     if avail is not None and xi * factor > avail:
-        raise ValueError(
+        raise ResourceError(
             f"Ξ of {n_contact} contact vertices is a dense {3 * n_contact} x {3 * n_contact} matrix "
             f"({_bytes(xi)} in float64, ~{_bytes(xi * factor)} to compute), more than the "
             f"{_bytes(avail)} this machine has available: restrict the region a probe can touch "
@@ -222,21 +223,21 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
 
     ``progress`` shows a bar over the stages on stderr (the CLI turns it on for a terminal).
     """
-    from precompute import elasticity, regions, selectors, surface
-    from precompute.writer import write_artifact
-    from runtime.geometry import mean_edge_length, vertex_areas
+    from pmask.precompute import elasticity, regions, selectors, surface
+    from pmask.precompute.writer import write_artifact
+    from pmask.runtime.geometry import mean_edge_length, vertex_areas
 
     out = Path(out)
     if spec.element not in ("P1", "P2"):
-        raise ValueError(f"element must be P1 or P2, got {spec.element!r}")
+        raise InputError(f"element must be P1 or P2, got {spec.element!r}")
     if spec.dtype not in ("float64", "float32"):
-        raise ValueError(f"dtype must be float64 or float32, got {spec.dtype!r}")
+        raise InputError(f"dtype must be float64 or float32, got {spec.dtype!r}")
     if spec.units not in UNITS:
-        raise ValueError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
+        raise InputError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
     for key in ("surface", "volume"):
         p = getattr(spec, key)
         if p and not Path(p).is_file():
-            raise FileNotFoundError(f"--{key} {p}: no such file")
+            raise InputError(f"--{key} {p}: no such file")
     if spec.E is not None or spec.nu is not None:
         elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
     try:
@@ -244,7 +245,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".pmask-write-test-"):
             pass
     except OSError as exc:
-        raise PermissionError(f"cannot write to {out.parent} ({exc.strerror or exc}); "
+        raise OutputError(f"cannot write to {out.parent} ({exc.strerror or exc}); "
                               "choose a writable folder with --out") from None
     h = input_hash(spec)
     if out.exists() and not force and artifact_hash(out) == h:
@@ -303,7 +304,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
 
     if spec.element == "P2":
         # P2: one sparse factorisation and blocked solves (no factor checkpoint)
-        from precompute import p2
+        from pmask.precompute import p2
 
         t0 = time.perf_counter()
         K2, edges = p2.p2_stiffness(model.points, model.tets, E, nu)

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from runtime.geometry import one_rings
-from runtime.masks import PROFILES
+from pmask.runtime.geometry import one_rings
+from pmask.runtime.masks import PROFILES
 
 
 def analytic_centre_stiffness(kind: str, E: float, nu: float, r: float) -> tuple[float, float]:

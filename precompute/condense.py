@@ -30,9 +30,9 @@ nodal forces are :math:`K_{UF} u_F`, and :math:`K_{UF}` touches only the free
 dofs next to the support, so those dofs join the selected set.
 
 Two backends, the same algorithm and the same numbers (tested): the native one
-(:mod:`precompute.native`: C over the system's CHOLMOD, METIS order, the
+(:mod:`pmask.precompute.native`: C over the system's CHOLMOD, METIS order, the
 inverse in place) and the pip-only one (cvxopt's CHOLMOD in an AMD order of the
-vertex graph, :mod:`precompute.selinv` in numpy and SciPy's BLAS).
+vertex graph, :mod:`pmask.precompute.selinv` in numpy and SciPy's BLAS).
 """
 from __future__ import annotations
 
@@ -45,13 +45,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from precompute import selinv
-from precompute.elasticity import dofs
+from pmask.errors import InputError
+from pmask.precompute import selinv
+from pmask.precompute.elasticity import dofs
 
 log = logging.getLogger(__name__)
 
 
-class CondensationError(ValueError):
+class CondensationError(InputError):
     """The support does not hold the body (singular stiffness) or the sets are inconsistent."""
 
 
@@ -59,7 +60,7 @@ class CondensationError(ValueError):
 class SparseFactor:
     """The supernodal Cholesky factor of K_FF (every unconstrained dof), for selected inversion.
 
-    L : the factor's arrays (:data:`precompute.selinv.FACTOR_ARRAYS`, CHOLMOD's layout).
+    L : the factor's arrays (:data:`pmask.precompute.selinv.FACTOR_ARRAYS`, CHOLMOD's layout).
     want : dofs of K_FF whose block of the inverse is needed: the contact dofs (the first
         ``n_contact``, in the order of ``free``), then the other dofs that ``coupling`` touches.
     coupling : K_UF restricted to the ``want`` columns (3 n_fixed x len(want)): reactions = K_UF u.
@@ -126,18 +127,18 @@ def cholmod_backend(prefer: str | None = None) -> str:
     when installed, else 'cvxopt' (CHOLMOD bundled with a single-threaded OpenBLAS, AMD, and the
     selected inversion in numpy; pip-only, slower).  ``PMASK_CHOLMOD=cvxopt`` forces the latter, as
     on a machine without SuiteSparse."""
-    from precompute import native
+    from pmask.precompute import native
 
     choice = prefer or os.environ.get("PMASK_CHOLMOD")
     if choice == "cvxopt":
         return "cvxopt"
     if choice not in (None, "", "native"):
-        raise ValueError(f"unknown CHOLMOD backend {choice!r}: use 'native' or 'cvxopt'")
+        raise InputError(f"PMASK_CHOLMOD={choice!r} is not a backend: use 'native' or 'cvxopt'")
     if native.available():
         return "native"
     if choice == "native":
-        raise RuntimeError(f"the native CHOLMOD library is not built ({native.LIBRARY}); run make venv "
-                           "as root so that libsuitesparse-dev can be installed")
+        raise InputError("PMASK_CHOLMOD=native, but the native library pmask.precompute._selinv is not built: "
+                         "run `make system-deps` as root, then `make venv`")
     return "cvxopt"
 
 
@@ -194,12 +195,12 @@ def sparse_cholesky(A: sp.spmatrix, *, backend: str | None = None, order: np.nda
     """Supernodal Cholesky P A Pᵀ = L Lᵀ of a symmetric positive definite A, for :func:`inverse_block`.
 
     Native: CHOLMOD's METIS order; pip-only: ``order`` if given, else AMD of A's pattern, through
-    cvxopt's CHOLMOD, postordered and packed by :func:`precompute.selinv.supernodal`.
+    cvxopt's CHOLMOD, postordered and packed by :func:`pmask.precompute.selinv.supernodal`.
     Returns the factor's arrays and stats; raises :class:`CondensationError` if A is singular."""
     backend = cholmod_backend(backend)
     A = sp.csc_matrix(A)
     if backend == "native":
-        from precompute import native
+        from pmask.precompute import native
 
         low = sp.tril(A, format="csc")
         low.sort_indices()
@@ -220,8 +221,8 @@ def sparse_cholesky(A: sp.spmatrix, *, backend: str | None = None, order: np.nda
 
 def inverse_block(L: dict, want: np.ndarray, scale: np.ndarray, *, backend: str | None = None):
     """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j (C order) from :func:`sparse_cholesky`'s factor, by the
-    C library (native) or :mod:`precompute.selinv`; returns X and timings."""
-    from precompute import native
+    C library (native) or :mod:`pmask.precompute.selinv`; returns X and timings."""
+    from pmask.precompute import native
 
     if cholmod_backend(backend) == "native":
         return native.selected_inverse(L, want, scale)
@@ -274,7 +275,7 @@ def greens_functions(factor: SparseFactor, areas: np.ndarray, *, backend: str | 
     ----------
     factor : from :func:`surface_factor`.
     areas : vertex areas a of the free (contact) vertices, in the order of ``free``.
-    backend : 'native' (C) or 'cvxopt' (numpy: :mod:`precompute.selinv`) for the inverse; any
+    backend : 'native' (C) or 'cvxopt' (numpy: :mod:`pmask.precompute.selinv`) for the inverse; any
         factor works with either.  Default as :func:`cholmod_backend`.
 
     Returns

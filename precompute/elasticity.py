@@ -8,15 +8,17 @@ from __future__ import annotations
 import os
 
 import numpy as np
+
+from pmask.errors import InputError
 import scipy.sparse as sp
 
 
 def check_material(E: float, nu: float) -> None:
     """Refuse Young's moduli and Poisson ratios outside the physical range."""
     if not (np.isfinite(E) and E > 0):
-        raise ValueError(f"Young's modulus E must be a finite number > 0 Pa, got {E}")
+        raise InputError(f"Young's modulus E must be a finite number > 0 Pa, got {E}")
     if not (np.isfinite(nu) and -1.0 < nu < 0.5):
-        raise ValueError(f"Poisson's ratio nu must lie in (-1, 0.5), got {nu}")
+        raise InputError(f"Poisson's ratio nu must lie in (-1, 0.5), got {nu}")
 
 
 def stiffness_matrix(points: np.ndarray, tets: np.ndarray, E: float, nu: float) -> sp.csr_matrix:

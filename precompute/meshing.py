@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pmask.errors import InputError
+
 log = logging.getLogger(__name__)
 
 
-class MeshError(ValueError):
+class MeshError(InputError):
     """Raised for geometry that cannot be meshed or used (says what to fix)."""
 
 

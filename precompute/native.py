@@ -1,24 +1,36 @@
 """ctypes binding of ``_selected_inverse.c``: the P1 Green's-function stage by selected inversion.
 
-The shared library is compiled by ``tools/build_native.sh`` (``make venv``) when Debian's
-SuiteSparse headers are present; :func:`available` says whether it was.  Without it
-:mod:`precompute.condense` runs the same algorithm through cvxopt's CHOLMOD and :mod:`precompute.selinv`
+The shared library is the extension module ``pmask.precompute._selinv``, compiled by the build backend
+(``setup.py``) when SuiteSparse's headers are present (``make system-deps``); :func:`available` says
+whether it was.  Without it
+:mod:`pmask.precompute.condense` runs the same algorithm through cvxopt's CHOLMOD and :mod:`pmask.precompute.selinv`
 (numpy and SciPy's BLAS): the same numbers (tested), slower.
 """
 from __future__ import annotations
 
 import ctypes
-import sys
+import importlib.util
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from precompute.selinv import FACTOR_ARRAYS  # the supernodal layout, in pmask_factor_arrays' order
+from pmask.precompute.selinv import FACTOR_ARRAYS  # the supernodal layout, in pmask_factor_arrays' order
 
-#: where ``make venv`` puts the compiled library (inside the venv, never in the source tree)
-LIBRARY = Path(sys.prefix) / "lib" / "pmask" / "libpmask_selinv.so"
 SOURCE = Path(__file__).with_name("_selected_inverse.c")
+
+
+def _library_path() -> Path | None:
+    """The compiled extension's file (where the build put it), None when it was not built."""
+    try:
+        spec = importlib.util.find_spec("pmask.precompute._selinv")
+    except (ImportError, ValueError):
+        return None
+    return Path(spec.origin) if spec is not None and spec.origin else None
+
+
+#: the compiled library, or None when this installation has none (pip-only route)
+LIBRARY = _library_path()
 
 #: must equal pmask_abi_version() in _selected_inverse.c
 ABI_VERSION = 3
@@ -30,7 +42,7 @@ _c_long, _c_int, _p = ctypes.c_long, ctypes.c_int, ctypes.c_void_p
 
 @lru_cache(maxsize=1)
 def _lib():
-    if not LIBRARY.exists():
+    if LIBRARY is None or not Path(LIBRARY).exists():
         return None
     try:
         lib = ctypes.CDLL(str(LIBRARY))
@@ -40,8 +52,9 @@ def _lib():
     if abi != ABI_VERSION:
         import warnings
 
-        warnings.warn(f"{LIBRARY} is from another version of this code (stale build); run make venv to rebuild "
-                      "it. Using the slower pip-only route meanwhile.", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"{LIBRARY} is from another version of this code (stale build); run `make venv` (or "
+                      "`pip install -e .`) to rebuild it. Using the slower pip-only route meanwhile.",
+                      RuntimeWarning, stacklevel=2)
         return None
     lib.pmask_factor.argtypes = [_c_long, _I64, _I64, _F64, ctypes.POINTER(_p), _F64]
     lib.pmask_factor.restype = _c_int

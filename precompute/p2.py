@@ -32,7 +32,7 @@ def p2_stiffness(points: np.ndarray, tets: np.ndarray, E: float, nu: float):
     from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm
     from skfem.models.elasticity import lame_parameters, linear_elasticity
 
-    from precompute.elasticity import check_material
+    from pmask.precompute.elasticity import check_material
 
     check_material(E, nu)
     mesh = MeshTet(np.ascontiguousarray(points.T), np.ascontiguousarray(tets.T))
@@ -86,8 +86,8 @@ def greens_by_solves(K: sp.spmatrix, B: sp.spmatrix, edges: np.ndarray, contact:
     Dirichlet nodes: the fixed vertices and the edges joining two of them.  Reactions on the edge
     nodes are split half and half to their end vertices (same total force and moment).
     """
-    from precompute.condense import CondensationError
-    from precompute.elasticity import dofs
+    from pmask.precompute.condense import CondensationError
+    from pmask.precompute.elasticity import dofs
 
     N = B.shape[1]
     n_nodes = B.shape[0]

@@ -5,8 +5,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pmask.errors import InputError
 
-class RegionError(ValueError):
+
+class RegionError(InputError):
     """A fixed or contact region that cannot be used (says what to change)."""
 
 

@@ -18,10 +18,12 @@ import re
 
 import numpy as np
 
+from pmask.errors import InputError
+
 _HALF = re.compile(r"^\s*([xyz])\s*(<=|>=|<|>)\s*([-+0-9.eE]+)\s*$")
 
 
-class SelectorError(ValueError):
+class SelectorError(InputError):
     """A selector that cannot be parsed or names an unknown group."""
 
 

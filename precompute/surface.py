@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from precompute.meshing import MeshError
+from pmask.precompute.meshing import MeshError
 
 
 def boundary_surface(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

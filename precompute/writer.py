@@ -1,11 +1,11 @@
-"""Write the Green's-function artifact (format: ``runtime.artifact``)."""
+"""Write the Green's-function artifact (format: ``pmask.runtime.artifact``)."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
 
-from runtime.artifact import DEFINITION, FORMAT_NAME, FORMAT_VERSION, metadata_digest, write_atomic_hdf5
+from pmask.runtime.artifact import DEFINITION, FORMAT_NAME, FORMAT_VERSION, metadata_digest, write_atomic_hdf5
 
 
 def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, triangles, areas, regions,

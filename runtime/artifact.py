@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pmask.errors import PmaskError
+
 FORMAT_NAME = "pmask.greens"
 FORMAT_VERSION = "1.0.0"
 DEFINITION = (
@@ -47,7 +49,7 @@ SMALL = ("surface/points", "surface/triangles", "surface/vertex_areas", "surface
 JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings")
 
 
-class ArtifactError(ValueError):
+class ArtifactError(PmaskError, ValueError):
     """A file that is not a readable artifact of a supported version (names file and problem)."""
 
 

@@ -32,7 +32,8 @@ from enum import IntEnum
 
 import numpy as np
 
-from runtime.geometry import triangle_neighbours, triangle_normals, vertex_normals
+from pmask.errors import InputError
+from pmask.runtime.geometry import triangle_neighbours, triangle_normals, vertex_normals
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +47,7 @@ class Status(IntEnum):
 
 
 class HapticContact:
-    """Proxy-based point contact against a :class:`runtime.stiffness.SurfaceStiffness`.
+    """Proxy-based point contact against a :class:`pmask.runtime.stiffness.SurfaceStiffness`.
 
     friction : Coulomb coefficient of the proxy's friction cone (0: frictionless sliding).
     decay : factor per step applied to the last good force during bad samples.
@@ -57,9 +58,9 @@ class HapticContact:
     def __init__(self, stiffness, *, friction: float = 0.0, decay: float = 0.9, max_jump: float | None = None,
                  max_walk: int = 24, reset_after: int = 50):
         if not (friction >= 0 and math.isfinite(friction)):
-            raise ValueError(f"friction must be a finite number >= 0, got {friction!r}")
+            raise InputError(f"friction must be a finite number >= 0, got {friction!r}")
         if not 0 <= decay < 1:
-            raise ValueError(f"decay must lie in [0, 1), got {decay!r}")
+            raise InputError(f"decay must lie in [0, 1), got {decay!r}")
         self.stiffness = stiffness
         P = stiffness.points
         T = stiffness.triangles

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pmask.errors import InputError
+
 PROFILES = {
     "linear": lambda s: 1.0 - s,
     "gaussian": lambda s: np.exp(-4.5 * s * s),
@@ -66,17 +68,17 @@ class Masks:
 def check_radius(kind: str, radius, r_max: float = np.inf) -> float:
     """Validate a mask kind and radius; return the radius as float."""
     if kind not in MASK_KINDS:
-        raise ValueError(f"unknown mask '{kind}'; choose one of {', '.join(MASK_KINDS)}")
+        raise InputError(f"unknown mask '{kind}'; choose one of {', '.join(MASK_KINDS)}")
     if kind == "single":
         return 0.0
     try:
         r = float(radius)
     except (TypeError, ValueError):
-        raise ValueError(f"mask radius must be a number, got {radius!r}") from None
+        raise InputError(f"mask radius must be a number, got {radius!r}") from None
     if not np.isfinite(r) or r <= 0:
-        raise ValueError(f"mask radius must be a finite length > 0, got {radius!r}")
+        raise InputError(f"mask radius must be a finite length > 0, got {radius!r}")
     if r > r_max:
-        raise ValueError(f"mask radius {r:.6g} exceeds this artifact's r_max = {r_max:.6g}: masks that wide "
+        raise InputError(f"mask radius {r:.6g} exceeds this artifact's r_max = {r_max:.6g}: masks that wide "
                          "would reach vertices without Green's functions; recompute with a larger --r-max")
     return r
 

@@ -7,10 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from runtime.artifact import read_artifact
-from runtime.geometry import mean_edge_length
-from runtime.masks import check_radius, pressure_masks
-from runtime.stiffness import Stiffness, vertex_stiffness
+from pmask.errors import InputError
+
+from pmask.runtime.artifact import read_artifact
+from pmask.runtime.geometry import mean_edge_length
+from pmask.runtime.masks import check_radius, pressure_masks
+from pmask.runtime.stiffness import Stiffness, vertex_stiffness
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +78,7 @@ class Model:
         if k_rigid is None:
             k_rigid = 10.0 * float(np.median(np.linalg.norm(K, ord=2, axis=(1, 2))))
         elif not (np.isfinite(k_rigid) and k_rigid > 0):
-            raise ValueError(f"k_rigid must be a finite stiffness > 0, got {k_rigid!r}")
+            raise InputError(f"k_rigid must be a finite stiffness > 0, got {k_rigid!r}")
         return Stiffness(self, m, K, k_rigid, symmetric)
 
     def __repr__(self) -> str:

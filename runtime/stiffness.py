@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from runtime.masks import Masks
+from pmask.errors import InputError
+
+from pmask.runtime.masks import Masks
 
 #: tolerance on barycentric coordinates (negativity and sum) accepted by the query API
 BARY_TOL = 1e-9
@@ -61,16 +63,16 @@ def _check_query(triangle, bary, n_triangles: int):
     try:
         t = int(triangle)
     except (TypeError, ValueError):
-        raise ValueError(f"triangle index must be an integer, got {triangle!r}") from None
+        raise InputError(f"triangle index must be an integer, got {triangle!r}") from None
     if t != triangle or not 0 <= t < n_triangles:
-        raise ValueError(f"triangle index {triangle!r} out of range [0, {n_triangles})")
+        raise InputError(f"triangle index {triangle!r} out of range [0, {n_triangles})")
     b = np.asarray(bary, dtype=float)
     if b.shape != (3,):
-        raise ValueError(f"barycentric coordinates must be 3 numbers, got shape {b.shape}")
+        raise InputError(f"barycentric coordinates must be 3 numbers, got shape {b.shape}")
     if not np.all(np.isfinite(b)):
-        raise ValueError(f"barycentric coordinates must be finite, got {b.tolist()}")
+        raise InputError(f"barycentric coordinates must be finite, got {b.tolist()}")
     if b.min() < -BARY_TOL or abs(b.sum() - 1.0) > BARY_TOL:
-        raise ValueError(f"barycentric coordinates must be >= 0 and sum to 1, got {b.tolist()} (sum {b.sum():.12g})")
+        raise InputError(f"barycentric coordinates must be >= 0 and sum to 1, got {b.tolist()} (sum {b.sum():.12g})")
     return t, b
 
 
@@ -90,7 +92,7 @@ class SurfaceStiffness:
         self.triangles = np.asarray(triangles, np.int64)
         self.K_vertex = np.asarray(K_vertex, float)
         if not np.all(np.isfinite(self.K_vertex)):
-            raise ValueError("vertex stiffness holds NaN or inf")
+            raise InputError("vertex stiffness holds NaN or inf")
         self.touchable = np.ones(len(self.triangles), bool) if touchable is None else np.asarray(touchable, bool)
         # per-triangle table: (T, 3, 9), row k = K of the triangle's k-th vertex, flattened
         self.table = np.ascontiguousarray(self.K_vertex[self.triangles].reshape(len(self.triangles), 3, 9))
@@ -103,7 +105,7 @@ class SurfaceStiffness:
         """K(x) (3x3) at barycentric ``bary`` of ``triangle`` (eq. 15); validates its input."""
         t, b = _check_query(triangle, bary, self.n_triangles)
         if not self.touchable[t]:
-            raise ValueError(f"triangle {t} lies outside the precomputed contact region")
+            raise InputError(f"triangle {t} lies outside the precomputed contact region")
         return (b @ self.table[t]).reshape(3, 3)
 
     def at_batch(self, triangles, barys, *, validate: bool = True) -> np.ndarray:
@@ -112,17 +114,17 @@ class SurfaceStiffness:
         b = np.asarray(barys, dtype=float)
         if validate:
             if t.ndim != 1 or b.shape != (len(t), 3):
-                raise ValueError(f"need triangles (n,) and barycentrics (n, 3), got {t.shape} and {b.shape}")
+                raise InputError(f"need triangles (n,) and barycentrics (n, 3), got {t.shape} and {b.shape}")
             if not np.issubdtype(t.dtype, np.integer):
-                raise ValueError("triangle indices must be integers")
+                raise InputError("triangle indices must be integers")
             if len(t) and (t.min() < 0 or t.max() >= self.n_triangles):
-                raise ValueError(f"triangle index out of range [0, {self.n_triangles})")
+                raise InputError(f"triangle index out of range [0, {self.n_triangles})")
             if not np.all(np.isfinite(b)):
-                raise ValueError("barycentric coordinates must be finite")
+                raise InputError("barycentric coordinates must be finite")
             if len(t) and (b.min() < -BARY_TOL or np.abs(b.sum(axis=1) - 1).max() > BARY_TOL):
-                raise ValueError("barycentric coordinates must be >= 0 and sum to 1")
+                raise InputError("barycentric coordinates must be >= 0 and sum to 1")
             if not np.all(self.touchable[t]):
-                raise ValueError("some triangles lie outside the precomputed contact region")
+                raise InputError("some triangles lie outside the precomputed contact region")
         out = np.empty((len(t), 9))
         for i in range(0, len(t), BATCH_CHUNK):  # gather + combine in cache-sized pieces
             np.einsum("nk,nkj->nj", b[i:i + BATCH_CHUNK], self.table[t[i:i + BATCH_CHUNK]],
@@ -133,14 +135,14 @@ class SurfaceStiffness:
         """Contact force f = K(x) ū for a displacement constraint ū at x (the force on the body)."""
         u = np.asarray(u_bar, dtype=float)
         if u.shape != (3,) or not np.all(np.isfinite(u)):
-            raise ValueError(f"displacement must be 3 finite numbers, got {u_bar!r}")
+            raise InputError(f"displacement must be 3 finite numbers, got {u_bar!r}")
         return self.at(triangle, bary) @ u
 
 
 class Stiffness(SurfaceStiffness):
     """Surface stiffness built from Green's functions and pressure masks, with deformation (eq. 16).
 
-    Made by :meth:`runtime.Model.stiffness`; holds the masks and a reference to Ξ.
+    Made by :meth:`pmask.runtime.Model.stiffness`; holds the masks and a reference to Ξ.
     """
 
     def __init__(self, model, masks: Masks, K_free: np.ndarray, k_rigid: float, symmetric: bool):
@@ -185,9 +187,9 @@ class Stiffness(SurfaceStiffness):
         t, b = _check_query(triangle, bary, self.n_triangles)
         f = np.asarray(force, dtype=float)
         if f.shape != (3,) or not np.all(np.isfinite(f)):
-            raise ValueError(f"force must be 3 finite numbers, got {force!r}")
+            raise InputError(f"force must be 3 finite numbers, got {force!r}")
         if not self.touchable[t]:
-            raise ValueError(f"triangle {t} lies outside the precomputed contact region")
+            raise InputError(f"triangle {t} lies outside the precomputed contact region")
         v_contact = np.zeros(self.model.Xi.shape[0])
         for vertex, phi in zip(self.triangles[t], b):
             if phi != 0.0:

@@ -1,7 +1,6 @@
 """Shared fixtures: small artifacts built once per session, and an independent FE solver."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,10 +8,9 @@ import pytest
 import scipy.sparse.linalg as spla
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from pipeline.stages import Spec, run  # noqa: E402
-from precompute.elasticity import dofs, stiffness_matrix  # noqa: E402
+from pmask.pipeline.stages import Spec, run  # noqa: E402
+from pmask.precompute.elasticity import dofs, stiffness_matrix  # noqa: E402
 
 
 def build(tmp_path_factory, name: str, spec: Spec) -> Path:

@@ -7,8 +7,8 @@ import h5py
 import numpy as np
 import pytest
 
-from pipeline.stages import Spec, run
-from runtime import ArtifactError, Model
+from pmask.pipeline.stages import Spec, run
+from pmask.runtime import ArtifactError, Model
 
 
 @pytest.fixture(scope="module")

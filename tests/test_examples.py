@@ -2,22 +2,23 @@
 from __future__ import annotations
 
 import csv
-import sys
+import runpy
 
 import numpy as np
 
 from conftest import ROOT
+from pmask.pipeline.strokes import stroke_path
 
-sys.path.insert(0, str(ROOT / "examples"))
-import stroke  # noqa: E402
+#: the example as its user runs it (a script of its own, importing the installed package)
+stroke = runpy.run_path(str(ROOT / "examples" / "stroke.py"), run_name="example")
 
 
 def test_stroke_example_writes_traces_and_plot(kidney_small, tmp_path, capsys):
-    assert stroke.main([str(kidney_small), "--out", str(tmp_path)]) == 0
+    assert stroke["main"]([str(kidney_small), "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
     assert "single" in printed and "linear" in printed and "roughness" in printed
     assert (tmp_path / "stroke.png").stat().st_size > 10_000
-    n = len(stroke.stroke_path())
+    n = len(stroke_path())
     for name in ("single", "linear"):
         with open(tmp_path / f"stroke_{name}.csv") as fh:
             rows = list(csv.DictReader(fh))

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from conftest import full_solve, relerr
-from precompute.elasticity import dofs, rigid_body_modes, stiffness_matrix
-from runtime.artifact import read_artifact
+from pmask.precompute.elasticity import dofs, rigid_body_modes, stiffness_matrix
+from pmask.runtime.artifact import read_artifact
 
 
 def load_case(path):
@@ -132,8 +132,8 @@ def test_cholmod_backends_agree(kidney_small):
     """The native backend (CHOLMOD with METIS, the inverse in C) and the pip-only one (cvxopt's
     CHOLMOD with AMD, the inverse in numpy) factorise in different orders: they give the same Ξ and
     reactions to rounding, and so do the two inverses on the same factor."""
-    from precompute import native
-    from precompute.condense import greens_functions, surface_factor
+    from pmask.precompute import native
+    from pmask.precompute.condense import greens_functions, surface_factor
 
     if not native.available():
         pytest.skip("native CHOLMOD library not built (needs libsuitesparse-dev)")
@@ -158,7 +158,7 @@ def test_cholmod_backends_agree(kidney_small):
 
 @pytest.fixture(scope="module")
 def halfspace_p2(tmp_path_factory):
-    from pipeline.stages import Spec, run
+    from pmask.pipeline.stages import Spec, run
 
     out = tmp_path_factory.mktemp("p2") / "hs_p2.h5"
     run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, element="P2"), out)
@@ -167,9 +167,9 @@ def halfspace_p2(tmp_path_factory):
 
 def test_p2_load_matrix_integrates_the_hat_functions(halfspace_p2):
     """Σ_k ∫ψ_k φ_j = ∫φ_j = a_j: the consistent P2 load of a unit traction is the P1 vertex area."""
-    from precompute.p2 import surface_load_matrix
-    from precompute.surface import boundary_surface
-    from runtime.geometry import vertex_areas
+    from pmask.precompute.p2 import surface_load_matrix
+    from pmask.precompute.surface import boundary_surface
+    from pmask.runtime.geometry import vertex_areas
     from skfem import MeshTet
 
     d = read_artifact(halfspace_p2)
@@ -188,8 +188,8 @@ def test_p2_columns_and_equilibrium_against_full_solve(halfspace_p2):
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    from precompute.p2 import p2_stiffness, surface_load_matrix
-    from precompute.surface import boundary_surface
+    from pmask.precompute.p2 import p2_stiffness, surface_load_matrix
+    from pmask.precompute.surface import boundary_surface
 
     d = read_artifact(halfspace_p2)
     P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
@@ -220,7 +220,7 @@ def test_pip_only_route_gives_the_same_artifact(halfspace_small, tmp_path, monke
     """PMASK_CHOLMOD=cvxopt runs the whole pip-only route (cvxopt's CHOLMOD, SciPy's LAPACK on
     copies), as on a machine without SuiteSparse: same Ξ and reactions as the default route, on a
     model whose Ξ covers only part of the free surface."""
-    from pipeline.stages import Spec, run
+    from pmask.pipeline.stages import Spec, run
 
     monkeypatch.setenv("PMASK_CHOLMOD", "cvxopt")
     out = tmp_path / "hs_cvxopt.h5"

@@ -8,8 +8,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from runtime import HapticContact, Model, Status
-from runtime.geometry import vertex_normals
+from pmask.runtime import HapticContact, Model, Status
+from pmask.runtime.geometry import vertex_normals
 
 
 @pytest.fixture(scope="module")

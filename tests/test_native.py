@@ -4,7 +4,7 @@ import pytest
 import scipy.sparse as sp
 
 from conftest import dense_factor, laplacian_3d, lower
-from precompute import native
+from pmask.precompute import native
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="native CHOLMOD library not built")
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from conftest import relerr
-from meshes import kidney, loop
-from pipeline.cli import main
-from pipeline.stages import Spec, input_hash, run
-from precompute.surface import boundary_surface
-from runtime.artifact import read_artifact
-from runtime.geometry import vertex_areas
+from pmask.meshes import kidney, loop
+from pmask.pipeline.cli import main
+from pmask.pipeline.stages import Spec, input_hash, run
+from pmask.precompute.surface import boundary_surface
+from pmask.runtime.artifact import read_artifact
+from pmask.runtime.geometry import vertex_areas
 
 
 @pytest.mark.parametrize("level,n", [(0, 34), (1, 130), (2, 514), (3, 2050)])

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.reference import REFERENCE_DIR, compare, compute_all, read_table
+from pmask.pipeline.reference import REFERENCE_DIR, compare, compute_all, read_table
 
 RTOL = 1e-6
 

@@ -16,9 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import ROOT
-from pipeline.cli import main
-from pipeline.stages import Spec, run
-from runtime import Model
+from pmask.pipeline.cli import main
+from pmask.pipeline.stages import Spec, run
+from pmask.runtime import Model
 
 
 def cli_error(capsys, argv) -> str:
@@ -115,7 +115,7 @@ def test_unwritable_output_folder(tmp_path, capsys):
 def test_a_contact_region_too_large_for_memory_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
     """The dense Ξ of loop1's 73 free vertices is 384 kB; with 100 kB available the run stops after
     meshing, says how much it needs and what to change, and writes nothing."""
-    import precompute.condense as condense
+    import pmask.precompute.condense as condense
 
     monkeypatch.setattr(condense, "available_memory", lambda: 100_000)
     out = tmp_path / "x.h5"
@@ -134,7 +134,7 @@ def test_verbose_shows_the_traceback(tmp_path):
 def test_killed_precompute_resumes_and_matches_an_uninterrupted_run(tmp_path):
     out = tmp_path / "k.h5"
     env = dict(os.environ, PMASK_PAUSE_AFTER="factor", PMASK_PAUSE_SECONDS="120")
-    code = "from pipeline.cli import main; main(['-q', 'precompute', 'kidney', '--size', '0.012', '-o', %r])" % str(out)
+    code = "from pmask.pipeline.cli import main; main(['-q', 'precompute', 'kidney', '--size', '0.012', '-o', %r])" % str(out)
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -188,9 +188,9 @@ def polytope(draw):
        st.floats(0.1, 4.0), st.data())
 def test_fuzz_random_solids_masks_and_queries(tmp_path_factory, pts, kind, rfac, data):
     """Random convex solids through the whole pipeline: no NaN/inf escapes, errors are the documented ones."""
-    from meshes.common import ModelMesh, save_model_mesh
-    from precompute.meshing import volume_inside_surface
-    from precompute.regions import RegionError
+    from pmask.meshes.common import ModelMesh, save_model_mesh
+    from pmask.precompute.meshing import volume_inside_surface
+    from pmask.precompute.regions import RegionError
 
     hull = trimesh.convex.convex_hull(pts)
     points, tets = volume_inside_surface(np.asarray(hull.vertices), np.asarray(hull.faces))

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, full_solve, relerr
-from precompute.elasticity import dofs
-from runtime import MASK_KINDS, Model, pressure_masks
-from runtime.geometry import vertex_areas
+from pmask.precompute.elasticity import dofs
+from pmask.runtime import MASK_KINDS, Model, pressure_masks
+from pmask.runtime.geometry import vertex_areas
 
 
 @pytest.fixture(scope="module")
@@ -19,8 +19,9 @@ def model(kidney_small):
 
 
 def test_runtime_imports_no_heavy_packages():
-    code = ("import sys, runtime; heavy = [m for m in ('scipy', 'gmsh', 'skfem', 'meshio', 'trimesh', 'cvxopt', "
-            "'precompute', 'pipeline', 'matplotlib') if m in sys.modules]; print(heavy); sys.exit(bool(heavy))")
+    code = ("import sys, pmask.runtime; heavy = [m for m in ('scipy', 'gmsh', 'skfem', 'meshio', 'trimesh', 'cvxopt', "
+            "'pmask.precompute', 'pmask.pipeline', 'pmask.meshes', 'matplotlib') if m in sys.modules]; "
+            "print(heavy); sys.exit(bool(heavy))")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stdout + r.stderr
 
@@ -81,7 +82,7 @@ def probe_solve(model):
 
 
 def _full_displacements(model, cols, rho):
-    from runtime.artifact import read_artifact
+    from pmask.runtime.artifact import read_artifact
 
     d = read_artifact(model.path)
     vi = d["surface/volume_index"]
@@ -132,7 +133,7 @@ def test_surface_stiffness_continuous_and_interpolating(model):
             e[k] = 1.0
             np.testing.assert_allclose(stiff.at(t, e), stiff.K_vertex[T[t, k]], rtol=1e-13)
     # across every shared edge the two triangles agree at the edge's points
-    from runtime.geometry import triangle_neighbours
+    from pmask.runtime.geometry import triangle_neighbours
 
     nb = triangle_neighbours(T)
     worst = 0.0

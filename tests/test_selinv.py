@@ -5,8 +5,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from conftest import dense_factor, laplacian_3d, lower, random_spd
-from precompute import native, selinv
-from precompute.condense import sparse_cholesky
+from pmask.precompute import native, selinv
+from pmask.precompute.condense import sparse_cholesky
 
 
 def cvxopt_factor(A, rng=None):
