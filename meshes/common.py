@@ -31,15 +31,13 @@ class ModelMesh:
 def save_model_mesh(path, model: ModelMesh) -> None:
     """Store a ModelMesh as .npz (atomically): the mesh checkpoint and the reference meshes use it."""
     import json
-    import os
-    from pathlib import Path
 
-    path = Path(path)
+    from pmask.runtime.files import atomic_write
+
     meta = {"fixed": model.fixed, "contact": model.contact, "material": model.material, "info": model.info}
-    tmp = path.with_name(path.name + f".tmp-{os.getpid()}.npz")
-    np.savez_compressed(tmp, points=model.points, tets=model.tets.astype(np.int32), meta=json.dumps(meta),
-                        **{f"group_{k}": np.asarray(v, bool) for k, v in model.groups.items()})
-    os.replace(tmp, path)
+    atomic_write(path, lambda tmp: np.savez_compressed(
+        tmp, points=model.points, tets=model.tets.astype(np.int32), meta=json.dumps(meta),
+        **{f"group_{k}": np.asarray(v, bool) for k, v in model.groups.items()}), suffix=".npz")
 
 
 def load_model_mesh(path) -> ModelMesh:

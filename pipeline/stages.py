@@ -27,6 +27,7 @@ from tqdm import tqdm
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
 from pmask.runtime.artifact import FORMAT_VERSION
+from pmask.runtime.files import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -128,9 +129,7 @@ def artifact_hash(path: Path) -> str | None:
 
 
 def _save_npz(path: Path, **arrays) -> None:
-    tmp = path.with_name(path.name + f".tmp-{os.getpid()}.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
 
 
 def build_mesh(spec: Spec):

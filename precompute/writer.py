@@ -1,11 +1,14 @@
-"""Write the Green's-function artifact (format: ``pmask.runtime.artifact``)."""
+"""Write the Green's-function artifact (format and checks: :mod:`pmask.runtime.artifact`)."""
 from __future__ import annotations
 
+import hashlib
 import json
 
 import numpy as np
 
-from pmask.runtime.artifact import DEFINITION, FORMAT_NAME, FORMAT_VERSION, metadata_digest, write_atomic_hdf5
+from pmask.runtime.artifact import (DEFINITION, FORMAT_NAME, FORMAT_VERSION, array_digest, metadata_digest,
+                                    update_array_digest)
+from pmask.runtime.files import atomic_write
 
 
 def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, triangles, areas, regions,
@@ -39,33 +42,47 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         "provenance": json.dumps(meta["provenance"], sort_keys=True, default=str),
         "timings": json.dumps(meta["timings"], sort_keys=True),
     }
-    attrs["metadata_sha256"] = metadata_digest(attrs, small)
+    big = {"greens/Xi": (Xi, dtype), "volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
+    if reactions is not None:
+        big["greens/reactions"] = (reactions, dtype)
+    digests = {name: array_digest(arr) for name, arr in small.items()}
 
-    def fill(f):
-        for k, v in attrs.items():
-            f.attrs[k] = v
-        for name, arr in small.items():
-            f.create_dataset(name, data=arr)
-        big = {"greens/Xi": (Xi, dtype), "greens/reactions": (reactions, dtype),
-               "volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
-        for name, (arr, dt) in big.items():
-            _write_blocks(f, name, np.asarray(arr), dt)
+    def fill(tmp):
+        import h5py
 
-    write_atomic_hdf5(path, fill)
+        with h5py.File(tmp, "w") as f:
+            for name, arr in small.items():
+                f.create_dataset(name, data=arr)
+            for name, (arr, dt) in big.items():
+                digests[name] = _write_blocks(f, name, np.asarray(arr), dt)
+            covers = {"attributes": sorted(attrs), "datasets": dict(sorted(digests.items()))}
+            for k, v in attrs.items():
+                f.attrs[k] = v
+            f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
+            f.attrs["metadata_sha256"] = metadata_digest(attrs, covers)
+
+    atomic_write(path, fill)
 
 
-def _write_blocks(f, name, arr, dtype, block_bytes=8 << 20) -> None:
+def _write_blocks(f, name, arr, dtype, block_bytes=8 << 20) -> str:
     """A chunked, checksummed dataset written ~8 MiB of rows at a time: ``arr`` may be a strided view
-    (Ξ from the native route) and ``dtype`` narrower than it without a full-size copy."""
+    (Ξ from the native route) and ``dtype`` narrower than it without a full-size copy.  Returns the
+    SHA-256 of the stored bytes, computed on the same blocks."""
+    h = hashlib.sha256()
     chunks = _chunks(arr.shape)
     if chunks is None:
-        f.create_dataset(name, data=np.asarray(arr, dtype))
-        return
+        stored = np.asarray(arr, dtype)
+        f.create_dataset(name, data=stored)
+        update_array_digest(h, stored)
+        return h.hexdigest()
     ds = f.create_dataset(name, shape=arr.shape, dtype=dtype, chunks=chunks, fletcher32=True)
     row_bytes = max(1, int(np.prod(arr.shape[1:])) * arr.itemsize)
     step = max(chunks[0], (block_bytes // row_bytes) // chunks[0] * chunks[0])
     for i0 in range(0, arr.shape[0], step):
-        ds[i0:i0 + step] = np.asarray(arr[i0:i0 + step], dtype)
+        block = np.ascontiguousarray(arr[i0:i0 + step], dtype)
+        ds[i0:i0 + step] = block
+        update_array_digest(h, block)
+    return h.hexdigest()
 
 
 def _chunks(shape):

@@ -4,7 +4,7 @@ Layout (format 1.x)::
 
     /                      attrs: format_name, format_version (semver), definition,
                            model, units, material, element, r_max, input_hash,
-                           parameters, provenance, timings, metadata_sha256
+                           parameters, provenance, timings, sha256_covers, metadata_sha256
     /surface/points        (n_s, 3) surface vertex positions [length unit]
     /surface/triangles     (n_t, 3) int64, counter-clockwise seen from outside
     /surface/vertex_areas  (n_s,)   a_i = ∫ φ_i dΓ  (paper eq. 10)
@@ -16,18 +16,25 @@ Layout (format 1.x)::
     /surface/volume_index  (n_s,)   index of each surface vertex in /volume/points
     /greens/Xi             (3 n_c, 3 n_c)  Ξ: block (i, j) = displacement of contact vertex i
                                            per unit traction at contact vertex j
-    /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j
+    /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
-The large datasets carry HDF5's Fletcher-32 checksum (checked by HDF5 on every
-read); the attributes and every small dataset are covered by a SHA-256 digest
-stored in ``metadata_sha256``, because Fletcher-32 does not cover attributes.
+Checks.  ``sha256_covers`` (JSON) lists what the SHA-256 digests cover: the root attributes by name,
+and every dataset with its own SHA-256 over its stored bytes (C order, stored dtype).
+``metadata_sha256`` is the SHA-256 of those attributes and of the ``sha256_covers`` list itself, so
+that no covered attribute, dataset digest or the list can change unnoticed.  A reader verifies the
+datasets it reads (and only those: the runtime never reads the volume mesh or the reactions) and
+accepts datasets and attributes it does not know, so that a newer minor version of the format stays
+readable, as semver promises.  A newer major version is refused.  The large datasets also carry HDF5's
+Fletcher-32 checksum, which HDF5 checks on every read and which names the corrupt chunk.
+
+Format 1.0 files (no ``sha256_covers``; the digest covered the attributes and the surface datasets)
+are still read and checked as they were written.
 """
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +42,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.0.0"
+FORMAT_VERSION = "1.1.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -43,18 +50,46 @@ DEFINITION = (
     "vertex j, i.e. per nodal force a_j p_j; sum_j rho_j Xi_ij is the displacement of vertex i under the "
     "traction rho*f, and rho = e_i / a_i is a point force. Reciprocity: a_i Xi_ij = a_j Xi_ji^T."
 )
-LARGE = ("greens/Xi", "greens/reactions", "volume/points", "volume/tets")
-SMALL = ("surface/points", "surface/triangles", "surface/vertex_areas", "surface/free", "surface/fixed",
-         "surface/contact", "surface/contact_core", "surface/volume_index")
-JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings")
+SURFACE = ("surface/points", "surface/triangles", "surface/vertex_areas", "surface/free", "surface/fixed",
+           "surface/contact", "surface/contact_core", "surface/volume_index")
+#: what the runtime reads: the surface and Ξ
+RUNTIME = SURFACE + ("greens/Xi",)
+VOLUME = ("volume/points", "volume/tets")
+REACTIONS = ("greens/reactions",)
+JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings", "sha256_covers")
+#: format 1.0: the digest covered every attribute and these datasets
+LEGACY_SMALL = SURFACE
 
 
 class ArtifactError(PmaskError, ValueError):
     """A file that is not a readable artifact of a supported version (names file and problem)."""
 
 
-def metadata_digest(attrs: dict, small: dict) -> str:
-    """SHA-256 over the root attributes (but the digest itself) and the small datasets."""
+def array_digest(arr: np.ndarray) -> str:
+    """SHA-256 of an array's bytes in C order (its own dtype); what ``sha256_covers`` stores per dataset."""
+    h = hashlib.sha256()
+    update_array_digest(h, arr)
+    return h.hexdigest()
+
+
+def update_array_digest(h, arr: np.ndarray) -> None:
+    """Feed an array (or a block of rows of one, in order) to a running SHA-256."""
+    a = np.ascontiguousarray(arr)
+    h.update(memoryview(a).cast("B") if a.size else b"")
+
+
+def metadata_digest(attrs: dict, covers: dict) -> str:
+    """SHA-256 over the covered root attributes (by name, sorted) and the ``covers`` list itself."""
+    h = hashlib.sha256()
+    for key in sorted(covers["attributes"]):
+        h.update(key.encode())
+        h.update(_attr_bytes(attrs[key]))
+    h.update(json.dumps(covers, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def legacy_metadata_digest(attrs: dict, small: dict) -> str:
+    """Format 1.0's digest: every root attribute but the digest, and the surface datasets."""
     h = hashlib.sha256()
     for key in sorted(attrs):
         if key == "metadata_sha256":
@@ -77,18 +112,21 @@ def _attr_bytes(value) -> bytes:
     return np.asarray(value).tobytes() + str(np.asarray(value).dtype.str).encode()
 
 
-def _major(version: str) -> int:
+def _major_minor(version: str) -> tuple[int, int]:
     try:
-        return int(str(version).split(".")[0])
+        parts = [int(p) for p in str(version).split(".")[:2]]
+        return parts[0], parts[1] if len(parts) > 1 else 0
     except ValueError:
-        return -1
+        return -1, -1
 
 
-def read_artifact(path, *, verify: bool = True) -> dict:
-    """Read and check an artifact; return its arrays and decoded attributes.
+def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS, verify: bool = True) -> dict:
+    """Read and check an artifact; return the requested datasets and the decoded attributes.
 
-    Raises :class:`ArtifactError` for a missing, truncated, corrupt or foreign
-    file, or one whose major format version this reader does not know.
+    ``datasets``: the names to read (default: everything this reader knows; the runtime asks for
+    :data:`RUNTIME` only).  An optional dataset the file does not have (``greens/reactions``) is
+    returned as None.  Raises :class:`ArtifactError` for a missing, truncated, corrupt, altered or
+    foreign file, or one whose major format version this reader does not know.
     """
     import h5py
 
@@ -104,66 +142,74 @@ def read_artifact(path, *, verify: bool = True) -> dict:
             if name != FORMAT_NAME:
                 raise ArtifactError(f"{path}: foreign HDF5 file (format_name={name!r}, expected {FORMAT_NAME!r})")
             version = str(attrs.get("format_version", ""))
-            if _major(version) != _major(FORMAT_VERSION):
+            if _major_minor(version)[0] != _major_minor(FORMAT_VERSION)[0]:
                 raise ArtifactError(f"{path}: format version {version} is not supported by this reader "
                                     f"({FORMAT_VERSION}); recompute it with this version of pmask")
-            missing = [d for d in SMALL + LARGE if d not in f]
+            legacy = "sha256_covers" not in attrs
+            wanted = list(datasets) + ([d for d in LEGACY_SMALL if d not in datasets] if legacy and verify else [])
+            missing = [d for d in wanted if d not in f and d not in REACTIONS]
             if missing:
                 raise ArtifactError(f"{path}: incomplete artifact, missing {', '.join(missing)}")
-            data = {d: f[d][()] for d in SMALL + LARGE}
+            data = {d: (f[d][()] if d in f else None) for d in wanted}
     except ArtifactError:
         raise
     except (OSError, KeyError, RuntimeError) as exc:
         raise ArtifactError(f"{path}: cannot read the artifact ({exc}); it is corrupt or truncated, "
                             "recompute it with --force") from exc
     if verify:
-        digest = metadata_digest(attrs, {k: data[k] for k in SMALL})
-        if digest != attrs.get("metadata_sha256"):
-            raise ArtifactError(f"{path}: metadata checksum mismatch (attributes or surface data were altered); "
-                                "recompute it with --force")
+        _verify(path, attrs, data, legacy)
     for key in JSON_ATTRS:
         if key in attrs:
             try:
                 attrs[key] = json.loads(attrs[key])
             except (TypeError, ValueError) as exc:
                 raise ArtifactError(f"{path}: attribute {key} is not valid JSON") from exc
+    data = {k: v for k, v in data.items() if k in datasets}
     _check_shapes(path, data)
     return {"attrs": attrs, **data}
 
 
+def _verify(path, attrs: dict, data: dict, legacy: bool) -> None:
+    altered = (f"{path}: checksum mismatch: %s was altered after writing; recompute it with --force")
+    if legacy:
+        digest = legacy_metadata_digest(attrs, {k: data[k] for k in LEGACY_SMALL})
+        if digest != attrs.get("metadata_sha256"):
+            raise ArtifactError(altered % "the metadata (attributes or surface data)")
+        return
+    try:
+        covers = json.loads(attrs["sha256_covers"])
+        missing = [k for k in covers["attributes"] if k not in attrs]
+    except (TypeError, ValueError, KeyError) as exc:
+        raise ArtifactError(f"{path}: attribute sha256_covers is unreadable ({exc}); recompute it with --force")
+    if missing:
+        raise ArtifactError(f"{path}: incomplete artifact, missing the covered attributes {', '.join(missing)}")
+    if metadata_digest(attrs, covers) != attrs.get("metadata_sha256"):
+        raise ArtifactError(altered % "the metadata (attributes or the list of dataset digests)")
+    for name, arr in data.items():
+        if arr is None:
+            continue
+        if name not in covers["datasets"]:
+            raise ArtifactError(f"{path}: dataset {name} is not covered by the file's checksums; recompute it")
+        if array_digest(arr) != covers["datasets"][name]:
+            raise ArtifactError(altered % f"dataset {name}")
+
+
 def _check_shapes(path, d) -> None:
-    ns, nu, nc = len(d["surface/points"]), len(d["surface/fixed"]), len(d["surface/contact"])
     problems = []
-    if d["greens/Xi"].shape != (3 * nc, 3 * nc):
-        problems.append(f"Xi has shape {d['greens/Xi'].shape}, expected {(3 * nc, 3 * nc)}")
-    if d["greens/reactions"].shape != (3 * nu, 3 * nc):
-        problems.append("reactions have the wrong shape")
+    ns = len(d["surface/points"]) if "surface/points" in d else None
+    nc = len(d["surface/contact"]) if "surface/contact" in d else None
+    nu = len(d["surface/fixed"]) if "surface/fixed" in d else None
+    if d.get("greens/Xi") is not None and nc is not None:
+        if d["greens/Xi"].shape != (3 * nc, 3 * nc):
+            problems.append(f"Xi has shape {d['greens/Xi'].shape}, expected {(3 * nc, 3 * nc)}")
+        elif not np.all(np.isfinite(d["greens/Xi"])):
+            problems.append("Xi holds NaN or inf")
+    if d.get("greens/reactions") is not None and nu is not None and nc is not None:
+        if d["greens/reactions"].shape != (3 * nu, 3 * nc):
+            problems.append("reactions have the wrong shape")
     for key in ("surface/triangles", "surface/free", "surface/fixed", "surface/contact"):
-        arr = d[key]
-        if arr.size and (arr.min() < 0 or arr.max() >= ns):
+        arr = d.get(key)
+        if arr is not None and ns is not None and arr.size and (arr.min() < 0 or arr.max() >= ns):
             problems.append(f"{key} indexes outside the {ns} surface vertices")
-    if not np.all(np.isfinite(d["greens/Xi"])):
-        problems.append("Xi holds NaN or inf")
     if problems:
         raise ArtifactError(f"{path}: inconsistent artifact: " + "; ".join(problems))
-
-
-def write_atomic_hdf5(path, fill) -> None:
-    """Create ``path`` through a temporary file in the same folder, fsync, then rename.
-
-    ``fill(h5file)`` writes the content.  An interrupted run leaves at most the
-    temporary file, never a half-written file under the final name.
-    """
-    import h5py
-
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            fill(f)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()

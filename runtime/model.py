@@ -9,7 +9,7 @@ import numpy as np
 
 from pmask.errors import InputError
 
-from pmask.runtime.artifact import read_artifact
+from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact
 from pmask.runtime.geometry import mean_edge_length
 from pmask.runtime.masks import check_radius, pressure_masks
 from pmask.runtime.stiffness import Stiffness, vertex_stiffness
@@ -22,8 +22,9 @@ class Model:
 
     Attributes (surface indices unless said otherwise): ``points``, ``triangles``,
     ``vertex_areas``, ``free`` (Λp), ``fixed`` (Λu), ``contact`` (rows/columns of Ξ),
-    ``core`` (bool over contact: touchable), ``Xi`` (3 n_c, 3 n_c), ``reactions``,
-    ``E``, ``nu``, ``r_max``, ``attrs`` (all artifact attributes).
+    ``core`` (bool over contact: touchable), ``Xi`` (3 n_c, 3 n_c), ``E``, ``nu``, ``r_max``,
+    ``attrs`` (all artifact attributes).  The volume mesh and the support reactions are read only
+    when asked for (:meth:`volume`, :meth:`reactions`).
     """
 
     def __init__(self, data: dict, path: str | None = None):
@@ -38,9 +39,6 @@ class Model:
         self.contact = data["surface/contact"]
         self.core = data["surface/contact_core"]
         self.Xi = data["greens/Xi"]  # float64, or float32 if stored so (K_i are summed in float64)
-        self.reactions = data["greens/reactions"]
-        self.volume_points = data["volume/points"]
-        self.volume_tets = data["volume/tets"]
         self.E = float(a["material"]["E"])
         self.nu = float(a["material"]["nu"])
         self.r_max = float(a["r_max"])
@@ -49,11 +47,23 @@ class Model:
 
     @classmethod
     def load(cls, path, *, verify: bool = True) -> "Model":
-        """Read an artifact; refuses foreign, corrupt or newer-major files (``ArtifactError``)."""
+        """Read what the runtime uses (the surface and Ξ) and check it; refuses foreign, corrupt,
+        altered or newer-major files (``ArtifactError``)."""
         t0 = time.perf_counter()
-        m = cls(read_artifact(path, verify=verify), str(path))
+        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify), str(path))
+        m.verify = verify
         m.load_seconds = time.perf_counter() - t0
         return m
+
+    def volume(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tetrahedral mesh the Green's functions came from: (points, tets), read on demand."""
+        d = read_artifact(self.path, datasets=VOLUME, verify=getattr(self, "verify", True))
+        return d["volume/points"], d["volume/tets"]
+
+    def reactions(self) -> np.ndarray | None:
+        """Support reactions (3 n_u, 3 n_c), per unit traction at each contact dof; None if the
+        artifact was written without them.  Read on demand."""
+        return read_artifact(self.path, datasets=REACTIONS, verify=getattr(self, "verify", True))["greens/reactions"]
 
     def masks(self, mask: str = "linear", radius: float | None = None):
         """Pressure masks of the touchable contact vertices, over the contact vertices."""

@@ -1,6 +1,7 @@
 """Artifacts are refused when foreign, newer, truncated or altered (data or metadata), naming file and problem."""
 from __future__ import annotations
 
+import json
 import shutil
 
 import h5py
@@ -9,6 +10,8 @@ import pytest
 
 from pmask.pipeline.stages import Spec, run
 from pmask.runtime import ArtifactError, Model
+from pmask.runtime.artifact import (FORMAT_VERSION, LEGACY_SMALL, array_digest, legacy_metadata_digest,
+                                    metadata_digest)
 
 
 @pytest.fixture(scope="module")
@@ -57,11 +60,71 @@ def test_refuses_newer_major_version(copy):
         Model.load(copy)
 
 
-def test_accepts_newer_minor_version_only_if_checksum_matches(copy):
+def next_minor() -> str:
+    major, minor = FORMAT_VERSION.split(".")[:2]
+    return f"{major}.{int(minor) + 1}.0"
+
+
+def rewrite_as_newer_minor(path, extra=np.arange(5.0)):
+    """What a writer of the next minor version would produce: one more dataset and one more root
+    attribute, both listed in sha256_covers, with the metadata digest recomputed over the new list."""
+    with h5py.File(path, "r+") as f:
+        f["greens/future_dataset"] = extra
+        f.attrs["future_attribute"] = "added by format 1.x+1"
+        f.attrs["format_version"] = next_minor()
+        covers = json.loads(f.attrs["sha256_covers"])
+        covers["attributes"] = sorted(covers["attributes"] + ["future_attribute"])
+        covers["datasets"]["greens/future_dataset"] = array_digest(extra)
+        f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        f.attrs["metadata_sha256"] = metadata_digest(attrs, covers)
+
+
+def test_accepts_a_newer_minor_version_with_more_data(artifact, copy):
+    rewrite_as_newer_minor(copy)
+    m, ref = Model.load(copy), Model.load(artifact)
+    assert m.attrs["format_version"] == next_minor()
+    np.testing.assert_array_equal(m.Xi, ref.Xi)
+
+
+def test_a_version_changed_without_its_digest_is_refused(copy):
     with h5py.File(copy, "r+") as f:
-        f.attrs["format_version"] = "1.1.0"
-    with pytest.raises(ArtifactError, match="checksum"):  # metadata was altered after writing
+        f.attrs["format_version"] = next_minor()
+    with pytest.raises(ArtifactError, match="metadata .*altered"):
         Model.load(copy)
+
+
+def test_reads_format_1_0(artifact, copy):
+    """A file as format 1.0 wrote it: no sha256_covers, one digest over every attribute and the surface."""
+    with h5py.File(copy, "r+") as f:
+        del f.attrs["sha256_covers"]
+        f.attrs["format_version"] = "1.0.0"
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        small = {k: f[k][()] for k in LEGACY_SMALL}
+        f.attrs["metadata_sha256"] = legacy_metadata_digest(attrs, small)
+    np.testing.assert_array_equal(Model.load(copy).Xi, Model.load(artifact).Xi)
+    with h5py.File(copy, "r+") as f:
+        f.attrs["r_max"] = 1.0
+    with pytest.raises(ArtifactError, match="altered"):
+        Model.load(copy)
+
+
+def test_refuses_sign_flipped_greens_functions_with_valid_fletcher32(copy):
+    """Rewritten through h5py, Ξ's chunks carry valid Fletcher-32 checksums: only the SHA-256 sees it."""
+    with h5py.File(copy, "r+") as f:
+        f["greens/Xi"][...] = -f["greens/Xi"][()]
+    with pytest.raises(ArtifactError, match="dataset greens/Xi was altered"):
+        Model.load(copy)
+
+
+def test_the_runtime_reads_only_what_it_uses(copy):
+    """Altering the volume mesh (which the runtime never reads) does not stop Model.load, but is
+    caught when the volume is asked for."""
+    with h5py.File(copy, "r+") as f:
+        f["volume/points"][0, 0] += 1.0
+    m = Model.load(copy)
+    with pytest.raises(ArtifactError, match="dataset volume/points was altered"):
+        m.volume()
 
 
 @pytest.mark.parametrize("attr,value", [("material", '{"E": 20000.0, "nu": 0.45}'), ("r_max", 1.0),

@@ -165,38 +165,55 @@ def halfspace_p2(tmp_path_factory):
     return out
 
 
-def test_p2_load_matrix_integrates_the_hat_functions(halfspace_p2):
-    """Σ_k ∫ψ_k φ_j = ∫φ_j = a_j: the consistent P2 load of a unit traction is the P1 vertex area."""
+def test_p2_load_matrix_against_scikit_fem_facet_assembly(halfspace_p2):
+    """B_kj = ∫ ψ_k φ_j dΓ (P2 test functions ψ, the paper's P1 traction space φ) from our closed-form
+    triangle formula, against scikit-fem's mixed P1 x P2 mass matrix on the boundary facets (Gauss
+    quadrature of order 4, exact for these quadratic-times-linear products)."""
+    from skfem import BilinearForm, ElementTetP1, ElementTetP2, FacetBasis, MeshTet, asm
+
     from pmask.precompute.p2 import surface_load_matrix
     from pmask.precompute.surface import boundary_surface
-    from pmask.runtime.geometry import vertex_areas
-    from skfem import MeshTet
 
     d = read_artifact(halfspace_p2)
     P, T = d["volume/points"], d["volume/tets"]
+    mesh = MeshTet(P.T, T.T)
     sv, tris = boundary_surface(P, T)
-    edges = np.sort(MeshTet(P.T, T.T).edges.T, axis=1)
-    B = surface_load_matrix(P, sv[tris], edges)
-    a = np.zeros(len(P))
-    a[sv] = vertex_areas(P[sv], tris)
-    np.testing.assert_allclose(np.asarray(B.sum(axis=0)).ravel(), a, rtol=1e-12, atol=1e-18)
+    B = surface_load_matrix(P, sv[tris], np.sort(mesh.edges.T, axis=1))
+
+    @BilinearForm
+    def mass(u, v, w):
+        return u * v
+
+    ref = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4), FacetBasis(mesh, ElementTetP2(), intorder=4))
+    assert B.shape == ref.shape
+    assert abs(B - ref).max() <= 1e-12 * abs(ref).max()
     assert d["attrs"]["element"] == "P2"
 
 
+@pytest.mark.slow
 def test_p2_columns_and_equilibrium_against_full_solve(halfspace_p2):
-    """P2 Ξ columns equal a SuperLU solve of the whole free P2 system; reactions balance the load."""
+    """P2 Ξ columns equal a SuperLU solve of the whole free P2 system, with stiffness and load both
+    assembled by scikit-fem here (vector P2 elasticity; the P1-traction-to-P2 load as a mixed facet
+    mass matrix); reactions balance the load."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
-
-    from pmask.precompute.p2 import p2_stiffness, surface_load_matrix
-    from pmask.precompute.surface import boundary_surface
+    from skfem import (Basis, BilinearForm, ElementTetP1, ElementTetP2, ElementVector, FacetBasis, MeshTet,
+                       asm)
+    from skfem.models.elasticity import lame_parameters, linear_elasticity
 
     d = read_artifact(halfspace_p2)
     P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
     mat = d["attrs"]["material"]
-    K, edges = p2_stiffness(P, T, mat["E"], mat["nu"])
-    sv, tris = boundary_surface(P, T)
-    B = surface_load_matrix(P, sv[tris], edges)
+    mesh = MeshTet(P.T, T.T)
+    K = asm(linear_elasticity(*lame_parameters(mat["E"], mat["nu"])),
+            Basis(mesh, ElementVector(ElementTetP2()), intorder=2)).tocsr()
+    edges = np.sort(mesh.edges.T, axis=1)
+
+    @BilinearForm
+    def mass(u, v, w):
+        return u * v
+
+    B = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4), FacetBasis(mesh, ElementTetP2(), intorder=4)).tocsr()
     fixed = vi[d["surface/fixed"]]
     is_f = np.zeros(len(P), bool)
     is_f[fixed] = True

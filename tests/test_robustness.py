@@ -81,10 +81,11 @@ def test_volume_without_tetrahedra(tmp_path, capsys, sphere):
 
 def test_volume_with_inverted_tetrahedra(tmp_path, capsys, kidney_small):
     d = Model.load(kidney_small)
-    tets = d.volume_tets.copy()
+    points, tets = d.volume()
+    tets = tets.copy()
     tets[::7] = tets[::7][:, [0, 2, 1, 3]]
     p = tmp_path / "inv.vtu"
-    meshio.write_points_cells(p, d.volume_points, [("tetra", tets)])
+    meshio.write_points_cells(p, points, [("tetra", tets)])
     err = cli_error(capsys, ["precompute", "--volume", str(p), "--fixed", "z<-0.015", "-o", str(tmp_path / "x.h5")])
     assert "inverted" in err
 
@@ -146,7 +147,9 @@ def test_killed_precompute_resumes_and_matches_an_uninterrupted_run(tmp_path):
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-    assert not out.exists() and not list(tmp_path.glob("*.h5"))  # nothing half-written under any name
+    # nothing half-written under any name: neither the artifact nor the writer's hidden temporary file
+    # (".k.h5.tmp-PID", see write_atomic) nor anything else next to it but the resumable work folder
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".work"]
     s = run(Spec(model="kidney", params={"size": 0.012}), out)
     assert s["resumed"] == ["mesh", "factor"]
     ref = tmp_path / "ref" / "k.h5"

@@ -79,6 +79,24 @@ def test_bad_input_is_refused():
         selinv.selected_inverse(L, np.array([1, 1]), np.ones(2))
     with pytest.raises(ValueError, match="scale"):
         selinv.selected_inverse(L, np.array([1, 2]), np.ones(1))
-    bad = dict(L, super=L["super"][::-1].copy())
-    with pytest.raises(ValueError):
-        selinv.selected_inverse(bad, np.array([1]), np.ones(1))
+
+
+def unordered_factor():
+    """A valid Cholesky factor in supernodal layout whose elimination tree is not postordered: column 0's
+    parent is column 2 while column 1 is a root of its own, so the subtree of column 2 ({0, 2}) is not a
+    contiguous range of columns."""
+    dense = np.array([[2.0, 0.0, 0.0], [0.0, 1.5, 0.0], [0.5, 0.0, 1.2]])  # L: rows {0, 2}, {1}, {2}
+    return {"super": np.array([0, 1, 2, 3]), "pi": np.array([0, 2, 3, 4]), "px": np.array([0, 2, 3, 4]),
+            "s": np.array([0, 2, 1, 2]), "x": np.array([2.0, 0.5, 1.5, 1.2]), "perm": np.arange(3)}, dense
+
+
+def test_a_factor_that_is_not_postordered_is_refused():
+    L, dense = unordered_factor()
+    from conftest import dense_factor
+
+    np.testing.assert_array_equal(dense_factor(L), dense)  # the arrays hold exactly this L
+    with pytest.raises(ValueError, match="not postordered"):
+        selinv.selected_inverse(L, np.array([0, 2]), np.ones(2))
+    if native.available():
+        with pytest.raises(ValueError, match="not postordered"):
+            native.selected_inverse(L, np.array([0, 2]), np.ones(2))
