@@ -18,6 +18,21 @@ from pmask.errors import InputError, PmaskError
 
 log = logging.getLogger("pmask")
 
+#: what each extra brings (pyproject.toml), checked before a command that needs it
+EXTRAS = {"precompute": ("scipy", "skfem", "gmsh", "meshio", "trimesh", "cvxopt", "tqdm"), "figures": ("matplotlib",)}
+
+
+def require_extra(*extras: str) -> None:
+    """One line that says which extra to install, instead of an ImportError deep in a command."""
+    import importlib.util
+
+    for extra in extras:
+        missing = [m for m in EXTRAS[extra] if importlib.util.find_spec(m) is None]
+        if missing:
+            raise InputError(f"this command needs the {extra} extra ({', '.join(missing)} not installed): "
+                             f"pip install 'pmask[{extra}]'")
+
+
 def _param(text: str):
     key, sep, value = text.partition("=")
     if not sep:
@@ -49,13 +64,17 @@ def add_precompute(sub) -> None:
                    help="further model parameter (repeatable), e.g. --param h_load=0.00125")
     p.add_argument("--float32", action="store_true", help="store Ξ in single precision (half the size)")
     p.add_argument("--element", choices=("P1", "P2"), default="P1",
-                   help="tetrahedra: P1 (default; Ξ by selected inversion) or P2 (quadratic; small contact regions)")
+                   help="tetrahedra: P1 (linear; locks for nearly incompressible tissue) or P2 (quadratic, with the "
+                        "volumetric term at the centroid: accurate in bending and up to nu = 0.499)")
+    p.add_argument("--reactions", action=argparse.BooleanOptionalAction, default=None,
+                   help="store the support reactions (default: when they cost no more than Ξ)")
     p.add_argument("-o", "--out", help="artifact path (default artifacts/MODEL.h5)")
     p.add_argument("--force", action="store_true", help="recompute even if the artifact is up to date")
     p.set_defaults(func=cmd_precompute)
 
 
 def cmd_precompute(args) -> int:
+    require_extra("precompute")
     from pmask.pipeline.stages import Spec, run
 
     if args.model is None and not (args.surface or args.volume):
@@ -67,7 +86,7 @@ def cmd_precompute(args) -> int:
     spec = Spec(model=label, params=params, surface=args.surface, volume=args.volume, fixed=args.fixed,
                 contact=args.contact, E=args.E, nu=args.nu, units=args.units, r_max=args.r_max,
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
-                element=args.element)
+                element=args.element, reactions=args.reactions)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
     if summary["up_to_date"]:
@@ -89,6 +108,7 @@ def add_models(sub) -> None:
 
 
 def cmd_models(args) -> int:
+    require_extra("precompute")
     from pmask.pipeline.models import MODELS
 
     for name, (_, desc) in MODELS.items():
@@ -134,6 +154,7 @@ def add_reference(sub) -> None:
 
 
 def cmd_reference(args) -> int:
+    require_extra("precompute")
     from pmask.pipeline.reference import REFERENCE_DIR, regenerate
 
     diffs = regenerate(Path(args.dir) if args.dir else REFERENCE_DIR, remesh=args.remesh)
@@ -155,6 +176,7 @@ def add_figures(sub) -> None:
 
 
 def cmd_figures(args) -> int:
+    require_extra("precompute", "figures")
     from pmask.pipeline.figures import figure6
     from pmask.pipeline.truth import figure6_numbers
     from pmask.runtime import Model
@@ -200,6 +222,7 @@ def add_export(sub) -> None:
 
 
 def cmd_export(args) -> int:
+    require_extra("precompute")
     from pmask.pipeline.export import export_surface
     from pmask.runtime import Model
 

@@ -1,19 +1,24 @@
-"""Stage orchestration: mesh → condense (factorise) → Green's functions → artifact.
+"""Stage orchestration: mesh → regions → factorise → Green's functions → artifact.
 
-Each expensive stage leaves a checkpoint (written atomically) in a work folder
-named after the input hash, next to the artifact.  A run that is interrupted
-resumes from the last finished stage; a run whose inputs are unchanged finds
-the artifact up to date and does nothing.  The work folder is removed once the
-artifact is written.
+Every stage is a function of its inputs that returns its result; :func:`run` validates everything
+before any work, then calls the stages in order.  The two expensive stages leave a checkpoint (written
+atomically) in ``.work/OUT-STEM/`` next to the artifact, keyed by a hash of exactly the inputs that
+stage depends on: the mesh by the geometry, the factor by the mesh, material, regions and element.
+So a run that is interrupted resumes from its last finished stage, and a run that changes only what a
+later stage depends on (following an error's advice to restrict ``--contact``, say) reuses the mesh.
+A run whose inputs are all unchanged finds the artifact up to date and does nothing.  The work folder
+goes once the artifact is written; a failure keeps only checkpoints a corrected run can reuse.
 """
 from __future__ import annotations
 
+import ast
+import contextlib
 import hashlib
+import inspect
 import json
 import logging
 import os
 import platform
-import re
 import shutil
 import sys
 import tempfile
@@ -22,7 +27,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
@@ -32,8 +36,10 @@ from pmask.runtime.files import atomic_write
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parent.parent
-CODE_DIRS = ("precompute", "meshes", "pipeline")
-CODE_FILES = ("runtime/artifact.py", "runtime/geometry.py")
+#: the source whose changes change an artifact's numbers (docstrings and comments excluded)
+RESULT_CODE = ("precompute/*.py", "precompute/*.c", "meshes/*.py", "pipeline/stages.py", "pipeline/models.py",
+               "runtime/artifact.py", "runtime/geometry.py")
+UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
 
 
 @dataclass
@@ -45,10 +51,12 @@ class Spec:
     surface, volume : a user's geometry file (at most one), instead of a registered model.
     fixed, contact : region selectors (None: the model's defaults).
     E, nu : material (None: the model's defaults).  units : length unit of the input geometry.
-    r_max : largest mask radius [m] the runtime may use (None: model default).
-    edge_length : target edge length [m] when remeshing a --surface.
+    r_max : largest mask radius the runtime may use, in the input's units (None: model default).
+    edge_length : target edge length when remeshing a --surface, in the input's units.
     dtype : storage precision of Ξ, "float64" or "float32" (half the size; see README).
-    element : "P1" (selected inversion) or "P2" (blocked solves; for small contact regions).
+    element : a name from :data:`pmask.precompute.elements.ELEMENTS`.
+    reactions : store the support reactions; None: when they cost no more than Ξ (see
+        :func:`pmask.precompute.greens.factorise`).
     """
 
     model: str
@@ -64,11 +72,33 @@ class Spec:
     edge_length: float | None = None
     dtype: str = "float64"
     element: str = "P1"
+    reactions: bool | None = None
+
+    @property
+    def scale(self) -> float:
+        """Metres per input length unit."""
+        return UNITS[self.units]
 
 
-UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
+@dataclass
+class Surface:
+    """The boundary surface of the mesh and its regions (stage 2).
+
+    vertices : volume indices of the surface vertices (sorted); triangles : into ``vertices``,
+    counter-clockwise from outside; areas : a_i = ∫ φ_i dΓ; regions : free/fixed/contact/core sets
+    (surface indices); r_max : largest mask radius [m]; fixed_selector, contact_selector : as given.
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    areas: np.ndarray
+    regions: object
+    r_max: float
+    fixed_selector: str
+    contact_selector: str
 
 
+# ------------------------------------------------------------------------------- hashing
 def file_digest(path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -77,14 +107,26 @@ def file_digest(path) -> str:
     return h.hexdigest()
 
 
+def _without_docstrings(source: str) -> str:
+    """The module's syntax tree without docstrings: what the interpreter runs, minus prose."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(body, list) and body and isinstance(body[0], ast.Expr)
+                and isinstance(getattr(body[0], "value", None), ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
 def code_digest() -> str:
-    """Hash of the source that produces an artifact (a code change invalidates artifacts)."""
+    """Hash of the code that produces an artifact's numbers (:data:`RESULT_CODE`): editing a help
+    text, a docstring or a comment does not invalidate artifacts, changing what runs does."""
     h = hashlib.sha256()
-    files = sorted(p for d in CODE_DIRS for ext in ("*.py", "*.c") for p in (ROOT / d).rglob(ext))
-    files += [ROOT / f for f in CODE_FILES]
-    for p in files:
+    for p in sorted(q for pattern in RESULT_CODE for q in ROOT.glob(pattern)):
         h.update(str(p.relative_to(ROOT)).encode())
-        h.update(p.read_bytes())
+        text = p.read_text()
+        h.update((_without_docstrings(text) if p.suffix == ".py" else text).encode())
     return h.hexdigest()
 
 
@@ -103,17 +145,29 @@ def library_versions() -> dict:
     return out
 
 
-def input_hash(spec: Spec) -> str:
-    """SHA-256 of every input: geometry, parameters, code and the libraries that shape the mesh."""
+def _digest(d: dict) -> str:
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def stage_keys(spec: Spec) -> dict:
+    """The hashes of each stage's inputs: ``mesh`` (the geometry), ``factor`` (+ material, regions,
+    element) and ``artifact`` (+ storage; the artifact's ``input_hash``)."""
     d = asdict(spec)
     for key in ("surface", "volume"):
         if d[key]:
             d[key] = {"sha256": file_digest(d[key])}
     versions = library_versions()
-    d["code"] = code_digest()
-    d["format_version"] = FORMAT_VERSION
-    d["libraries"] = {k: versions[k] for k in ("gmsh", "scikit-fem")}
-    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
+    code = code_digest()
+    mesh = _digest({k: d[k] for k in ("model", "params", "surface", "volume", "units", "edge_length")}
+                   | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
+    factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")})
+    artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION})
+    return {"mesh": mesh, "factor": factor, "artifact": artifact}
+
+
+def input_hash(spec: Spec) -> str:
+    """SHA-256 of every input: geometry, parameters, code and the libraries that shape the mesh."""
+    return stage_keys(spec)["artifact"]
 
 
 def artifact_hash(path: Path) -> str | None:
@@ -128,85 +182,194 @@ def artifact_hash(path: Path) -> str | None:
         return None
 
 
-def _save_npz(path: Path, **arrays) -> None:
-    atomic_write(path, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
+# ------------------------------------------------------------------------------- validation
+def model_parameters(name: str) -> dict:
+    """The keyword parameters a registered model's builder takes (name -> default)."""
+    import functools
+
+    from pmask.pipeline.models import get_model
+
+    builder = get_model(name)
+    bound = builder.keywords if isinstance(builder, functools.partial) else {}
+    sig = inspect.signature(builder.func if isinstance(builder, functools.partial) else builder)
+    return {k: p.default for k, p in sig.parameters.items() if k not in bound}
 
 
-def build_mesh(spec: Spec):
-    """Stage 1: the volume mesh and its regions from a model or a user's file."""
+def validate(spec: Spec, out: Path) -> None:
+    """Everything that can be checked before any work, each with one line that says what to change."""
+    from pmask.precompute import elasticity, elements, selectors
+
+    elements.get_element(spec.element)
+    if spec.dtype not in ("float64", "float32"):
+        raise InputError(f"dtype must be float64 or float32, got {spec.dtype!r}")
+    if spec.units not in UNITS:
+        raise InputError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
+    for key in ("surface", "volume"):
+        p = getattr(spec, key)
+        if p and not Path(p).is_file():
+            raise InputError(f"--{key} {p}: no such file")
+    if not (spec.surface or spec.volume):
+        allowed = model_parameters(spec.model)
+        unknown = sorted(set(spec.params) - set(allowed))
+        if unknown:
+            flags = ", ".join("--size" if k == "size" else f"--param {k}=..." for k in unknown)
+            raise InputError(f"model {spec.model} has no parameter {', '.join(unknown)} ({flags}); its parameters: "
+                             + (", ".join(f"{k} (default {v!r})" for k, v in allowed.items()) or "none"))
+        for k, v in spec.params.items():
+            default = allowed[k]
+            if isinstance(default, (int, float)) and not isinstance(default, bool) and not isinstance(v, (int, float)):
+                raise InputError(f"model {spec.model}: parameter {k} must be a number, got {v!r}")
+    if spec.surface and spec.edge_length is None:
+        raise InputError("--surface needs --edge-length (target edge length in the file's units)")
+    if spec.edge_length is not None and not (np.isfinite(spec.edge_length) and spec.edge_length > 0):
+        raise InputError(f"--edge-length must be a finite length > 0, got {spec.edge_length}")
+    if spec.r_max is not None and not (np.isfinite(spec.r_max) and spec.r_max > 0):
+        raise InputError(f"--r-max must be a finite length > 0, got {spec.r_max}")
+    if spec.E is not None or spec.nu is not None:
+        elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
+    for sel in (spec.fixed, spec.contact):
+        if sel is not None:
+            selectors.parse(sel)
+    out = Path(out)
+    if out.is_dir():
+        raise OutputError(f"--out {out} is a folder; give the artifact's file name, e.g. {out / spec.model}.h5")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".pmask-write-test-"):
+            pass
+    except OSError as exc:
+        raise OutputError(f"cannot write to {out.parent} ({exc.strerror or exc}); "
+                          "choose a writable folder with --out") from None
+
+
+# ------------------------------------------------------------------------------- stages
+def mesh_stage(spec: Spec) -> ModelMesh:
+    """Stage 1: the volume mesh (metres) and its named groups, from a model or a user's file."""
     from pmask.pipeline.models import get_model
     from pmask.precompute import meshing
 
-    scale = UNITS[spec.units]
     if spec.surface:
-        if spec.edge_length is None:
-            raise InputError("--surface needs --edge-length (target edge length in the file's units)")
-        points, tets = meshing.remesh_surface(Path(spec.surface), edge_length=spec.edge_length * scale, scale=scale)
+        points, tets = meshing.remesh_surface(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
+                                              scale=spec.scale)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", info={"source": Path(spec.surface).name})
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
         return load_model_mesh(spec.volume)
     if spec.volume:
-        points, tets, groups = meshing.read_volume(Path(spec.volume), scale=scale)
+        points, tets, groups = meshing.read_volume(Path(spec.volume), scale=spec.scale)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", groups=groups,
                          info={"source": Path(spec.volume).name})
     return get_model(spec.model)(**spec.params)
 
 
-def _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings, resumed, bar, label):
-    """P1: assemble, factorise K_FF (checkpointed), then Ξ by selected inversion."""
-    from pmask.precompute import condense, elasticity
+def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
+    """Stage 2: the boundary surface, its vertex areas, and the fixed, free and contact regions."""
+    from pmask.precompute import regions, selectors, surface
+    from pmask.runtime.geometry import mean_edge_length, vertex_areas
 
-    t0 = time.perf_counter()
-    factor_ck = work / "factor.npz"
-    if factor_ck.exists():
-        factor = condense.factor_from_arrays(np.load(factor_ck))
-        resumed.append("factor")
-        timings["assemble"] = 0.0
-        timings["factor"] = time.perf_counter() - t0
+    vertices, triangles = surface.boundary_surface(mesh.points, mesh.tets)
+    spoints = mesh.points[vertices]
+    areas = vertex_areas(spoints, triangles)
+    fixed_sel = spec.fixed or mesh.fixed
+    if not fixed_sel:
+        raise regions.RegionError("no fixed region given: use --fixed SELECTOR (e.g. 'z<-0.9' or 'group:NAME')")
+    contact_sel = spec.contact if spec.contact is not None else mesh.contact
+    fixed_mask = selectors.select(fixed_sel, mesh.points / spec.scale, mesh.groups)[vertices]
+    contact_mask = (selectors.select(contact_sel, mesh.points / spec.scale, mesh.groups)[vertices]
+                    if contact_sel else None)
+    if spec.r_max is not None:
+        r_max = spec.r_max * spec.scale
+    elif contact_mask is None:
+        r_max = float(np.linalg.norm(spoints.max(axis=0) - spoints.min(axis=0)))  # every free vertex is in Ξ
     else:
-        K = elasticity.stiffness_matrix(model.points, model.tets, E, nu)
-        timings["assemble"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        contact_v = surf_vertices[reg.contact]
-        fixed_v = surf_vertices[reg.fixed]
-        interior = np.setdiff1d(np.arange(len(model.points)), np.concatenate([contact_v, fixed_v]))
-        factor = condense.surface_factor(K, model.tets, interior, contact_v, fixed_v)
-        del K
-        timings["factor"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        _save_npz(factor_ck, **condense.factor_arrays(factor))
-        timings["checkpoint"] = time.perf_counter() - t0
-    _checkpoint_reached("factor")
-    bar.update()
-    bar.set_description(f"{label}: Green's functions")
-    t0 = time.perf_counter()
-    Xi, reactions = condense.greens_functions(factor, areas[reg.contact])
-    timings["greens"] = time.perf_counter() - t0
-    bar.update()
-    bar.set_description(f"{label}: write")
-    return Xi, reactions, {**factor.stats, "element": "P1"}
+        r_max = mesh.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
+    reg = regions.surface_regions(spoints, fixed_mask, contact_mask, r_max,
+                                  fixed_selector=fixed_sel, contact_selector=contact_sel or "")
+    return Surface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "")
 
 
-def _bytes(n: float) -> str:
-    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
+def material(spec: Spec, mesh: ModelMesh) -> tuple[float, float]:
+    from pmask.precompute.elasticity import check_material
+
+    E = spec.E if spec.E is not None else mesh.material["E"]
+    nu = spec.nu if spec.nu is not None else mesh.material["nu"]
+    check_material(E, nu)
+    return float(E), float(nu)
 
 
-def check_memory(n_contact: int, element: str) -> None:
-    """Refuse, before any heavy work, a contact region whose dense Ξ cannot be computed in this
-    machine's memory.  Peak working set per byte of Ξ (3 n_c)² float64, measured: ~1.6 for the
-    native selected inversion (its result buffer also holds the rows next to the support), ~2.5 for
-    the pip-only one (a permuted copy); ~3 assumed for P2 (Ξ, solves and copies)."""
-    from pmask.precompute import condense
+def check_memory(element, n_volume_vertices: int, n_contact: int) -> dict:
+    """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
+    memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``)."""
+    from pmask.precompute import greens
 
-    xi = 8.0 * (3 * n_contact) ** 2
-    factor = (1.6 if condense.cholmod_backend() == "native" else 2.5) if element == "P1" else 3.0
-    avail = condense.available_memory()
-    if avail is not None and xi * factor > avail:
+    need = element.memory_estimate(n_volume_vertices, n_contact)
+    if greens.cholmod_backend() != "native":
+        need["total"] += 0.9 * need["Xi"]  # the pip-only route permutes a copy
+    avail = greens.available_memory()
+    if avail is not None and need["total"] > avail:
         raise ResourceError(
             f"Ξ of {n_contact} contact vertices is a dense {3 * n_contact} x {3 * n_contact} matrix "
-            f"({_bytes(xi)} in float64, ~{_bytes(xi * factor)} to compute), more than the "
-            f"{_bytes(avail)} this machine has available: restrict the region a probe can touch "
-            "(--contact SELECTOR) or coarsen the mesh (--size, --edge-length)")
+            f"({_bytes(need['Xi'])} in float64); with the sparse factor (~{_bytes(need['factor'])}) the "
+            f"{element.name} Green's functions need ~{_bytes(need['total'])}, more than the {_bytes(avail)} this "
+            "machine has available: restrict the region a probe can touch (--contact SELECTOR) or coarsen the "
+            "mesh (--size, --edge-length)")
+    return need
+
+
+def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
+    """Stage 3: assemble the element's stiffness and load, factorise K_FF.  Returns (factor, timings)."""
+    from pmask.precompute import elements, greens
+
+    element = elements.get_element(spec.element)
+    E, nu = material(spec, mesh)
+    t0 = time.perf_counter()
+    d = element.discretise(mesh.points, mesh.tets)
+    K = element.stiffness(d, E, nu)
+    contact = surf.vertices[surf.regions.contact]
+    B, scale = element.load(d, surf.vertices[surf.triangles], contact, surf.areas[surf.regions.contact])
+    dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed]))
+    t_assemble = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    factor = greens.factorise(K, dirichlet, elements.observed_dofs(contact), B, scale=scale,
+                              graph_elements=d.connectivity, reactions=spec.reactions)
+    factor.stats["element"] = element.name
+    return factor, {"assemble": t_assemble, "factor": time.perf_counter() - t0}
+
+
+def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor):
+    """Stage 4: Ξ and the support reactions per fixed vertex from the factor."""
+    from pmask.precompute import elements, greens
+
+    Xi, R = greens.greens_functions(factor)
+    if R is None:
+        return Xi, None
+    element = elements.get_element(spec.element)
+    d = element.discretise(mesh.points, mesh.tets) if element.name != "P1" else None
+    return Xi, element.lump_reactions(d, surf.vertices[surf.regions.fixed], R)
+
+
+def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, reactions, *, keys, factor_stats,
+                timings, resumed) -> None:
+    """Stage 5: the artifact, written atomically with its checksums and provenance."""
+    from pmask.precompute.writer import write_artifact
+
+    E, nu = material(spec, mesh)
+    meta = {
+        "model": spec.model, "input_hash": keys["artifact"], "E": E, "nu": nu, "r_max": surf.r_max,
+        "fixed_selector": surf.fixed_selector, "contact_selector": surf.contact_selector, "element": spec.element,
+        "parameters": {**asdict(spec), "model_info": mesh.info},
+        "provenance": {"libraries": library_versions(), "code_sha256": code_digest(), "stage_keys": keys,
+                       "created_unix": time.time(), "host": platform.node(), "resumed_stages": resumed,
+                       "factor": factor_stats},
+        "timings": timings,
+    }
+    write_artifact(out, meta=meta, volume_points=mesh.points, tets=mesh.tets, surface_vertices=surf.vertices,
+                   triangles=surf.triangles, areas=surf.areas, regions=surf.regions, Xi=Xi, reactions=reactions,
+                   dtype=np.dtype(spec.dtype))
+
+
+# ------------------------------------------------------------------------------- orchestration
+def _bytes(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
 def _checkpoint_reached(stage: str) -> None:
@@ -217,137 +380,106 @@ def _checkpoint_reached(stage: str) -> None:
         time.sleep(float(os.environ.get("PMASK_PAUSE_SECONDS", "600")))
 
 
+class _Stages:
+    """Timings, progress and the work folder of one run."""
+
+    def __init__(self, spec: Spec, out: Path, keys: dict, progress: bool):
+        self.work = out.parent / ".work" / out.stem
+        self.keys = keys
+        self.timings: dict[str, float] = {}
+        self.resumed: list[str] = []
+        self.bar = None
+        if progress:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=5, desc=f"{spec.model}: mesh", file=sys.stderr, leave=False,
+                            bar_format="{desc:<40} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
+
+    def checkpoint(self, stage: str) -> Path:
+        return self.work / f"{stage}-{self.keys[stage][:16]}.npz"
+
+    @contextlib.contextmanager
+    def timed(self, name: str, next_label: str | None = None):
+        t0 = time.perf_counter()
+        yield
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+        if self.bar is not None:
+            self.bar.update()
+            if next_label:
+                self.bar.set_description(next_label)
+
+    def close(self, success: bool) -> None:
+        if self.bar is not None:
+            self.bar.close()
+        if success:
+            shutil.rmtree(self.work, ignore_errors=True)
+        else:  # keep only checkpoints a corrected run can reuse: the finished stages'
+            for p in self.work.glob("*"):
+                if p.name.startswith("."):
+                    p.unlink(missing_ok=True)
+        for folder in (self.work, self.work.parent):  # when empty
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+
+
 def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -> dict:
     """Run the precompute for ``spec`` into ``out``; return a summary dict.
 
     ``progress`` shows a bar over the stages on stderr (the CLI turns it on for a terminal).
     """
-    from pmask.precompute import elasticity, regions, selectors, surface
-    from pmask.precompute.writer import write_artifact
-    from pmask.runtime.geometry import mean_edge_length, vertex_areas
+    from pmask.precompute import elements, greens
 
     out = Path(out)
-    if spec.element not in ("P1", "P2"):
-        raise InputError(f"element must be P1 or P2, got {spec.element!r}")
-    if spec.dtype not in ("float64", "float32"):
-        raise InputError(f"dtype must be float64 or float32, got {spec.dtype!r}")
-    if spec.units not in UNITS:
-        raise InputError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
-    for key in ("surface", "volume"):
-        p = getattr(spec, key)
-        if p and not Path(p).is_file():
-            raise InputError(f"--{key} {p}: no such file")
-    if spec.E is not None or spec.nu is not None:
-        elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
+    validate(spec, out)
+    keys = stage_keys(spec)
+    if out.exists() and not force and artifact_hash(out) == keys["artifact"]:
+        log.debug("%s is up to date (input hash %s)", out, keys["artifact"][:12])
+        return {"up_to_date": True, "artifact": str(out), "input_hash": keys["artifact"]}
+    st = _Stages(spec, out, keys, progress)
+    st.work.mkdir(parents=True, exist_ok=True)
+    for stale in st.work.glob("*.npz"):  # checkpoints of other inputs: not reusable by this run
+        if stale not in (st.checkpoint("mesh"), st.checkpoint("factor")):
+            stale.unlink(missing_ok=True)
+    ok = False
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out.parent, prefix=".pmask-write-test-"):
-            pass
-    except OSError as exc:
-        raise OutputError(f"cannot write to {out.parent} ({exc.strerror or exc}); "
-                              "choose a writable folder with --out") from None
-    h = input_hash(spec)
-    if out.exists() and not force and artifact_hash(out) == h:
-        log.debug("%s is up to date (input hash %s)", out, h[:12])
-        return {"up_to_date": True, "artifact": str(out), "input_hash": h}
-
-    work = out.parent / ".work" / f"{out.stem}-{h[:16]}"
-    work.mkdir(parents=True, exist_ok=True)
-    timings: dict[str, float] = {}
-    resumed: list[str] = []
-    bar = tqdm(total=4, desc=f"{spec.model}: mesh", disable=not progress, file=sys.stderr, leave=False,
-               bar_format="{desc:<40} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
-
-    # -- stage 1: mesh ---------------------------------------------------------------------
-    t0 = time.perf_counter()
-    mesh_ck = work / "mesh.npz"
-    if mesh_ck.exists():
-        model = load_model_mesh(mesh_ck)
-        resumed.append("mesh")
-    else:
-        model = build_mesh(spec)
-        save_model_mesh(mesh_ck, model)
-    timings["mesh"] = time.perf_counter() - t0
-    _checkpoint_reached("mesh")
-    bar.update()
-    bar.set_description(f"{spec.model}: assemble + factorise")
-
-    E = spec.E if spec.E is not None else model.material["E"]
-    nu = spec.nu if spec.nu is not None else model.material["nu"]
-    elasticity.check_material(E, nu)
-    scale = UNITS[spec.units]
-
-    # -- regions (cheap) -------------------------------------------------------------------
-    t0 = time.perf_counter()
-    surf_vertices, triangles = surface.boundary_surface(model.points, model.tets)
-    spoints = model.points[surf_vertices]
-    areas = vertex_areas(spoints, triangles)
-    fixed_sel = spec.fixed or model.fixed
-    if not fixed_sel:
-        raise regions.RegionError("no fixed region given: use --fixed SELECTOR (e.g. 'z<-0.9' or 'group:NAME')")
-    contact_sel = spec.contact if spec.contact is not None else model.contact
-    fixed_mask = selectors.select(fixed_sel, model.points / scale, model.groups)[surf_vertices]
-    contact_mask = (selectors.select(contact_sel, model.points / scale, model.groups)[surf_vertices]
-                    if contact_sel else None)
-    bbox = float(np.linalg.norm(spoints.max(axis=0) - spoints.min(axis=0)))
-    if spec.r_max is not None:
-        r_max = spec.r_max * scale
-    elif contact_mask is None:
-        r_max = bbox  # every free vertex is in Ξ: any mask is complete
-    else:
-        r_max = model.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
-    reg = regions.surface_regions(spoints, fixed_mask, contact_mask, r_max,
-                                  fixed_selector=fixed_sel, contact_selector=contact_sel or "")
-    timings["regions"] = time.perf_counter() - t0
-    check_memory(len(reg.contact), spec.element)
-
-    if spec.element == "P2":
-        # P2: one sparse factorisation and blocked solves (no factor checkpoint)
-        from pmask.precompute import p2
-
-        t0 = time.perf_counter()
-        K2, edges = p2.p2_stiffness(model.points, model.tets, E, nu)
-        B = p2.surface_load_matrix(model.points, surf_vertices[triangles], edges)
-        timings["assemble"] = time.perf_counter() - t0
-        bar.update()
-        t0 = time.perf_counter()
-        Xi, reactions, factor_stats = p2.greens_by_solves(K2, B, edges, surf_vertices[reg.contact],
-                                                          surf_vertices[reg.fixed])
-        del K2
-        timings["greens"] = time.perf_counter() - t0
-        bar.update()
-    else:
-        Xi, reactions, factor_stats = _p1_greens(model, surf_vertices, reg, areas, E, nu, work, timings,
-                                                 resumed, bar, spec.model)
-
-    # -- stage 4: write ------------------------------------------------------------------------
-    t0 = time.perf_counter()
-    meta = {
-        "model": spec.model, "input_hash": h, "E": float(E), "nu": float(nu), "r_max": float(r_max),
-        "fixed_selector": fixed_sel, "contact_selector": contact_sel or "",
-        "parameters": {**asdict(spec), "model_info": model.info},
-        "provenance": {"libraries": library_versions(), "code_sha256": code_digest(),
-                       "created_unix": time.time(), "host": platform.node(), "resumed_stages": resumed,
-                       "factor": factor_stats},
-        "timings": timings,
-    }
-    meta["element"] = spec.element
-    write_artifact(out, meta=meta, volume_points=model.points, tets=model.tets, surface_vertices=surf_vertices,
-                   triangles=triangles, areas=areas, regions=reg, Xi=Xi, reactions=reactions,
-                   dtype=np.dtype(spec.dtype))
-    timings["write"] = time.perf_counter() - t0
-    bar.update()
-    bar.close()
-    mine = re.compile(rf"^{re.escape(out.stem)}-[0-9a-f]{{16}}$")
-    for stale in (out.parent / ".work").glob(f"{out.stem}-*"):  # this run's and older runs' checkpoints
-        if mine.match(stale.name):
-            shutil.rmtree(stale, ignore_errors=True)
-    try:
-        (out.parent / ".work").rmdir()
-    except OSError:
-        pass
-    return {"up_to_date": False, "artifact": str(out), "input_hash": h, "timings": timings, "resumed": resumed,
-            "volume_vertices": len(model.points), "tets": len(model.tets), "surface_vertices": len(spoints),
-            "free": len(reg.free), "fixed": len(reg.fixed), "contact": len(reg.contact),
-            "size_bytes": out.stat().st_size, "dofs": factor_stats.get("dofs"),
-            "backend": factor_stats.get("backend"), "element": spec.element, "factor_stats": factor_stats}
+        with st.timed("mesh", f"{spec.model}: regions"):
+            ck = st.checkpoint("mesh")
+            if ck.exists():
+                mesh = load_model_mesh(ck)
+                st.resumed.append("mesh")
+            else:
+                mesh = mesh_stage(spec)
+                save_model_mesh(ck, mesh)
+        _checkpoint_reached("mesh")
+        with st.timed("regions", f"{spec.model}: assemble + factorise"):
+            surf = surface_stage(spec, mesh)
+            element = elements.get_element(spec.element)
+            check_memory(element, len(mesh.points), len(surf.regions.contact))
+        ck = st.checkpoint("factor")
+        if ck.exists():
+            t0 = time.perf_counter()
+            factor = greens.factor_from_arrays(np.load(ck))
+            st.resumed.append("factor")
+            st.timings.update({"assemble": 0.0, "factor": time.perf_counter() - t0})
+            if st.bar is not None:
+                st.bar.update()
+        else:
+            factor, t = factor_stage(spec, mesh, surf)
+            st.timings.update(t)
+            with st.timed("checkpoint", f"{spec.model}: Green's functions"):
+                atomic_write(ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)), suffix=".npz")
+        _checkpoint_reached("factor")
+        with st.timed("greens", f"{spec.model}: write"):
+            Xi, reactions = greens_stage(spec, mesh, surf, factor)
+        with st.timed("write"):
+            write_stage(spec, out, mesh, surf, Xi, reactions, keys=keys, factor_stats=factor.stats,
+                        timings=st.timings, resumed=st.resumed)
+        ok = True
+    finally:
+        st.close(ok)
+    reg = surf.regions
+    return {"up_to_date": False, "artifact": str(out), "input_hash": keys["artifact"], "timings": st.timings,
+            "resumed": st.resumed, "volume_vertices": len(mesh.points), "tets": len(mesh.tets),
+            "surface_vertices": len(surf.vertices), "free": len(reg.free), "fixed": len(reg.fixed),
+            "contact": len(reg.contact), "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs"),
+            "backend": factor.stats.get("backend"), "element": spec.element, "factor_stats": factor.stats}

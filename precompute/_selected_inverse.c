@@ -24,10 +24,16 @@
  *   pmask_factor   A (lower CSC) -> CHOLMOD's supernodal L (METIS, AMD if METIS fails), whose
  *                  arrays the caller reads (and may checkpoint) through pmask_factor_arrays.
  *   pmask_selinv   from those arrays (CHOLMOD not needed): X[i, j] = (A^-1)[want_i, want_j] scale_j
- *                  into the caller's zeroed nw x nw buffer, row-major, in place.
+ *                  into the caller's zeroed nw x nw buffer, row-major, in place (P1: the load is a
+ *                  scaled unit column, so the block is symmetric and one dsyrk per supernode).
+ *   pmask_selcols  X = E^T A^-1 B = W_E^T W_B for a sparse load B (P2: a P1 traction's consistent
+ *                  load reaches corner and edge nodes), one dgemm per supernode; see below.
  *   pmask_free     frees what pmask_factor returned.
+ *
+ * Indices are int64_t (CHOLMOD's SuiteSparse_long on LP64 and LLP64 alike); BLAS takes int.
  */
 #include <pthread.h>
+#include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
 #include <sys/mman.h>
@@ -46,7 +52,7 @@ void dgemm_(const char *transa, const char *transb, const int *m, const int *n, 
 
 /* bumped whenever a signature below changes; precompute/native.py refuses a library built from
  * another version (a stale build in the venv) instead of calling it with the wrong arguments */
-int pmask_abi_version(void) { return 3; }
+int pmask_abi_version(void) { return 4; }
 
 typedef struct {
     cholmod_common c;
@@ -61,7 +67,7 @@ static void *prefault(void *arg)
     prefault_job *job = arg;
     size_t step = (size_t)sysconf(_SC_PAGESIZE) / sizeof(double), k;
     for (k = job->n; k >= step; k -= step)
-        __atomic_fetch_add((long *)(job->x + k - step), 0L, __ATOMIC_RELAXED);
+        __atomic_fetch_add((int64_t *)(job->x + k - step), (int64_t)0, __ATOMIC_RELAXED);
     return NULL;
 }
 
@@ -101,7 +107,7 @@ void pmask_free(pm_factor *f)
  * definite at (permuted) column k-1; -1 on a CHOLMOD failure (out of memory, say).
  * times: analyse (ordering included), numeric, nnz(L) as stored, the order used (1 AMD, 2 METIS),
  * CHOLMOD's flop count. */
-int pmask_factor(long n, long *Ap, long *Ai, double *Ax, pm_factor **out, double *times)
+int pmask_factor(int64_t n, int64_t *Ap, int64_t *Ai, double *Ax, pm_factor **out, double *times)
 {
     cholmod_sparse A;
     pm_factor *f = calloc(1, sizeof *f);
@@ -163,18 +169,78 @@ int pmask_factor(long n, long *Ap, long *Ai, double *Ax, pm_factor **out, double
 
 /* The supernodal arrays of the factor (CHOLMOD's storage, valid until pmask_free):
  * sizes = nsuper, len(s), len(x); arrays = super, pi, px (nsuper + 1 each), s, x, Perm (n). */
-void pmask_factor_arrays(pm_factor *f, long *sizes, void **arrays)
+void pmask_factor_arrays(pm_factor *f, int64_t *sizes, void **arrays)
 {
     cholmod_factor *L = f->L;
-    sizes[0] = (long)L->nsuper;
-    sizes[1] = (long)L->ssize;
-    sizes[2] = (long)L->xsize;
+    sizes[0] = (int64_t)L->nsuper;
+    sizes[1] = (int64_t)L->ssize;
+    sizes[2] = (int64_t)L->xsize;
     arrays[0] = L->super;
     arrays[1] = L->pi;
     arrays[2] = L->px;
     arrays[3] = L->s;
     arrays[4] = L->x;
     arrays[5] = L->Perm;
+}
+
+/* The supernodal elimination tree of a postordered factor: each supernode's parent, the first
+ * column of its subtree, and each column's supernode. */
+typedef struct {
+    int64_t *snode, *parent, *fc, *iperm;
+} pm_tree;
+
+static void tree_free(pm_tree *t)
+{
+    free(t->snode);
+    free(t->parent);
+    free(t->fc);
+    free(t->iperm);
+    t->snode = t->parent = t->fc = t->iperm = NULL;
+}
+
+/* 0; -1 out of memory; -3 if a subtree is not a contiguous range of columns (not postordered) */
+static int tree_init(pm_tree *t, int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi,
+                     const int64_t *Ls, const int64_t *Perm)
+{
+    int64_t s, k, *ncols_sub = calloc(nsuper > 0 ? nsuper : 1, sizeof(int64_t));
+    t->snode = malloc(sizeof(int64_t) * (n > 0 ? n : 1));
+    t->parent = malloc(sizeof(int64_t) * (nsuper > 0 ? nsuper : 1));
+    t->fc = malloc(sizeof(int64_t) * (nsuper > 0 ? nsuper : 1));
+    t->iperm = malloc(sizeof(int64_t) * (n > 0 ? n : 1));
+    if (!ncols_sub || !t->snode || !t->parent || !t->fc || !t->iperm) {
+        free(ncols_sub);
+        tree_free(t);
+        return -1;
+    }
+    for (k = 0; k < n; k++)
+        t->iperm[Perm[k]] = k;
+    for (s = 0; s < nsuper; s++) {
+        for (k = super[s]; k < super[s + 1]; k++)
+            t->snode[k] = s;
+        t->fc[s] = super[s];
+        t->parent[s] = -1;
+    }
+    for (s = 0; s < nsuper; s++) {
+        int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s];
+        int64_t par = nrow > nc ? t->snode[Ls[pi[s] + nc]] : -1;
+        t->parent[s] = par;
+        ncols_sub[s] += nc;
+        if (par >= 0) {
+            if (par <= s)
+                goto unordered;
+            if (t->fc[s] < t->fc[par])
+                t->fc[par] = t->fc[s];
+            ncols_sub[par] += ncols_sub[s];
+        }
+        if (ncols_sub[s] != super[s + 1] - t->fc[s])   /* the subtree is not a contiguous range */
+            goto unordered;
+    }
+    free(ncols_sub);
+    return 0;
+unordered:
+    free(ncols_sub);
+    tree_free(t);
+    return -3;
 }
 
 /* Selected inverse of A = P^T L L^T P on the wanted dofs (see the top of this file).
@@ -185,30 +251,27 @@ void pmask_factor_arrays(pm_factor *f, long *sizes, void **arrays)
  * times: setup, forward solve (trsm + gemm + scatter), syrk, mirror + permutation; the flops of
  * the dense kernels; the doubles of W; the wait for the prefault helper after the solve.
  * Returns 0; -2 for a bad want list; -3 if the factor is not postordered; -1 out of memory. */
-int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const long *px, const long *Ls,
-                 const double *Lx, const long *Perm, long nw, const long *want, const double *scale,
+int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi, const int64_t *px, const int64_t *Ls,
+                 const double *Lx, const int64_t *Perm, int64_t nw, const int64_t *want, const double *scale,
                  double *D, double *times)
 {
-    long *iperm = NULL, *rank = NULL, *cnt = NULL, *snode = NULL, *parent = NULL, *fc = NULL,
-         *ncols_sub = NULL, *lo = NULL, *woff = NULL, *sp = NULL;
+    pm_tree tree = {0};
+    int64_t *iperm = NULL, *rank = NULL, *cnt = NULL, *snode = NULL, *fc = NULL, *lo = NULL, *woff = NULL,
+            *sp = NULL;
     double *W = NULL, *U = NULL, *tmp = NULL;
-    long s, k, i, j, r, total = 0, umax = 0;
+    int64_t s, k, i, j, r, total = 0, umax = 0;
     int status = 0, started = 0;
     pthread_t helper;
     const double one = 1.0, zero = 0.0;
     double t0 = now(), t_solve = 0, t_syrk = 0, flops = 0;
 
-    iperm = malloc(sizeof(long) * n);
-    rank = malloc(sizeof(long) * n);
-    cnt = malloc(sizeof(long) * (n + 1));
-    snode = malloc(sizeof(long) * n);
-    parent = malloc(sizeof(long) * nsuper);
-    fc = malloc(sizeof(long) * nsuper);
-    ncols_sub = calloc(nsuper, sizeof(long));
-    lo = malloc(sizeof(long) * nsuper);
-    woff = malloc(sizeof(long) * (nsuper + 1));
-    sp = malloc(sizeof(long) * (nw > 0 ? nw : 1));
-    if (!iperm || !rank || !cnt || !snode || !parent || !fc || !ncols_sub || !lo || !woff || !sp) {
+    iperm = malloc(sizeof(int64_t) * n);
+    rank = malloc(sizeof(int64_t) * n);
+    cnt = malloc(sizeof(int64_t) * (n + 1));
+    lo = malloc(sizeof(int64_t) * nsuper);
+    woff = malloc(sizeof(int64_t) * (nsuper + 1));
+    sp = malloc(sizeof(int64_t) * (nw > 0 ? nw : 1));
+    if (!iperm || !rank || !cnt || !lo || !woff || !sp) {
         status = -1;
         goto done;
     }
@@ -232,36 +295,14 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
             cnt[k + 1]++;
         }
     }
-    /* supernodal elimination tree; fc[s]: first column of s's subtree */
-    for (s = 0; s < nsuper; s++) {
-        for (k = super[s]; k < super[s + 1]; k++)
-            snode[k] = s;
-        fc[s] = super[s];
-        parent[s] = -1;
-    }
-    for (s = 0; s < nsuper; s++) {
-        long nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s];
-        if (nrow > nc)
-            parent[s] = snode[Ls[pi[s] + nc]];
-        ncols_sub[s] += nc;
-        if (parent[s] >= 0) {
-            if (parent[s] <= s) {
-                status = -3;
-                goto done;
-            }
-            if (fc[s] < fc[parent[s]])
-                fc[parent[s]] = fc[s];
-            ncols_sub[parent[s]] += ncols_sub[s];
-        }
-        if (ncols_sub[s] != super[s + 1] - fc[s]) {   /* the subtree is not a contiguous range */
-            status = -3;
-            goto done;
-        }
-    }
+    if ((status = tree_init(&tree, n, nsuper, super, pi, Ls, Perm)) != 0)
+        goto done;
+    snode = tree.snode;
+    fc = tree.fc;
     /* W_s: m_s x nc_s column-major (the transpose of W's rows of s, restricted to [lo_s, hi_s)) */
     woff[0] = 0;
     for (s = 0; s < nsuper; s++) {
-        long nc = super[s + 1] - super[s], nr = pi[s + 1] - pi[s] - nc, m;
+        int64_t nc = super[s + 1] - super[s], nr = pi[s + 1] - pi[s] - nc, m;
         lo[s] = cnt[fc[s]];
         m = cnt[super[s + 1]] - lo[s];
         woff[s + 1] = woff[s] + m * nc;
@@ -281,7 +322,7 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
     for (k = 0; k < n; k++)       /* W = L^-1 P E starts as P E */
         if (rank[k] >= 0) {
             s = snode[k];
-            long m = cnt[super[s + 1]] - lo[s];
+            int64_t m = cnt[super[s + 1]] - lo[s];
             W[woff[s] + (cnt[k] - lo[s]) + (k - super[s]) * m] = 1.0;
         }
     times[0] = now() - t0;
@@ -296,8 +337,8 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
         /* forward solve W = L^-1 P E, supernode by supernode (children before parents) */
         t0 = now();
         for (s = 0; s < nsuper; s++) {
-            long nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
-            long m = cnt[super[s + 1]] - lo[s];
+            int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
+            int64_t m = cnt[super[s + 1]] - lo[s];
             int im = (int)m, inc = (int)nc, inr = (int)nr, ild = (int)nrow;
             double *X = W + woff[s];
             const double *Lss = Lx + px[s];
@@ -312,8 +353,8 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
             dgemm_("N", "T", &im, &inr, &inc, &one, X, &im, Lss + nc, &ild, &zero, U, &im, 1, 1);
             flops += 2.0 * m * nr * nc;
             for (i = 0; i < nr; i++) {
-                long row = Ls[pi[s] + nc + i], t = snode[row];
-                long mt = cnt[super[t + 1]] - lo[t];
+                int64_t row = Ls[pi[s] + nc + i], t = snode[row];
+                int64_t mt = cnt[super[t + 1]] - lo[t];
                 double *dst = W + woff[t] + (lo[s] - lo[t]) + (row - super[t]) * mt;
                 const double *src = U + i * m;
                 for (r = 0; r < m; r++)
@@ -330,7 +371,7 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
     /* (A^-1)_EE[lo:hi, lo:hi] += W_s^T W_s  (lower triangle), one rank-nc_s update per supernode */
     t0 = now();
     for (s = 0; s < nsuper; s++) {
-        long nc = super[s + 1] - super[s], m = cnt[super[s + 1]] - lo[s];
+        int64_t nc = super[s + 1] - super[s], m = cnt[super[s + 1]] - lo[s];
         int im = (int)m, inc = (int)nc, inw = (int)nw;
         if (m == 0)
             continue;
@@ -345,11 +386,11 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
     /* mirror the lower triangle (tiles of the strict upper part from their transposes) */
     {
         enum { T = 64 };
-        long i0, j0;
+        int64_t i0, j0;
         for (j0 = 0; j0 < nw; j0 += T) {
-            long j1 = j0 + T < nw ? j0 + T : nw;
+            int64_t j1 = j0 + T < nw ? j0 + T : nw;
             for (i0 = j0; i0 < nw; i0 += T) {
-                long i1 = i0 + T < nw ? i0 + T : nw;
+                int64_t i1 = i0 + T < nw ? i0 + T : nw;
                 for (j = j0; j < j1; j++)
                     for (i = (i0 > j + 1 ? i0 : j + 1); i < i1; i++)
                         D[j + i * nw] = D[i + j * nw];
@@ -368,12 +409,12 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
             goto done;
         }
         for (j = 0; j < nw; j++) {
-            long cur = j;
+            int64_t cur = j;
             if (moved[j])
                 continue;
             memcpy(first, D + j * nw, sizeof(double) * nw);
             for (;;) {
-                long nxt = sp[cur];
+                int64_t nxt = sp[cur];
                 const double *src = nxt == j ? first : D + nxt * nw;
                 double *col = D + cur * nw;
                 moved[cur] = 1;
@@ -393,18 +434,335 @@ int pmask_selinv(long n, long nsuper, const long *super, const long *pi, const l
     times[5] = (double)total;
 
 done:
+    tree_free(&tree);
     free(iperm);
     free(rank);
     free(cnt);
-    free(snode);
-    free(parent);
-    free(fc);
-    free(ncols_sub);
     free(lo);
     free(woff);
     free(sp);
     free(W);
     free(U);
     free(tmp);
+    return status;
+}
+
+/* Position of value q in the sorted array a[0..m): the caller knows it is there. */
+static int64_t find_sorted(const int64_t *a, int64_t m, int64_t q)
+{
+    int64_t lo = 0, hi = m;
+    while (hi - lo > 1) {
+        int64_t mid = lo + (hi - lo) / 2;
+        if (a[mid] <= q)
+            lo = mid;
+        else
+            hi = mid;
+    }
+    return lo;
+}
+
+/* X = E^T A^-1 B = W_E^T W_B with W = L^-1 P (.), for wanted rows E (unit columns) and a sparse B.
+ *
+ * W_E's columns meet each supernode s in a contiguous range of the rows sorted by pivot, as in
+ * pmask_selinv.  A column of W_B is non-zero on the union of the tree paths up from the pivots of its
+ * non-zeros; for a consistent P2 load those are the neighbours of one vertex, on its path or below it
+ * in a few branches, so every supernode keeps the sorted set of W_B columns that reach it (columns
+ * numbered by their lowest pivot, which keeps the sets of the large top supernodes contiguous).
+ * Then X += W_E,s^T W_B,s is one dgemm per supernode: straight into X where the set is contiguous,
+ * through a tile buffer and a scatter where it is not.
+ *
+ * n, nsuper, super, pi, px, Ls, Lx, Perm: the postordered supernodal factor (pmask_factor_arrays).
+ * rows: nE distinct dofs; B: n x k in CSC (Bp, Bi, Bx; any row order, duplicates summed).
+ * X: nE x k, zero on entry; on return X[i * k + c] = (A^-1 B)[rows_i, c] (row-major).
+ * times: setup, forward solves, products, output permutation; flops; doubles of W_E and W_B.
+ * Returns 0; -2 for a bad row list or an index of B out of range; -3 if the factor is not
+ * postordered; -1 out of memory. */
+int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi, const int64_t *px,
+                  const int64_t *Ls, const double *Lx, const int64_t *Perm, int64_t nE, const int64_t *rows,
+                  int64_t k, const int64_t *Bp, const int64_t *Bi, const double *Bx, double *X, double *times)
+{
+    enum { TILE = 256 };
+    pm_tree tree = {0};
+    int64_t *rankE = NULL, *cntE = NULL, *spE = NULL, *loE = NULL, *woffE = NULL;
+    int64_t *start = NULL, *orderB = NULL, *posB = NULL, *stamp = NULL, *setlen = NULL, *setoff = NULL,
+            *sets = NULL, *woffB = NULL, *where = NULL;
+    double *WE = NULL, *WB = NULL, *U = NULL, *tile = NULL, *rowtmp = NULL;
+    int64_t s, c, q, i, j, r, totalE = 0, totalB = 0, umax = 0, settotal = 0, tmax = 0;
+    int status = 0;
+    const double one = 1.0, zero = 0.0;
+    double t0 = now(), t_solve = 0, t_gemm = 0, flops = 0;
+    const int64_t n1 = n > 0 ? n : 1, ns1 = nsuper > 0 ? nsuper : 1, k1 = k > 0 ? k : 1,
+                  e1 = nE > 0 ? nE : 1;
+
+    if ((status = tree_init(&tree, n, nsuper, super, pi, Ls, Perm)) != 0)
+        return status;
+    rankE = malloc(sizeof(int64_t) * n1);
+    cntE = malloc(sizeof(int64_t) * (n + 1));
+    spE = malloc(sizeof(int64_t) * e1);
+    loE = malloc(sizeof(int64_t) * ns1);
+    woffE = malloc(sizeof(int64_t) * (nsuper + 1));
+    start = malloc(sizeof(int64_t) * k1);
+    orderB = malloc(sizeof(int64_t) * k1);
+    posB = malloc(sizeof(int64_t) * k1);
+    stamp = malloc(sizeof(int64_t) * ns1);
+    setlen = calloc(ns1, sizeof(int64_t));
+    setoff = malloc(sizeof(int64_t) * (nsuper + 1));
+    woffB = malloc(sizeof(int64_t) * (nsuper + 1));
+    where = malloc(sizeof(int64_t) * k1);
+    rowtmp = malloc(sizeof(double) * k1);
+    if (!rankE || !cntE || !spE || !loE || !woffE || !start || !orderB || !posB || !stamp || !setlen ||
+        !setoff || !woffB || !where || !rowtmp) {
+        status = -1;
+        goto done;
+    }
+    /* E: sorted (pivot-order) positions and each supernode's range [loE, cntE[super[s+1]]) */
+    for (j = 0; j < n; j++)
+        rankE[j] = -1;
+    for (i = 0; i < nE; i++) {
+        if (rows[i] < 0 || rows[i] >= n || rankE[tree.iperm[rows[i]]] >= 0) {
+            status = -2;
+            goto done;
+        }
+        rankE[tree.iperm[rows[i]]] = i;
+    }
+    cntE[0] = 0;
+    for (j = 0; j < n; j++) {
+        cntE[j + 1] = cntE[j];
+        if (rankE[j] >= 0)
+            spE[rankE[j]] = cntE[j + 1]++;
+    }
+    /* B: each column's lowest pivot; columns numbered in that order (a counting sort) */
+    for (c = 0; c < k; c++) {
+        start[c] = n;
+        for (q = Bp[c]; q < Bp[c + 1]; q++) {
+            if (Bi[q] < 0 || Bi[q] >= n) {
+                status = -2;
+                goto done;
+            }
+            if (tree.iperm[Bi[q]] < start[c])
+                start[c] = tree.iperm[Bi[q]];
+        }
+    }
+    {
+        int64_t *count = calloc(n + 2, sizeof(int64_t));
+        if (count == NULL) {
+            status = -1;
+            goto done;
+        }
+        for (c = 0; c < k; c++)
+            count[start[c] + 1]++;
+        for (j = 0; j <= n; j++)
+            count[j + 1] += count[j];
+        for (c = 0; c < k; c++)
+            orderB[count[start[c]]++] = c;
+        free(count);
+    }
+    for (q = 0; q < k; q++)
+        posB[orderB[q]] = q;
+    /* the set of each supernode: walk up from every non-zero's supernode until a supernode already
+     * holds this column; twice, to count and then to fill (in increasing q: each set comes sorted) */
+    for (int pass = 0; pass < 2; pass++) {
+        for (s = 0; s < nsuper; s++)
+            stamp[s] = -1;
+        if (pass == 1) {
+            setoff[0] = 0;
+            for (s = 0; s < nsuper; s++) {
+                setoff[s + 1] = setoff[s] + setlen[s];
+                setlen[s] = 0;
+            }
+            settotal = setoff[nsuper];
+            sets = malloc(sizeof(int64_t) * (settotal > 0 ? settotal : 1));
+            if (sets == NULL) {
+                status = -1;
+                goto done;
+            }
+        }
+        for (q = 0; q < k; q++) {
+            c = orderB[q];
+            for (r = Bp[c]; r < Bp[c + 1]; r++)
+                for (s = tree.snode[tree.iperm[Bi[r]]]; s >= 0 && stamp[s] != q; s = tree.parent[s]) {
+                    stamp[s] = q;
+                    if (pass == 1)
+                        sets[setoff[s] + setlen[s]] = q;
+                    setlen[s]++;
+                }
+        }
+    }
+    /* storage: W_E,s (mE x nc) and W_B,s (mB x nc), column-major */
+    woffE[0] = woffB[0] = 0;
+    for (s = 0; s < nsuper; s++) {
+        int64_t nc = super[s + 1] - super[s], nr = pi[s + 1] - pi[s] - nc;
+        int64_t mE = cntE[super[s + 1]] - cntE[tree.fc[s]], mB = setlen[s];
+        loE[s] = cntE[tree.fc[s]];
+        woffE[s + 1] = woffE[s] + mE * nc;
+        woffB[s + 1] = woffB[s] + mB * nc;
+        if (mE * nr > umax)
+            umax = mE * nr;
+        if (mB * nr > umax)
+            umax = mB * nr;
+        if (mB > tmax)
+            tmax = mB;
+    }
+    totalE = woffE[nsuper];
+    totalB = woffB[nsuper];
+    WE = calloc(totalE > 0 ? totalE : 1, sizeof(double));
+    WB = calloc(totalB > 0 ? totalB : 1, sizeof(double));
+    U = malloc(sizeof(double) * (umax > 0 ? umax : 1));
+    tile = malloc(sizeof(double) * (tmax > 0 ? tmax : 1) * TILE);
+    if (!WE || !WB || !U || !tile) {
+        status = -1;
+        goto done;
+    }
+    want_huge_pages(WE, sizeof(double) * totalE);
+    want_huge_pages(WB, sizeof(double) * totalB);
+    for (i = 0; i < nE; i++) {   /* W_E starts as P E, W_B as P B */
+        int64_t piv = tree.iperm[rows[i]];
+        s = tree.snode[piv];
+        int64_t m = cntE[super[s + 1]] - loE[s];
+        WE[woffE[s] + (spE[i] - loE[s]) + (piv - super[s]) * m] = 1.0;
+    }
+    for (c = 0; c < k; c++)
+        for (r = Bp[c]; r < Bp[c + 1]; r++) {
+            int64_t piv = tree.iperm[Bi[r]], t = tree.snode[piv];
+            int64_t at = find_sorted(sets + setoff[t], setlen[t], posB[c]);
+            WB[woffB[t] + at + (piv - super[t]) * setlen[t]] += Bx[r];
+        }
+    times[0] = now() - t0;
+
+    for (s = 0; s < nsuper; s++) {
+        int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
+        int64_t mE = cntE[super[s + 1]] - loE[s], mB = setlen[s];
+        const int64_t *set = sets + setoff[s];
+        const double *Lss = Lx + px[s];
+        int inc = (int)nc, inr = (int)nr, ild = (int)nrow;
+        double *XE = WE + woffE[s], *XB = WB + woffB[s];
+
+        t0 = now();
+        for (int side = 0; side < 2; side++) {   /* the forward solve of s, for W_E then W_B */
+            int64_t m = side == 0 ? mE : mB;
+            int im = (int)m;
+            double *Xs = side == 0 ? XE : XB;
+            if (m == 0)
+                continue;
+            dtrsm_("R", "L", "T", "N", &im, &inc, &one, Lss, &ild, Xs, &im, 1, 1, 1, 1);
+            flops += (double)m * nc * nc;
+            if (nr == 0)
+                continue;
+            dgemm_("N", "T", &im, &inr, &inc, &one, Xs, &im, Lss + nc, &ild, &zero, U, &im, 1, 1);
+            flops += 2.0 * m * nr * nc;
+            /* scatter U onto the ancestors' rows; the rows of s are sorted, so one owner at a time */
+            for (i = 0; i < nr;) {
+                int64_t t = tree.snode[Ls[pi[s] + nc + i]], i1 = i;
+                while (i1 < nr && tree.snode[Ls[pi[s] + nc + i1]] == t)
+                    i1++;
+                if (side == 0) {
+                    int64_t mt = cntE[super[t + 1]] - loE[t];
+                    for (; i < i1; i++) {
+                        double *dst = WE + woffE[t] + (loE[s] - loE[t]) + (Ls[pi[s] + nc + i] - super[t]) * mt;
+                        const double *src = U + i * m;
+                        for (r = 0; r < m; r++)
+                            dst[r] -= src[r];
+                    }
+                } else {
+                    const int64_t *tset = sets + setoff[t];
+                    int64_t mt = setlen[t];
+                    for (r = 0; r < m; r++)   /* s's set is a subset of t's */
+                        where[r] = find_sorted(tset, mt, set[r]);
+                    for (; i < i1; i++) {
+                        double *dst = WB + woffB[t] + (Ls[pi[s] + nc + i] - super[t]) * mt;
+                        const double *src = U + i * m;
+                        for (r = 0; r < m; r++)
+                            dst[where[r]] -= src[r];
+                    }
+                }
+            }
+        }
+        t_solve += now() - t0;
+
+        /* X[loE:hiE, set] += W_E,s^T W_B,s, i.e. (row-major X as column-major X^T) X^T += XB XE^T */
+        t0 = now();
+        if (mE > 0 && mB > 0) {
+            int imB = (int)mB, imE = (int)mE;
+            if (set[mB - 1] - set[0] == mB - 1) {   /* contiguous: straight into X */
+                int ik = (int)k;
+                dgemm_("N", "T", &imB, &imE, &inc, &one, XB, &imB, XE, &imE, &one, X + set[0] + loE[s] * k,
+                       &ik, 1, 1);
+            } else {                                /* a tile of rows at a time, then scattered */
+                for (int64_t e0 = 0; e0 < mE; e0 += TILE) {
+                    int ie = (int)(mE - e0 < TILE ? mE - e0 : TILE);
+                    dgemm_("N", "T", &imB, &ie, &inc, &one, XB, &imB, XE + e0, &imE, &zero, tile, &imB, 1, 1);
+                    for (int64_t e = 0; e < ie; e++) {
+                        double *dst = X + (loE[s] + e0 + e) * k;
+                        const double *src = tile + e * mB;
+                        for (r = 0; r < mB; r++)
+                            dst[set[r]] += src[r];
+                    }
+                }
+            }
+            flops += 2.0 * mE * mB * nc;
+        }
+        t_gemm += now() - t0;
+    }
+    times[1] = t_solve;
+    times[2] = t_gemm;
+
+    /* X is in sorted orders; put the rows in the caller's order (following the permutation's cycles,
+     * one row of scratch), then gather each row's columns */
+    t0 = now();
+    {
+        char *moved = calloc(e1, 1);
+        if (moved == NULL) {
+            status = -1;
+            goto done;
+        }
+        for (i = 0; i < nE; i++) {
+            int64_t cur = i;
+            if (moved[i])
+                continue;
+            memcpy(rowtmp, X + i * k, sizeof(double) * k);
+            for (;;) {
+                int64_t src = spE[cur];
+                moved[cur] = 1;
+                if (src == i) {
+                    memcpy(X + cur * k, rowtmp, sizeof(double) * k);
+                    break;
+                }
+                memcpy(X + cur * k, X + src * k, sizeof(double) * k);
+                cur = src;
+            }
+        }
+        free(moved);
+        for (i = 0; i < nE; i++) {
+            double *row = X + i * k;
+            for (c = 0; c < k; c++)
+                rowtmp[c] = row[posB[c]];
+            memcpy(row, rowtmp, sizeof(double) * k);
+        }
+    }
+    times[3] = now() - t0;
+    times[4] = flops;
+    times[5] = (double)(totalE + totalB);
+
+done:
+    tree_free(&tree);
+    free(rankE);
+    free(cntE);
+    free(spE);
+    free(loE);
+    free(woffE);
+    free(start);
+    free(orderB);
+    free(posB);
+    free(stamp);
+    free(setlen);
+    free(setoff);
+    free(sets);
+    free(woffB);
+    free(where);
+    free(WE);
+    free(WB);
+    free(U);
+    free(tile);
+    free(rowtmp);
     return status;
 }

@@ -3,7 +3,7 @@
 The shared library is the extension module ``pmask.precompute._selinv``, compiled by the build backend
 (``setup.py``) when SuiteSparse's headers are present (``make system-deps``); :func:`available` says
 whether it was.  Without it
-:mod:`pmask.precompute.condense` runs the same algorithm through cvxopt's CHOLMOD and :mod:`pmask.precompute.selinv`
+:mod:`pmask.precompute.greens` runs the same algorithm through cvxopt's CHOLMOD and :mod:`pmask.precompute.selinv`
 (numpy and SciPy's BLAS): the same numbers (tested), slower.
 """
 from __future__ import annotations
@@ -33,11 +33,11 @@ def _library_path() -> Path | None:
 LIBRARY = _library_path()
 
 #: must equal pmask_abi_version() in _selected_inverse.c
-ABI_VERSION = 3
+ABI_VERSION = 4
 
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
-_c_long, _c_int, _p = ctypes.c_long, ctypes.c_int, ctypes.c_void_p
+_c_long, _c_int, _p = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p
 
 
 @lru_cache(maxsize=1)
@@ -63,6 +63,9 @@ def _lib():
     lib.pmask_selinv.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _F64, _I64, _c_long, _I64, _F64,
                                  _p, _F64]
     lib.pmask_selinv.restype = _c_int
+    lib.pmask_selcols.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _F64, _I64, _c_long, _I64, _c_long,
+                                  _I64, _I64, _F64, _p, _F64]
+    lib.pmask_selcols.restype = _c_int
     lib.pmask_free.argtypes = [_p]
     lib.pmask_free.restype = None
     return lib
@@ -152,6 +155,39 @@ def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray):
         raise MemoryError("out of memory in the selected inversion")
     return D, {"setup_s": times[0], "solve_s": times[1], "syrk_s": times[2], "permute_s": times[3],
                "flops": float(times[4]), "W_doubles": int(times[5]), "prefault_wait_s": times[6]}
+
+
+def selected_columns(L: dict, rows: np.ndarray, B):
+    """X = Eᵀ A⁻¹ B: the rows ``rows`` of A⁻¹B from the supernodal factor ``L``, for a sparse B
+    (W_Eᵀ W_B, one dgemm per supernode; see ``pmask_selcols`` and :func:`pmask.precompute.selinv.selected_columns`).
+
+    Returns X ((len(rows), B.shape[1]), C order) and timings/counts.
+    """
+    import scipy.sparse as sp
+
+    lib = _lib()
+    arr = {k: np.ascontiguousarray(L[k], dtype=np.float64 if k == "x" else np.int64) for k in FACTOR_ARRAYS}
+    n, nsuper = len(arr["perm"]), len(arr["super"]) - 1
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    B = sp.csc_matrix(B)
+    if B.shape[0] != n:
+        raise ValueError(f"B has {B.shape[0]} rows for a factor of {n} dofs")
+    B.sum_duplicates()
+    k = B.shape[1]
+    X = np.zeros((len(rows), k))
+    times = np.zeros(6)
+    status = lib.pmask_selcols(n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
+                               len(rows), rows, k, np.ascontiguousarray(B.indptr, np.int64),
+                               np.ascontiguousarray(B.indices, np.int64), np.ascontiguousarray(B.data, np.float64),
+                               X.ctypes.data, times)
+    if status == -2:
+        raise ValueError("wanted dofs must be distinct indices of the factorised matrix, and B's rows in range")
+    if status == -3:
+        raise ValueError("the factor's supernodes are not postordered")
+    if status != 0:
+        raise MemoryError("out of memory in the selected inversion")
+    return X, {"setup_s": times[0], "solve_s": times[1], "gemm_s": times[2], "permute_s": times[3],
+               "flops": float(times[4]), "W_doubles": int(times[5])}
 
 
 def cholmod_version() -> str | None:

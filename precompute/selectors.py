@@ -38,6 +38,19 @@ def select(selector: str, points: np.ndarray, groups: dict | None = None) -> np.
     return mask
 
 
+def parse(selector: str) -> None:
+    """Check a selector's syntax before any work (a ``group:`` name is checked against the mesh later)."""
+    select(selector, np.zeros((1, 3)), _AnyGroup())
+
+
+class _AnyGroup(dict):
+    def __contains__(self, key):
+        return True
+
+    def __getitem__(self, key):
+        return np.zeros(1, bool)
+
+
 def _floats(text: str, n: int, what: str) -> list[float]:
     try:
         vals = [float(v) for v in text.split(",")]

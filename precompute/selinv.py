@@ -103,72 +103,191 @@ def supernodal(colptr: np.ndarray, rowind: np.ndarray, values: np.ndarray, perm:
             "perm": np.asarray(perm, np.int64)}
 
 
-def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, dict]:
-    """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j (C order), as ``native.selected_inverse``."""
-    sup, pi, px, Ls, Lx, perm = (np.asarray(L[k]) for k in FACTOR_ARRAYS)
-    n, ns = len(perm), len(sup) - 1
+class _Tree:
+    """The supernodal elimination tree of a factor (:data:`FACTOR_ARRAYS`): each supernode's parent and
+    the first column of its subtree, checked to be postordered (every subtree a contiguous range)."""
+
+    def __init__(self, L: dict):
+        self.sup, self.pi, self.px, self.Ls, self.Lx, self.perm = (np.asarray(L[k]) for k in FACTOR_ARRAYS)
+        sup, pi, Ls = self.sup, self.pi, self.Ls
+        self.n, self.ns = len(self.perm), len(sup) - 1
+        self.iperm = np.empty(self.n, np.int64)
+        self.iperm[self.perm] = np.arange(self.n)
+        self.ncol, self.nrow = np.diff(sup), np.diff(pi)
+        self.snode = np.repeat(np.arange(self.ns), self.ncol)
+        parent = np.full(self.ns, -1)
+        has = self.nrow > self.ncol
+        parent[has] = self.snode[Ls[pi[:-1][has] + self.ncol[has]]]
+        fc = sup[:-1].copy()
+        sub = self.ncol.copy()  # columns in each subtree
+        for s in range(self.ns):  # children precede parents
+            if sub[s] != sup[s + 1] - fc[s]:
+                raise ValueError(f"the factor's supernodes are not postordered (supernode {s}: columns "
+                                 f"{sup[s]}:{sup[s + 1]}, its subtree from column {fc[s]} has {sub[s]} columns)")
+            if parent[s] >= 0:
+                fc[parent[s]] = min(fc[parent[s]], fc[s])
+                sub[parent[s]] += sub[s]
+        self.parent, self.fc = parent, fc
+
+    def block(self, s: int) -> np.ndarray:
+        """Supernode s's (nrow, ncol) block of L (a view; lower triangle of the top square valid)."""
+        nr, nc = self.nrow[s], self.ncol[s]
+        return self.Lx[self.px[s]:self.px[s] + nr * nc].reshape(nc, nr).T
+
+    def ranges(self, starts: np.ndarray):
+        """Columns placed at pivots ``starts`` (sorted by pivot): for every supernode the range
+        [lo, hi) of those whose start lies in its subtree, and each column's sorted position."""
+        counts = np.zeros(self.n + 1, np.int64)
+        np.add.at(counts, np.minimum(starts, self.n) + 1, 1)
+        cnt = np.cumsum(counts)  # cnt[k]: columns starting before pivot k
+        order = np.argsort(starts, kind="stable")
+        pos = np.empty(len(starts), np.int64)
+        pos[order] = np.arange(len(starts))
+        return cnt[self.fc], cnt[self.sup[1:]], pos
+
+
+def _distinct(want: np.ndarray, n: int) -> np.ndarray:
     want = np.asarray(want, np.int64)
+    if len(want) and (want.min() < 0 or want.max() >= n or len(np.unique(want)) != len(want)):
+        raise ValueError("wanted dofs must be distinct indices of the factorised matrix")
+    return want
+
+
+def _forward(tree: _Tree, W: list, cols, s: int):
+    """One supernode of the forward solve W = L⁻¹ R (W[s]: the transpose of W's rows of s, restricted
+    to the columns that reach s): W[s] ← W[s] L_ssᵀ⁻¹, then the ancestors' rows are updated.
+    ``cols``: the first column of each supernode's contiguous range (an array), or each supernode's
+    sorted column set (a list of arrays).  Returns W[s] and the flops spent."""
+    nc, nr = tree.ncol[s], tree.nrow[s] - tree.ncol[s]
+    m = W[s].shape[0]
+    block = tree.block(s)
+    X = blas.dtrsm(1.0, np.asfortranarray(block[:nc]), W[s], side=1, lower=1, trans_a=1, overwrite_b=1)
+    W[s] = X
+    flops = float(m) * nc * nc
+    if nr:
+        U = X @ block[nc:].T  # (m, nr): the update of the ancestors' rows
+        flops += 2.0 * m * nr * nc
+        rows = tree.Ls[tree.pi[s] + nc:tree.pi[s + 1]]
+        owners = tree.snode[rows]
+        for t in np.unique(owners):
+            sel = owners == t
+            if isinstance(cols, np.ndarray):  # contiguous ranges: s's columns start at cols[s] - cols[t] in t
+                W[t][cols[s] - cols[t]:cols[s] - cols[t] + m, rows[sel] - tree.sup[t]] -= U[:, sel]
+            else:  # explicit sets: s's set is a subset of its ancestors'
+                W[t][np.ix_(np.searchsorted(cols[t], cols[s]), rows[sel] - tree.sup[t])] -= U[:, sel]
+    return X, flops
+
+
+def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, dict]:
+    """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j (C order), as ``native.selected_inverse``: the
+    symmetric case, one syrk per supernode."""
+    tree = _Tree(L)
+    want = _distinct(want, tree.n)
     scale = np.asarray(scale, float)
     nw = len(want)
     if scale.shape != (nw,):
         raise ValueError(f"{len(scale)} scale factors for {nw} wanted dofs")
-    if nw and (want.min() < 0 or want.max() >= n or len(np.unique(want)) != nw):
-        raise ValueError("wanted dofs must be distinct indices of the factorised matrix")
-    iperm = np.empty(n, np.int64)
-    iperm[perm] = np.arange(n)
-    piv = iperm[want]
-    is_w = np.zeros(n, bool)
-    is_w[piv] = True
-    cnt = np.concatenate([[0], np.cumsum(is_w)])
-    sp_ = cnt[piv]  # sorted (pivot-order) position of want_i
-    ncol = np.diff(sup)
-    nrow = np.diff(pi)
-    snode = np.repeat(np.arange(ns), ncol)
-    parent = np.full(ns, -1)
-    has = nrow > ncol
-    parent[has] = snode[Ls[pi[:-1][has] + ncol[has]]]
-    fc = sup[:-1].copy()
-    sub = ncol.copy()  # columns in each subtree
-    for s in range(ns):  # children precede parents
-        if sub[s] != sup[s + 1] - fc[s]:
-            raise ValueError(f"the factor's supernodes are not postordered (supernode {s}: columns "
-                             f"{sup[s]}:{sup[s + 1]}, its subtree from column {fc[s]} has {sub[s]} columns)")
-        if parent[s] >= 0:
-            fc[parent[s]] = min(fc[parent[s]], fc[s])
-            sub[parent[s]] += sub[s]
-    lo, hi = cnt[fc], cnt[sup[1:]]
-    W = [np.zeros((hi[s] - lo[s], ncol[s]), order="F") for s in range(ns)]
-    for k in np.flatnonzero(is_w):
-        s = snode[k]
-        W[s][cnt[k] - lo[s], k - sup[s]] = 1.0
+    piv = tree.iperm[want]
+    lo, hi, sp_ = tree.ranges(piv)
+    W = [np.zeros((hi[s] - lo[s], tree.ncol[s]), order="F") for s in range(tree.ns)]
+    for i, k in enumerate(piv):
+        s = tree.snode[k]
+        W[s][sp_[i] - lo[s], k - tree.sup[s]] = 1.0
     D = np.zeros((nw, nw), order="F")
     flops = 0.0
-    for s in range(ns):
-        m, nc, nr = hi[s] - lo[s], ncol[s], nrow[s] - ncol[s]
+    for s in range(tree.ns):
+        m = hi[s] - lo[s]
         if m == 0:
             continue
-        block = Lx[px[s]:px[s] + nrow[s] * nc].reshape(nc, nrow[s]).T  # (nrow, nc) view
-        X = blas.dtrsm(1.0, np.asfortranarray(block[:nc]), W[s], side=1, lower=1, trans_a=1, overwrite_b=1)
-        W[s] = X
+        X, f = _forward(tree, W, lo, s)
+        flops += f + float(m) * m * tree.ncol[s]
         # in place when the block is all of D (the root); else on a copy of the block, put back
         C = blas.dsyrk(1.0, X, beta=1.0, c=D[lo[s]:hi[s], lo[s]:hi[s]], lower=1, overwrite_c=1)
         if not np.shares_memory(C, D):
             D[lo[s]:hi[s], lo[s]:hi[s]] = C
-        flops += float(m) * nc * nc + float(m) * m * nc
-        if nr == 0:
-            continue
-        U = X @ block[nc:].T  # (m, nr): the update of the ancestors' rows
-        flops += 2.0 * m * nr * nc
-        rows = Ls[pi[s] + nc:pi[s + 1]]
-        owners = snode[rows]
-        for t in np.unique(owners):
-            sel = owners == t
-            W[t][lo[s] - lo[t]:hi[s] - lo[t], rows[sel] - sup[t]] -= U[:, sel]
     _mirror_lower(D)
     X = D.T[np.ix_(sp_, sp_)]  # D is symmetric now; its C-ordered view gathers 4x faster, no copy
     del D
     X *= scale[None, :]
     return X, {"flops": flops}
+
+
+def column_sets(tree: _Tree, B) -> tuple[list, np.ndarray]:
+    """For every supernode, the sorted positions of the columns of W_B = L⁻¹PB that are non-zero in
+    its rows: the columns with a non-zero pivot in its subtree (a column is non-zero exactly on the
+    union of the tree paths up from its non-zeros).  Columns are numbered by their lowest pivot, so
+    that the sets are nearly contiguous.  Returns (sets, position of each column of B)."""
+    nz_piv = tree.iperm[B.indices]
+    col_of = np.repeat(np.arange(B.shape[1]), np.diff(B.indptr))
+    start = np.full(B.shape[1], tree.n, np.int64)
+    np.minimum.at(start, col_of, nz_piv)
+    order = np.argsort(start, kind="stable")
+    pos = np.empty(B.shape[1], np.int64)
+    pos[order] = np.arange(B.shape[1])
+    owner = tree.snode[nz_piv]
+    by_owner = np.argsort(owner, kind="stable")
+    split = np.searchsorted(owner[by_owner], np.arange(tree.ns + 1))
+    children = [[] for _ in range(tree.ns)]
+    for s in range(tree.ns):
+        if tree.parent[s] >= 0:
+            children[tree.parent[s]].append(s)
+    sets = []
+    for s in range(tree.ns):  # children before parents
+        own = pos[col_of[by_owner[split[s]:split[s + 1]]]]
+        sets.append(np.unique(np.concatenate([own] + [sets[c] for c in children[s]])))
+    return sets, pos
+
+
+def selected_columns(L: dict, rows: np.ndarray, B) -> tuple[np.ndarray, dict]:
+    r"""X = Eᵀ A⁻¹ B: the rows ``rows`` of A⁻¹B, (len(rows), B.shape[1]) in C order, as
+    ``native.selected_columns``.
+
+    .. math::  E^T A^{-1} B = (L^{-1} P E)^T (L^{-1} P B) = W_E^T W_B
+
+    W_E's unit columns meet each supernode in a contiguous range (as in :func:`selected_inverse`).
+    A column of W_B = L⁻¹PB is non-zero on the union of the tree paths up from its non-zeros' pivots:
+    for a consistent P2 load at vertex j those are j's neighbours, which lie on j's path or below j in
+    several branches (2-4 on the kidney), so each supernode keeps the explicit set of W_B columns that
+    reach it (:func:`column_sets`).  Then W_Eᵀ W_B is one gemm per supernode, scattered into the
+    set's columns.
+    """
+    import scipy.sparse as sp
+
+    tree = _Tree(L)
+    rows = _distinct(rows, tree.n)
+    B = sp.csc_matrix(B)
+    if B.shape[0] != tree.n:
+        raise ValueError(f"B has {B.shape[0]} rows for a factor of {tree.n} dofs")
+    B.sum_duplicates()
+    k = B.shape[1]
+    pivE = tree.iperm[rows]
+    loE, hiE, posE = tree.ranges(pivE)
+    sets, posB = column_sets(tree, B)
+    WE = [np.zeros((hiE[s] - loE[s], tree.ncol[s]), order="F") for s in range(tree.ns)]
+    WB = [np.zeros((len(sets[s]), tree.ncol[s]), order="F") for s in range(tree.ns)]
+    for i, p in enumerate(pivE):
+        s = tree.snode[p]
+        WE[s][posE[i] - loE[s], p - tree.sup[s]] = 1.0
+    nz_piv = tree.iperm[B.indices]
+    col_of = np.repeat(np.arange(k), np.diff(B.indptr))
+    for c, p, v in zip(col_of, nz_piv, B.data):
+        t = tree.snode[p]
+        WB[t][np.searchsorted(sets[t], posB[c]), p - tree.sup[t]] += v
+    D = np.zeros((len(rows), k))
+    flops = 0.0
+    for s in range(tree.ns):
+        mE, mB = hiE[s] - loE[s], len(sets[s])
+        XE = XB = None
+        if mE:
+            XE, f = _forward(tree, WE, loE, s)
+            flops += f
+        if mB:
+            XB, f = _forward(tree, WB, sets, s)
+            flops += f
+        if mE and mB:
+            D[loE[s]:hiE[s], sets[s]] += XE @ XB.T
+            flops += 2.0 * mE * mB * tree.ncol[s]
+    return np.ascontiguousarray(D[np.ix_(posE, posB)]), {"flops": flops}
 
 
 def _mirror_lower(G: np.ndarray, block: int = 512) -> None:

@@ -28,7 +28,7 @@ def kidney_small(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def halfspace_small(tmp_path_factory) -> Path:
     """A coarse half-space with a contact region (Ξ over a subset of the free surface)."""
-    return build(tmp_path_factory, "halfspace_small", Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}))
+    return build(tmp_path_factory, "halfspace_small", Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, reactions=True))
 
 
 def full_solve(points, tets, E, nu, fixed_vertices, loads):
@@ -92,3 +92,34 @@ def dense_factor(L: dict) -> np.ndarray:
         block = L["x"][L["px"][s]:L["px"][s] + len(rows) * (k2 - k1)].reshape(k2 - k1, len(rows)).T
         out[np.ix_(rows, np.arange(k1, k2))] = block
     return np.tril(out)
+
+
+def element_spd(n: int, n_elements: int, rng, size: int = 4):
+    """SPD like an assembled finite-element matrix: random cliques of ``size`` nodes ("elements"),
+    each adding a random SPD block, plus a positive diagonal (CSC).  Returns (A, elements)."""
+    import scipy.sparse as sp
+
+    elements = np.array([rng.choice(n, size, replace=False) for _ in range(n_elements)]).reshape(-1, size)
+    rows, cols, vals = [], [], []
+    for e in elements:
+        X = rng.standard_normal((size, size))
+        blk = X @ X.T
+        rows.append(np.repeat(e, size))
+        cols.append(np.tile(e, size))
+        vals.append(blk.ravel())
+    A = sp.csc_matrix((np.concatenate(vals) if vals else [], (np.concatenate(rows) if rows else [],
+                       np.concatenate(cols) if cols else [])), shape=(n, n))
+    return (A + sp.diags(rng.uniform(0.5, 1.5, n))).tocsc(), elements
+
+
+def patch_loads(elements, n: int, k: int, rng):
+    """k load columns, each spread over some nodes of one random element (a consistent load on an
+    element patch), as a sparse (n, k) matrix."""
+    import scipy.sparse as sp
+
+    B = sp.lil_matrix((n, k))
+    for c in range(k):
+        e = elements[rng.integers(len(elements))]
+        for node in e[:rng.integers(1, len(e) + 1)]:
+            B[node, c] = rng.uniform(-1.0, 1.0)
+    return B.tocsc()

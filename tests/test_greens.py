@@ -133,7 +133,7 @@ def test_cholmod_backends_agree(kidney_small):
     CHOLMOD with AMD, the inverse in numpy) factorise in different orders: they give the same Ξ and
     reactions to rounding, and so do the two inverses on the same factor."""
     from pmask.precompute import native
-    from pmask.precompute.condense import greens_functions, surface_factor
+    from pmask.precompute.greens import factorise, greens_functions
 
     if not native.available():
         pytest.skip("native CHOLMOD library not built (needs libsuitesparse-dev)")
@@ -141,18 +141,17 @@ def test_cholmod_backends_agree(kidney_small):
     d = read_artifact(kidney_small)
     P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
     K = stiffness_matrix(P, T, d["attrs"]["material"]["E"], d["attrs"]["material"]["nu"])
-    free, fixed = vi[d["surface/contact"]], vi[d["surface/fixed"]]
-    interior = np.setdiff1d(np.arange(len(P)), np.concatenate([free, fixed]))
-    a = surface_factor(K, T, interior, free, fixed, backend="native")
-    b = surface_factor(K, T, interior, free, fixed, backend="cvxopt")
+    contact, fixed = vi[d["surface/contact"]], vi[d["surface/fixed"]]
+    scale = np.repeat(d["surface/vertex_areas"][d["surface/contact"]], 3)
+    a = factorise(K, dofs(fixed), dofs(contact), scale=scale, graph_elements=T, backend="native")
+    b = factorise(K, dofs(fixed), dofs(contact), scale=scale, graph_elements=T, backend="cvxopt")
     assert (a.stats["backend"], a.stats["order"]) == ("native", "METIS")
-    assert (b.stats["backend"], b.stats["order"]) == ("cvxopt", "AMD (vertex graph)")
-    areas = d["surface/vertex_areas"][d["surface/contact"]]
-    Xa, Ra = greens_functions(a, areas, backend="native")
-    Xb, Rb = greens_functions(b, areas, backend="cvxopt")
+    assert (b.stats["backend"], b.stats["order"]) == ("cvxopt", "AMD (node graph)")
+    Xa, Ra = greens_functions(a, backend="native")
+    Xb, Rb = greens_functions(b, backend="cvxopt")
     assert relerr(Xa, Xb) < 1e-12 and relerr(Ra, Rb) < 1e-12
     assert relerr(Xa, d["greens/Xi"]) < 1e-12
-    Xc, Rc = greens_functions(b, areas, backend="native")
+    Xc, Rc = greens_functions(b, backend="native")
     assert relerr(Xc, Xb) < 1e-13 and relerr(Rc, Rb) < 1e-13
 
 
@@ -161,7 +160,7 @@ def halfspace_p2(tmp_path_factory):
     from pmask.pipeline.stages import Spec, run
 
     out = tmp_path_factory.mktemp("p2") / "hs_p2.h5"
-    run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, element="P2"), out)
+    run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, element="P2", reactions=True), out)
     return out
 
 
@@ -171,7 +170,7 @@ def test_p2_load_matrix_against_scikit_fem_facet_assembly(halfspace_p2):
     quadrature of order 4, exact for these quadratic-times-linear products)."""
     from skfem import BilinearForm, ElementTetP1, ElementTetP2, FacetBasis, MeshTet, asm
 
-    from pmask.precompute.p2 import surface_load_matrix
+    from pmask.precompute.elements import surface_load_matrix
     from pmask.precompute.surface import boundary_surface
 
     d = read_artifact(halfspace_p2)
@@ -193,8 +192,9 @@ def test_p2_load_matrix_against_scikit_fem_facet_assembly(halfspace_p2):
 @pytest.mark.slow
 def test_p2_columns_and_equilibrium_against_full_solve(halfspace_p2):
     """P2 Ξ columns equal a SuperLU solve of the whole free P2 system, with stiffness and load both
-    assembled by scikit-fem here (vector P2 elasticity; the P1-traction-to-P2 load as a mixed facet
-    mass matrix); reactions balance the load."""
+    assembled by scikit-fem here: 2μ ε:ε with the order-2 rule plus λ div u div v with the centroid rule
+    (the P2-P0 element), and the P1-traction-to-P2 load as a mixed facet mass matrix; reactions balance
+    the load."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
     from skfem import (Basis, BilinearForm, ElementTetP1, ElementTetP2, ElementVector, FacetBasis, MeshTet,
@@ -205,13 +205,20 @@ def test_p2_columns_and_equilibrium_against_full_solve(halfspace_p2):
     P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
     mat = d["attrs"]["material"]
     mesh = MeshTet(P.T, T.T)
-    K = asm(linear_elasticity(*lame_parameters(mat["E"], mat["nu"])),
-            Basis(mesh, ElementVector(ElementTetP2()), intorder=2)).tocsr()
-    edges = np.sort(mesh.edges.T, axis=1)
+    lam, mu = lame_parameters(mat["E"], mat["nu"])
 
     @BilinearForm
     def mass(u, v, w):
         return u * v
+
+    @BilinearForm
+    def volumetric(u, v, w):
+        return lam * (u.grad[0][0] + u.grad[1][1] + u.grad[2][2]) * (v.grad[0][0] + v.grad[1][1] + v.grad[2][2])
+
+    vector = ElementVector(ElementTetP2())
+    K = (asm(linear_elasticity(0.0, mu), Basis(mesh, vector, intorder=2))
+         + asm(volumetric, Basis(mesh, vector, intorder=1))).tocsr()
+    edges = np.sort(mesh.edges.T, axis=1)
 
     B = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4), FacetBasis(mesh, ElementTetP2(), intorder=4)).tocsr()
     fixed = vi[d["surface/fixed"]]
@@ -241,7 +248,7 @@ def test_pip_only_route_gives_the_same_artifact(halfspace_small, tmp_path, monke
 
     monkeypatch.setenv("PMASK_CHOLMOD", "cvxopt")
     out = tmp_path / "hs_cvxopt.h5"
-    run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}), out)
+    run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, reactions=True), out)
     a, b = read_artifact(halfspace_small), read_artifact(out)
     assert b["attrs"]["provenance"]["factor"]["backend"] == "cvxopt"
     assert relerr(b["greens/Xi"], a["greens/Xi"]) < 1e-12

@@ -100,10 +100,37 @@ def test_volume_with_inverted_tetrahedra(tmp_path, capsys, kidney_small):
     (["--nu", "0.5"], "Poisson"),
     (["--nu", "-1.2"], "Poisson"),
     (["--units", "furlong"], "unknown length unit"),
+    (["--size", "0.01"], "model loop1 has no parameter size"),
+    (["--param", "foo=1"], "model loop1 has no parameter foo"),
+    (["--r-max", "-1"], "--r-max must be a finite length > 0"),
+    (["--element", "P2", "--nu", "nan"], "Poisson"),
 ])
 def test_bad_parameters(tmp_path, capsys, argv, message):
     err = cli_error(capsys, ["precompute", "loop1", *argv, "-o", str(tmp_path / "x.h5")])
     assert message in err
+
+
+def test_output_that_is_a_folder(tmp_path, capsys):
+    err = cli_error(capsys, ["precompute", "loop1", "-o", str(tmp_path)])
+    assert "is a folder" in err and ".tmp" not in err
+
+
+def test_a_parameter_of_the_wrong_type(tmp_path, capsys):
+    err = cli_error(capsys, ["precompute", "kidney", "--param", "size=big", "-o", str(tmp_path / "x.h5")])
+    assert "parameter size must be a number" in err
+
+
+def test_an_internal_error_shows_its_traceback_and_asks_for_a_report(tmp_path, capsys, monkeypatch):
+    """Our own bug (here: a KeyError deep in the run) is not dressed up as the user's mistake."""
+    import pmask.pipeline.stages as stages
+
+    def broken(*args, **kwargs):
+        raise KeyError("internal")
+
+    monkeypatch.setattr(stages, "surface_stage", broken)
+    assert main(["precompute", "loop1", "-o", str(tmp_path / "x.h5")]) == 3
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "KeyError" in err and "bug in pmask" in err and "pmask 0." in err
 
 
 def test_unwritable_output_folder(tmp_path, capsys):
@@ -116,14 +143,14 @@ def test_unwritable_output_folder(tmp_path, capsys):
 def test_a_contact_region_too_large_for_memory_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
     """The dense Ξ of loop1's 73 free vertices is 384 kB; with 100 kB available the run stops after
     meshing, says how much it needs and what to change, and writes nothing."""
-    import pmask.precompute.condense as condense
+    import pmask.precompute.greens as greens
 
-    monkeypatch.setattr(condense, "available_memory", lambda: 100_000)
+    monkeypatch.setattr(greens, "available_memory", lambda: 100_000)
     out = tmp_path / "x.h5"
     err = cli_error(capsys, ["precompute", "loop1", "-o", str(out)])
     assert "dense 219 x 219" in err and "MiB" in err and "--contact" in err and "--size" in err
     assert not out.exists()
-    monkeypatch.setattr(condense, "available_memory", lambda: None)  # unknown: no refusal
+    monkeypatch.setattr(greens, "available_memory", lambda: None)  # unknown: no refusal
     assert main(["-q", "precompute", "loop1", "-o", str(out)]) == 0 and out.exists()
 
 
@@ -140,7 +167,7 @@ def test_killed_precompute_resumes_and_matches_an_uninterrupted_run(tmp_path):
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 120
-        while not list(tmp_path.glob(".work/*/factor.npz")):
+        while not list(tmp_path.glob(".work/*/factor-*.npz")):
             assert proc.poll() is None and time.time() < deadline, "the run ended before its factor checkpoint"
             time.sleep(0.05)
         time.sleep(0.2)

@@ -4,9 +4,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import dense_factor, laplacian_3d, lower, random_spd
+from conftest import dense_factor, element_spd, laplacian_3d, lower, patch_loads, random_spd
 from pmask.precompute import native, selinv
-from pmask.precompute.condense import sparse_cholesky
+from pmask.precompute.greens import sparse_cholesky
 
 
 def cvxopt_factor(A, rng=None):
@@ -100,3 +100,31 @@ def test_a_factor_that_is_not_postordered_is_refused():
     if native.available():
         with pytest.raises(ValueError, match="not postordered"):
             native.selected_inverse(L, np.array([0, 2]), np.ones(2))
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(4, 80), per_node=st.floats(0.0, 1.5), frac=st.floats(0.0, 1.0), k=st.integers(0, 30),
+       seed=st.integers(0, 2**32 - 1))
+def test_selected_columns_match_the_dense_inverse(n, per_node, frac, k, seed):
+    """Eᵀ A⁻¹ B (rows of A⁻¹ times loads on element patches: the P2 Green's functions' shape) from both
+    twins, against the dense inverse, for FE-like matrices of any connectivity (a forest when few
+    elements), any wanted rows and any number of load columns."""
+    rng = np.random.default_rng(seed)
+    A, elements = element_spd(n, int(per_node * n), rng)
+    if len(elements) == 0:
+        elements = np.arange(n)[:, None]
+    rows = rng.permutation(n)[:int(frac * n)]
+    B = patch_loads(elements, n, k, rng)
+    G = np.linalg.inv(A.toarray())
+    expect = G[rows] @ B.toarray()
+    scale = max(np.abs(G).max() * max(np.abs(B.toarray()).sum(axis=0).max(initial=0.0), 1.0), 1e-300)
+    L = cvxopt_factor(A, rng)
+    X, _ = selinv.selected_columns(L, rows, B)
+    assert X.shape == (len(rows), k) and X.flags.c_contiguous
+    assert np.abs(X - expect).max(initial=0.0) <= 2e-12 * scale
+    if native.available():
+        Ln, _ = native.factor(lower(A))  # CHOLMOD's METIS order, and its supernodes
+        Xn, _ = native.selected_columns(Ln, rows, B)
+        assert np.abs(Xn - expect).max(initial=0.0) <= 2e-12 * scale
+        Xc, _ = native.selected_columns(L, rows, B)  # the C twin on the numpy twin's factor
+        assert np.abs(Xc - X).max(initial=0.0) <= 1e-13 * scale
