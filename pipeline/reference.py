@@ -113,7 +113,8 @@ def kidney_tables(mesh_dir: Path, work: Path):
         forces, status = strokes.run_stroke(stiff, strokes.stroke_path())
         smooth[name] = strokes.smoothness(forces, status)
     rows = [{"stiffness": name, "rank_correlation_with_area": f6[name]["rank_correlation_with_area"],
-             "vertex_roughness": f6[name]["roughness"], "median_norm_N_per_m": f6[name]["median_norm"],
+             "vertex_roughness": f6[name]["roughness"], "normal_stiffness_roughness": f6[name]["normal_roughness"],
+             "median_norm_N_per_m": f6[name]["median_norm"],
              "stroke_roughness": smooth[name]["roughness"], "stroke_rms_step_N": smooth[name]["rms_step"],
              "stroke_mean_force_N": smooth[name]["mean_force"]} for name in ("single", "masked")]
     meta6 = {"table": "paper Figure 6: what the stiffness maps show", "model": "kidney (default resolution)",

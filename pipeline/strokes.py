@@ -64,3 +64,222 @@ def smoothness(forces: np.ndarray, status: np.ndarray, start: int = 200) -> dict
     return {"contact_fraction": float(ok.mean()), "mean_force": float(mag.mean()),
             "rms_step": float(np.sqrt(np.mean(step ** 2))),
             "roughness": float(np.sqrt(np.mean((mag - smooth)[inner] ** 2)) / mag.mean())}
+
+
+# ------------------------------------------------------------------------------------------ the tour
+def kidney_sdf(p: np.ndarray) -> np.ndarray:
+    """Approximate signed distance to the kidney's analytic surface (negative inside): the ellipsoid's
+    first-order distance (F − 1)/|∇F| intersected with the outside of the hilum ball."""
+    from pmask.meshes.kidney import HILUM_CENTRE, HILUM_RADIUS
+
+    p = np.atleast_2d(p)
+    a = np.asarray(SEMI_AXES)
+    F = np.sum((p / a) ** 2, axis=1)
+    g = np.linalg.norm(2 * p / a ** 2, axis=1)
+    d_ell = (F - 1.0) / np.maximum(g, 1e-12)
+    d_ball = HILUM_RADIUS - np.linalg.norm(p - np.asarray(HILUM_CENTRE), axis=1)
+    return np.maximum(d_ell, d_ball)
+
+
+def level_curve(centre, e1, e2, angles, depth: float) -> np.ndarray:
+    """Points at signed distance −depth below the kidney's surface on rays from ``centre`` in the plane
+    spanned by e1, e2 (the body is star-shaped about a central point), by bisection on each ray."""
+    centre, e1, e2 = (np.asarray(v, float) for v in (centre, e1, e2))
+    dirs = np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2
+    lo = np.zeros(len(angles))
+    hi = np.full(len(angles), 0.2)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        inside = kidney_sdf(centre + mid[:, None] * dirs) < -depth
+        lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+    return centre + (0.5 * (lo + hi))[:, None] * dirs
+
+
+def resample(curve: np.ndarray, spacing: float) -> np.ndarray:
+    """The polyline ``curve`` at constant arc-length spacing (the probe at constant speed)."""
+    seg = np.linalg.norm(np.diff(curve, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.arange(0.0, s[-1], spacing)
+    return np.column_stack([np.interp(t, s, curve[:, k]) for k in range(3)])
+
+
+def _line(a, b, spacing):
+    n = max(2, int(np.ceil(np.linalg.norm(np.asarray(b) - a) / spacing)) + 1)
+    return np.linspace(a, b, n)
+
+
+def _surface_frame(point):
+    """Outward unit normal of the analytic surface at (near) ``point`` and two tangents."""
+    h = 1e-6
+    g = np.array([(kidney_sdf(point + h * e) - kidney_sdf(point - h * e))[0] / (2 * h) for e in np.eye(3)])
+    n = g / np.linalg.norm(g)
+    t1 = np.cross(n, [0.0, 1.0, 0.0] if abs(n[1]) < 0.9 else [1.0, 0.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    return n, t1, np.cross(n, t1)
+
+
+def circle(centre_on_surface, depth: float, radius: float = 2.5e-3, tilt_deg: float = 0.0, turns: int = 3,
+           speed: float = 0.02, rate: float = RATE) -> np.ndarray:
+    """``turns`` closed circles of ``radius`` at ``depth`` below a surface point, in the tangent plane
+    tilted by ``tilt_deg`` about its first tangent (tilted: the depth varies by ±radius·sin(tilt))."""
+    n, t1, t2 = _surface_frame(np.asarray(centre_on_surface, float))
+    a = np.deg2rad(tilt_deg)
+    u, v = t1, np.cos(a) * t2 + np.sin(a) * n
+    c = np.asarray(centre_on_surface) - depth * n
+    steps = int(round(2 * np.pi * radius / speed * rate))
+    phi = np.linspace(0.0, 2 * np.pi * turns, steps * turns + 1)
+    return c + radius * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v)
+
+
+def tour(speed: float = 0.02, rate: float = RATE) -> tuple[np.ndarray, list[dict]]:
+    """The haptics issue's tour of the default kidney as probe samples at ``rate`` (m, model frame).
+
+    Returns (probes (n, 3), segments): each segment a dict with ``name``, ``start``, ``stop`` (sample
+    indices) and ``loop`` (True when the probe returns to where the segment began, so that the energy
+    the body gives the hand over it must not be positive).  Segments: approach and press to 2 mm on the
+    top face; slide over the top face and round the +x pole (2 mm); slide from the top face down the
+    medial side onto the hilum (the fixed support) and across it (5 mm deep); lift off; re-enter;
+    circles and circles tilted by 30 degrees at 1, 2, 3 and 4 mm, three turns each; lift off.
+    """
+    sp = speed / rate
+    pieces, segments = [], []
+
+    def add(name, pts, loop=False):
+        pts = np.asarray(pts)
+        if pieces and np.linalg.norm(pts[0] - pieces[-1][-1]) > 2 * sp:  # transit through the air, over the top
+            a, b = pieces[-1][-1], pts[0]
+            safe = SEMI_AXES[2] + 0.012
+            hop = np.vstack([_line(a, [a[0], a[1], safe], sp), _line([a[0], a[1], safe], [b[0], b[1], safe], sp),
+                             _line([b[0], b[1], safe], b, sp)])
+            pieces.append(hop)
+        start = sum(len(p) for p in pieces)
+        pieces.append(pts)
+        segments.append({"name": name, "start": start, "stop": start + len(pts), "loop": loop})
+
+    top_centre = np.array([0.0, 0.004, 0.0])
+    # press on the top face at x = -20 mm, y = 4 mm
+    s0 = level_curve(top_centre, [1.0, 0, 0], [0, 0, 1.0], np.array([np.pi - 0.42]), 0.0)[0]
+    n0, _, _ = _surface_frame(s0)
+    add("approach", _line(s0 + 0.005 * n0, s0 + 0.0005 * n0, sp))
+    add("press", _line(s0 + 0.0005 * n0, s0 - 0.002 * n0, 0.5 * sp))
+    # over the top face and round the +x pole, 2 mm deep (plane y = 4 mm)
+    ang = np.linspace(np.pi - 0.42, -0.6, 4000)
+    curve = level_curve(top_centre, [1.0, 0, 0], [0, 0, 1.0], ang, 0.002)
+    add("top face and pole", resample(np.vstack([s0 - 0.002 * n0, curve]), sp))
+    # back over the pole to the top (so the slide is a closed loop in depth) and lift off
+    add("back over the pole", resample(curve[::-1], sp))
+    n1, _, _ = _surface_frame(level_curve(top_centre, [1.0, 0, 0], [0, 0, 1.0], np.array([np.pi - 0.42]), 0.0)[0])
+    last = pieces[-1][-1]
+    add("lift off", _line(last, last + 0.006 * n1, sp))
+    # onto the hilum and across it, 5 mm deep: the plane x = 0, from the top face over the medial side
+    centre_x0 = np.array([0.0, 0.004, 0.0])
+    ang = np.linspace(np.pi / 2, -np.pi / 2, 5000)  # from the top (+z) over the hilum (-y) to the bottom
+    curve = level_curve(centre_x0, [0, -1.0, 0], [0, 0, 1.0], ang, 0.005)  # angle 0: the hilum (-y)
+    start = level_curve(centre_x0, [0, -1.0, 0], [0, 0, 1.0], np.array([np.pi / 2]), 0.0)[0]
+    add("re-enter", _line(start + 0.004 * np.array([0, 0, 1.0]), curve[0], sp))
+    add("onto and across the hilum", resample(curve, sp))
+    add("back across the hilum", resample(curve[::-1], sp))
+    last = pieces[-1][-1]
+    add("lift off the top", _line(last, last + 0.006 * np.array([0, 0, 1.0]), sp))
+    # circles on the top face (x = 10 mm, y = 0), in and out between them
+    c_top = level_curve(np.array([0.01, 0.0, 0.0]), [0, 0, 1.0], [1.0, 0, 0], np.array([0.0]), 0.0)[0]
+    nt, _, _ = _surface_frame(c_top)
+    above = c_top + 0.004 * nt
+    for tilt in (0.0, 30.0):
+        for depth in (0.001, 0.002, 0.003, 0.004):
+            ring = circle(c_top, depth, tilt_deg=tilt, speed=speed, rate=rate)
+            add(f"in to {depth * 1e3:g} mm", _line(above, ring[0], sp))
+            turn = (len(ring) - 1) // 3
+            for k in range(3):  # each turn is a closed loop of its own
+                add(f"circle {depth * 1e3:g} mm" + (f", tilted {tilt:g} deg" if tilt else "") + f", turn {k + 1}",
+                    ring[k * turn:(k + 1) * turn + 1], loop=True)
+            add("out", _line(ring[-1], above, sp))
+    # deep at the +x pole (radius of curvature 7.3 mm in the x-z plane): press 12 mm, rock ±4 mm, come out
+    tip = np.array([SEMI_AXES[0], 0.0, 0.0])
+    down = _line(tip + [0.004, 0, 0], tip - [0.012, 0, 0], sp)
+    rock = np.vstack([_line(down[-1], down[-1] + [0, 0, 0.004], sp), _line(down[-1] + [0, 0, 0.004],
+                      down[-1] - [0, 0, 0.004], sp), _line(down[-1] - [0, 0, 0.004], down[-1], sp)])
+    add("12 mm deep at the pole", np.vstack([down, rock, down[::-1]]), loop=True)
+    # the references of continuity: the same motions at the same speed on smooth free surface, away from the
+    # support and from creases: slides over the top face, and presses to 6 mm and back on the top face, the
+    # lateral face, the +x pole and the free tissue next to the hilum (the stiffest free tissue)
+    for depth in (0.002, 0.004, 0.006):
+        ang = np.linspace(np.pi - 0.5, np.pi - 1.3, 1500)
+        add(f"reference slide {depth * 1e3:g} mm", resample(level_curve(top_centre, [1.0, 0, 0], [0, 0, 1.0], ang,
+                                                                       depth), sp))
+    for name, centre, e1, e2, angle in (("top face", top_centre, [1.0, 0, 0], [0, 0, 1.0], np.pi - 0.42),
+                                        ("lateral face", np.zeros(3), [0, 1.0, 0], [0, 0, 1.0], 0.0),
+                                        ("pole", np.zeros(3), [1.0, 0, 0], [0, 1.0, 0], 0.0),
+                                        ("next to the hilum", np.array([0.0, 0.004, 0.0]), [0, -1.0, 0], [0, 0, 1.0],
+                                         0.75)):
+        s0 = level_curve(centre, e1, e2, np.array([angle]), 0.0)[0]
+        n0, _, _ = _surface_frame(s0)
+        down = _line(s0 + 0.003 * n0, s0 - 0.006 * n0, sp)
+        add(f"reference press, {name}", np.vstack([down, down[::-1]]))
+    return np.vstack(pieces), segments
+
+
+def run_contact(contact, probes: np.ndarray) -> dict:
+    """Step a contact (:class:`pmask.runtime.HapticContact`) along ``probes``: the forces on the user,
+    statuses, proxy points, penetrations and stored energies ½ f·ū' per tick."""
+    n = len(probes)
+    out = {"force": np.zeros((n, 3)), "status": np.zeros(n, int), "proxy": np.full((n, 3), np.nan),
+           "depth": np.zeros(n), "stored": np.zeros(n)}
+    P = contact.surface.P
+    T = contact.surface.T
+    for k, p in enumerate(probes):
+        f, s = contact.step(p)
+        out["force"][k], out["status"][k] = f, s
+        if contact.triangle >= 0:
+            out["proxy"][k] = np.asarray(contact.bary) @ P[T[contact.triangle]]
+        out["depth"][k] = contact.depth
+        if s in (1, 6):
+            out["stored"][k] = 0.5 * float(np.dot(-np.asarray(f), contact.u_bar))
+    return out
+
+
+def tour_metrics(run: dict, probes: np.ndarray, segments: list[dict]) -> dict:
+    """The haptics issue's three bounds on a tour, per segment.
+
+    ``given``: the energy the body gives the hand over a closed loop, Σ f_user,k · (p_k+1 − p_k) (the
+    force the device holds during each tick), over the loop's peak stored energy; ``given_trapezoid`` the
+    same with the mean force of each tick.  ``max_step``: the largest |f_k+1 − f_k|; ``ratio`` that over the
+    reference, the largest on smooth free surface at the same speed (the ``reference`` segments).
+    ``proxy``: the largest proxy motion per tick over the probe's, while in contact.
+    """
+    F, S, X = run["force"], run["status"], run["proxy"]
+    dP = np.diff(probes, axis=0)
+    zoh = np.einsum("ij,ij->i", F[:-1], dP)
+    trap = np.einsum("ij,ij->i", 0.5 * (F[:-1] + F[1:]), dP)
+    dF = np.linalg.norm(np.diff(F, axis=0), axis=1)
+    dX = np.linalg.norm(np.diff(X, axis=0), axis=1)
+    dp = np.linalg.norm(dP, axis=1)
+    contact = (S == 1) | (S == 6)
+    both = contact[1:] & contact[:-1]
+    ref = max(dF[s["start"]:s["stop"] - 1].max() for s in segments if s["name"].startswith("reference"))
+    out = {"reference": float(ref), "segments": []}
+    for s in segments:
+        i, j = s["start"], s["stop"]
+        peak = float(run["stored"][i:j].max())
+        prox = (np.maximum(dX[i:j - 1] - 1e-12, 0.0) / np.maximum(dp[i:j - 1], 1e-12))[both[i:j - 1]]
+        out["segments"].append({
+            "name": s["name"], "loop": s["loop"], "peak_stored": peak,
+            "given": float(zoh[i:j - 1].sum()) / peak if peak > 0 else 0.0,
+            "given_trapezoid": float(trap[i:j - 1].sum()) / peak if peak > 0 else 0.0,
+            "max_step": float(dF[i:j - 1].max()), "ratio": float(dF[i:j - 1].max() / ref),
+            "proxy": float(prox.max()) if len(prox) else 0.0})
+    return out
+
+
+def region_edge_slide(region_z: float = 0.0, depth: float = 0.002, speed: float = 0.02, rate: float = RATE):
+    """For an artifact precomputed with ``--contact "z>REGION_Z"`` (metres): press on the top face, slide
+    down the lateral (+y) side across the region's edge at z = region_z and 10 mm beyond it, slide back and
+    lift off: a closed loop that crosses the edge twice."""
+    sp = speed / rate
+    centre = np.array([0.0, 0.0, 0.0])
+    ang = np.linspace(np.pi / 2 - 0.3, np.arcsin(np.clip((region_z - 0.01) / SEMI_AXES[2], -1, 1)), 3000)
+    curve = resample(level_curve(centre, [0, 1.0, 0], [0, 0, 1.0], ang, depth), sp)
+    start = level_curve(centre, [0, 1.0, 0], [0, 0, 1.0], np.array([ang[0]]), 0.0)[0]
+    n0, _, _ = _surface_frame(start)
+    press = _line(start + 0.003 * n0, curve[0], sp)
+    return np.vstack([press, curve, curve[::-1], press[::-1]])

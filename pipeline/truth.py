@@ -65,16 +65,30 @@ def roughness(values: np.ndarray, vertices: np.ndarray, n_surface: int, triangle
     return float(np.mean(out))
 
 
+def normal_stiffness(stiffness, normals) -> np.ndarray:
+    """k_n = 1 / (nᵀ K_i⁻¹ n) of every touchable contact vertex: the stiffness a frictionless contact renders."""
+    verts = stiffness.model.contact[stiffness.masks.centres]
+    K = stiffness.K_vertex[verts]
+    n = normals[verts]
+    return 1.0 / np.einsum("vi,vij,vj->v", n, np.linalg.inv(K), n)
+
+
 def figure6_numbers(model, radius_factor: float = 2.0) -> dict:
-    """What the Figure 6 pictures show, in two numbers per stiffness: correlation with a, roughness."""
+    """What the Figure 6 pictures show, per stiffness: correlation of ‖K_i‖₂ with a, roughness of ‖K_i‖₂,
+    and the roughness of the normal stiffness k_n that the frictionless contact renders."""
+    from pmask.runtime.geometry import vertex_normals
+
     verts = model.contact[model.core]
     a = model.vertex_areas[verts]
+    normals = vertex_normals(model.points, model.triangles)
     out = {"radius": radius_factor * model.mean_edge_length}
     for name, stiff in (("single", model.stiffness("single")),
                         ("masked", model.stiffness("linear", radius_factor * model.mean_edge_length))):
         k = vertex_norms(stiff)
         out[name] = {"rank_correlation_with_area": rank_correlation(k, a),
                      "roughness": roughness(k, verts, len(model.points), model.triangles),
+                     "normal_roughness": roughness(normal_stiffness(stiff, normals), verts, len(model.points),
+                                                   model.triangles),
                      "median_norm": float(np.median(k))}
     return out
 

@@ -10,10 +10,11 @@ Imports numpy and h5py only, so it can live inside a haptic application::
     v = stiff.deformation(triangle, barycentric, f)   # surface displacement, eq. 16
 """
 from pmask.runtime.artifact import ArtifactError, read_artifact
-from pmask.runtime.haptics import HapticContact, Status
+from pmask.runtime.device import Device, stable_stiffness
+from pmask.runtime.haptics import Contacts, HapticContact, Status
 from pmask.runtime.masks import MASK_KINDS, Masks, pressure_masks
 from pmask.runtime.model import Model
 from pmask.runtime.stiffness import Stiffness, SurfaceStiffness, vertex_stiffness
 
-__all__ = ["ArtifactError", "HapticContact", "MASK_KINDS", "Masks", "Model", "Status", "Stiffness",
+__all__ = ["ArtifactError", "Contacts", "Device", "HapticContact", "stable_stiffness", "MASK_KINDS", "Masks", "Model", "Status", "Stiffness",
            "SurfaceStiffness", "pressure_masks", "read_artifact", "vertex_stiffness"]

@@ -83,3 +83,87 @@ def one_rings(n_vertices: int, triangles: np.ndarray) -> list[np.ndarray]:
     both = both[np.argsort(both[:, 0], kind="stable")]
     split = np.searchsorted(both[:, 0], np.arange(n_vertices + 1))
     return [both[split[i]:split[i + 1], 1] for i in range(n_vertices)]
+
+
+def pairs_within(points: np.ndarray, radius: float):
+    """All pairs (i, j) of points closer than ``radius`` (both orders, and i == j), by binning the points
+    into cells of the radius and comparing neighbouring cells: O(n) for a surface mesh."""
+    P = np.asarray(points, float)
+    if len(P) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    cell = np.floor((P - P.min(axis=0)) / radius).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    key = (cell[:, 2] * dims[1] + cell[:, 1]) * dims[0] + cell[:, 0]
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    rows, cols = [], []
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                nb = cell + (dx, dy, dz)
+                ok = np.all((nb >= 0) & (nb < dims), axis=1)
+                nkey = (nb[:, 2] * dims[1] + nb[:, 1]) * dims[0] + nb[:, 0]
+                lo = np.searchsorted(skey, nkey, side="left")
+                hi = np.searchsorted(skey, nkey, side="right")
+                cnt = np.where(ok, hi - lo, 0)
+                i = np.repeat(np.arange(len(P)), cnt)
+                j = order[np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
+                close = np.sum((P[i] - P[j]) ** 2, axis=1) < radius * radius
+                rows.append(i[close])
+                cols.append(j[close])
+    return np.concatenate(rows), np.concatenate(cols)
+
+
+def smoothed_normals(points: np.ndarray, triangles: np.ndarray, radius: float) -> np.ndarray:
+    """Unit vertex normals averaged over a ball: Σ_j w(|x_i − x_j| / radius) n_j, with n_j the
+    area-weighted vertex normal times its vertex area and w the Wendland C2 profile.  The contact normal
+    at the scale of the probe: a tip of size r does not feel a crease sharper than r."""
+    n = vertex_normals(points, triangles) * vertex_areas(points, triangles)[:, None]
+    if not radius > 0:
+        return vertex_normals(points, triangles)
+    i, j = pairs_within(points, radius)
+    s = np.sqrt(np.sum((points[i] - points[j]) ** 2, axis=1)) / radius
+    w = (1.0 - s) ** 4 * (4.0 * s + 1.0)
+    out = np.zeros_like(n)
+    for c in range(3):
+        out[:, c] = np.bincount(i, weights=w * n[j, c], minlength=len(points))
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    return out / np.where(norm > 0, norm, 1.0)
+
+
+def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, crease_deg: float = 30.0):
+    """Vertex normals for haptic contact: the area-weighted normals, except within ``radius`` of a crease
+    (an edge whose faces meet at more than ``crease_deg``), where they blend into the normals averaged
+    over a ball of ``radius`` (:func:`smoothed_normals`), fully at the crease.
+
+    On smooth parts a triangle's interpolated normal averages to its face normal, which keeps the shaded
+    force close to the gradient of a potential; averaging over a ball everywhere broke that (loops gave
+    back +1.7 % instead of +0.4 %, measured on the kidney).  At a sharp crease (the kidney's hilum lip)
+    the interpolated normal turns by the crease's angle within one ring of triangles, so a probe sliding
+    over it deep turns the force by ~90° in ~3 mm; blended over ``radius`` it turns over ~2 x radius."""
+    n = vertex_normals(points, triangles)
+    if not radius > 0 or len(triangles) == 0:
+        return n
+    fn = triangle_normals(points, triangles)
+    nb = triangle_neighbours(triangles)
+    t = np.repeat(np.arange(len(triangles)), 3)
+    k = np.tile(np.arange(3), len(triangles))
+    other = nb.ravel()
+    ok = other >= 0
+    cosang = np.einsum("ij,ij->i", fn[t[ok]], fn[other[ok]])
+    sharp = cosang < np.cos(np.deg2rad(crease_deg))
+    # the two vertices of each sharp edge (edge k joins vertices (k+1)%3 and (k+2)%3)
+    tt, kk = t[ok][sharp], k[ok][sharp]
+    crease = np.zeros(len(points), bool)
+    crease[triangles[tt, (kk + 1) % 3]] = True
+    crease[triangles[tt, (kk + 2) % 3]] = True
+    if not crease.any():
+        return n
+    i, j = pairs_within(points, radius)
+    near = crease[j]
+    d = np.full(len(points), np.inf)
+    np.minimum.at(d, i[near], np.sqrt(np.sum((points[i[near]] - points[j[near]]) ** 2, axis=1)))
+    x = np.clip(1.0 - d / radius, 0.0, 1.0)
+    beta = (x * x * (3.0 - 2.0 * x))[:, None]
+    out = (1.0 - beta) * n + beta * smoothed_normals(points, triangles, radius)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
-
 from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact
+from pmask.runtime.device import Device
 from pmask.runtime.geometry import mean_edge_length
 from pmask.runtime.masks import check_radius, pressure_masks
-from pmask.runtime.stiffness import Stiffness, vertex_stiffness
+from pmask.runtime.stiffness import Stiffness, check_positive_definite, vertex_stiffness
 
 log = logging.getLogger(__name__)
 
@@ -65,31 +65,56 @@ class Model:
         artifact was written without them.  Read on demand."""
         return read_artifact(self.path, datasets=REACTIONS, verify=getattr(self, "verify", True))["greens/reactions"]
 
-    def masks(self, mask: str = "linear", radius: float | None = None):
-        """Pressure masks of the touchable contact vertices, over the contact vertices."""
+    def masks(self, mask: str = "linear", radius: float | None = None, *, band: bool = False):
+        """Pressure masks of the touchable contact vertices (``band``: of the contact vertices outside
+        the region, whose masks the region's edge truncates), over the contact vertices."""
         r = check_radius(mask, radius, self.r_max)
         pts = self.points[self.contact]
-        return pressure_masks(pts, self.vertex_areas[self.contact], np.flatnonzero(self.core), mask, r)
+        centres = np.flatnonzero(~self.core if band else self.core)
+        return pressure_masks(pts, self.vertex_areas[self.contact], centres, mask, r)
 
     def stiffness(self, mask: str = "linear", radius: float | None = None, *, k_rigid: float | None = None,
-                  symmetric: bool = True) -> Stiffness:
+                  symmetric: bool = True, device: Device | None = None,
+                  support_blend: float | None = None) -> Stiffness:
         """Vertex stiffnesses for a mask (eq. 12, 14) and the surface stiffness built from them (eq. 15).
 
         mask : 'linear' (paper's cone), 'gaussian', 'wendland', 'disk' or 'single'.
         radius : mask radius r in model units (the probe tip size), 0 < r <= r_max.
-        k_rigid : stiffness of fixed vertices [N/m]; default 10 x the median free ‖K_i‖₂.
-        symmetric : render (K + Kᵀ)/2 (passive); False renders the full K_i.
+        device : the haptic device (:class:`pmask.runtime.Device`); its stable stiffness bound
+            2 b / T caps the default k_rigid.
+        k_rigid : stiffness the support ramps to [N/m]; default min(10 x the median free ‖K_i‖₂,
+            half the device's stable bound).
+        support_blend : distance [model units] over which a fixed vertex's stiffness ramps from the
+            tissue's next to it to k_rigid; default 4 mask radii (at least 4 mean edges).
+        symmetric : render (K + Kᵀ)/2 (passive when sticking); False renders the full K_i.
+
+        Refuses (:class:`pmask.runtime.stiffness.StiffnessError`, naming the vertices) Green's functions
+        whose vertex stiffnesses are not positive definite.
         """
+        device = Device() if device is None else device
+        if not isinstance(device, Device):
+            raise InputError(f"device must be a pmask.runtime.Device, got {device!r}")
         m = self.masks(mask, radius)
         if m.single_vertex and mask != "single":
             log.info("%d of %d masks reach no neighbour at r = %g (single-vertex stiffness there)",
                      m.single_vertex, len(m.centres), m.radius)
         K = vertex_stiffness(self.Xi, m)
+        check_positive_definite(K, self.contact[m.centres])
+        band = self.masks(mask, radius, band=True) if not self.core.all() else None
+        K_band = vertex_stiffness(self.Xi, band) if band is not None and len(band.centres) else None
+        if K_band is not None:
+            check_positive_definite(K_band, self.contact[band.centres])
         if k_rigid is None:
-            k_rigid = 10.0 * float(np.median(np.linalg.norm(K, ord=2, axis=(1, 2))))
+            k_rigid = min(10.0 * float(np.median(np.linalg.norm(K, ord=2, axis=(1, 2)))),
+                          0.5 * device.stable_stiffness())
         elif not (np.isfinite(k_rigid) and k_rigid > 0):
             raise InputError(f"k_rigid must be a finite stiffness > 0, got {k_rigid!r}")
-        return Stiffness(self, m, K, k_rigid, symmetric)
+        if support_blend is None:
+            support_blend = max(4.0 * m.radius, 4.0 * self.mean_edge_length)
+        elif not (np.isfinite(support_blend) and support_blend > 0):
+            raise InputError(f"support_blend must be a finite length > 0, got {support_blend!r}")
+        return Stiffness(self, m, K, k_rigid, symmetric, band_masks=band, K_band=K_band,
+                         support_blend=support_blend, device=device)
 
     def __repr__(self) -> str:
         return (f"Model({Path(self.path).name if self.path else '?'}: {len(self.points)} surface vertices, "

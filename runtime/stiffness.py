@@ -4,34 +4,55 @@ Masked vertex stiffness of free vertex i:
 
 .. math::  K_i = \Big(\sum_{j \in \mathcal{M}_i} \rho^i_j\, \Xi_{ij}\Big)^{-1}      \quad (12)
 
-rigid vertices get :math:`K_j = k_{rigid} I` (14), and the surface stiffness
-at a point x of triangle t with barycentric coordinates b is
+and the surface stiffness at a point x of triangle t with barycentric coordinates b is
 
 .. math::  K(x) = \sum_k b_k K_{t_k}                                            \quad (15)
 
-which is continuous across edges because neighbouring triangles share the
-vertex values.  A contact force f at x deforms the surface by
+which is continuous across edges because neighbouring triangles share the vertex values.  A contact
+force f at x deforms the surface by
 
 .. math::  v = \sum_i \phi_i(x)\, \zeta_i f, \qquad
            \zeta_i = \sum_{j \in \mathcal{M}_i} \rho^i_j\, \xi_j              \quad (13, 16)
 
-K_i is not symmetric in general; a non-symmetric stiffness is not passive (it
-can pump energy into a haptic device), so the tables hold the symmetric part
-:math:`(K_i + K_i^T)/2` unless ``symmetric=False`` is asked for.
+What is rendered differs from the paper in three documented places, each for a haptic reason:
+
+- **Symmetric.** K_i is not symmetric in general (normal–tangential coupling of Ξ_ij for i ≠ j); a
+  sticking contact with a non-symmetric stiffness does net work round a closed loop, so the tables
+  hold :math:`(K_i + K_i^T)/2` unless ``symmetric=False``.
+- **The support is blended, not a step** (eq. 14 with a ramp).  A fixed vertex gets the stiffness of
+  the free tissue next to it (a Gaussian-weighted average), ramping to :math:`k_{rigid} I` with its
+  distance d into the support over ``support_blend``: :math:`K_j = (1 - s) K_{ext} + s\,k_{rigid} I`,
+  :math:`s = \mathrm{smoothstep}(d / w)`.  A step from ~75 N/m to k_rigid within one triangle changed
+  the force by up to 3 N in one 1 ms tick.
+- **The contact region tapers.**  With ``--contact`` the vertices within r_max outside the region
+  have Green's functions but truncated masks; their K_i (from the truncated masks) are rendered with a
+  weight λ falling smoothly from 1 at the region to 0 at r_max, and λ = 0 beyond, so leaving the
+  region fades the force out instead of dropping it in one tick.
+
+The deformation for display (eq. 16) uses the ζ table, computed once per stiffness
+(:meth:`Stiffness.zeta_table`); see :mod:`pmask.runtime.haptics` for the force it is fed.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from pmask.errors import InputError
-
+from pmask.errors import InputError, PmaskError
+from pmask.runtime.geometry import one_rings
 from pmask.runtime.masks import Masks
 
-#: tolerance on barycentric coordinates (negativity and sum) accepted by the query API
-BARY_TOL = 1e-9
+#: tolerance on barycentric coordinates (negativity and sum) accepted by the query API: barycentrics
+#: computed in float32 are off by a few 1e-8 (float32's epsilon is 1.2e-7), so 1e-6 accepts them;
+#: they are renormalised before use
+BARY_TOL = 1e-6
+#: Jacobi sweeps that relax the support's rendered stiffness (see ``Stiffness._blend_support``)
+SUPPORT_RELAX_SWEEPS = 20
 #: queries per piece in ``at_batch``: the gathered rows (27 floats each) stay in cache (measured:
 #: 1 M random queries 7 -> 14 M/s on 500 vertices, 4 -> 7 M/s on 50,000)
 BATCH_CHUNK = 32768
+
+
+class StiffnessError(PmaskError, ValueError):
+    """Green's functions whose vertex stiffnesses cannot be rendered (not positive definite)."""
 
 
 def masked_flexibility(Xi: np.ndarray, masks: Masks) -> np.ndarray:
@@ -59,6 +80,25 @@ def asymmetry(K: np.ndarray) -> np.ndarray:
     return np.linalg.norm(K - np.swapaxes(K, -1, -2), axis=(-2, -1)) / np.linalg.norm(K, axis=(-2, -1))
 
 
+def check_positive_definite(K: np.ndarray, surface_vertices: np.ndarray, what: str = "K_i") -> None:
+    """Refuse stiffnesses whose symmetric part is not positive definite, naming the vertices: such a
+    contact would pull the tool into the body (a sign-flipped Ξ, whatever its checksums say)."""
+    lam = np.linalg.eigvalsh(0.5 * (K + np.swapaxes(K, -1, -2)))[:, 0] if len(K) else np.zeros(0)
+    bad = np.flatnonzero(~(lam > 0))
+    if len(bad):
+        names = ", ".join(str(int(v)) for v in surface_vertices[bad[:10]]) + (" ..." if len(bad) > 10 else "")
+        raise StiffnessError(
+            f"the rendered vertex stiffness {what} is not positive definite at {len(bad)} of {len(K)} surface vertices "
+            f"({names}; smallest eigenvalue {lam[bad].min():.3g} N/m): these Green's functions cannot come from an "
+            "elastic body held by its support; recompute the artifact (pmask precompute --force)")
+
+
+def smoothstep(x):
+    """0 below 0, 1 above 1, 3x² − 2x³ between: continuous with a continuous slope."""
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
 def _check_query(triangle, bary, n_triangles: int):
     try:
         t = int(triangle)
@@ -73,7 +113,8 @@ def _check_query(triangle, bary, n_triangles: int):
         raise InputError(f"barycentric coordinates must be finite, got {b.tolist()}")
     if b.min() < -BARY_TOL or abs(b.sum() - 1.0) > BARY_TOL:
         raise InputError(f"barycentric coordinates must be >= 0 and sum to 1, got {b.tolist()} (sum {b.sum():.12g})")
-    return t, b
+    b = np.maximum(b, 0.0)
+    return t, b / b.sum()
 
 
 class SurfaceStiffness:
@@ -82,18 +123,21 @@ class SurfaceStiffness:
     Parameters
     ----------
     points, triangles : the surface.
-    K_vertex : (n_s, 3, 3) vertex stiffness of every surface vertex (free: eq. 12, fixed: eq. 14).
-    touchable : bool per triangle; a probe can be rendered only on touchable triangles (those whose
-        free vertices all have complete masks).
+    K_vertex : (n_s, 3, 3) rendered vertex stiffness of every surface vertex.
+    touchable : bool per triangle (default: λ > 0 at a vertex of it).
+    taper : (n_s,) the weight λ the force is rendered with (default 1): 1 where Ξ is complete, falling
+        to 0 across the band outside a contact region.
     """
 
-    def __init__(self, points, triangles, K_vertex, touchable=None):
+    def __init__(self, points, triangles, K_vertex, touchable=None, taper=None):
         self.points = np.asarray(points, float)
         self.triangles = np.asarray(triangles, np.int64)
         self.K_vertex = np.asarray(K_vertex, float)
         if not np.all(np.isfinite(self.K_vertex)):
             raise InputError("vertex stiffness holds NaN or inf")
-        self.touchable = np.ones(len(self.triangles), bool) if touchable is None else np.asarray(touchable, bool)
+        self.taper = np.ones(len(self.points)) if taper is None else np.asarray(taper, float)
+        self.touchable = ((self.taper[self.triangles] > 0).any(axis=1) if touchable is None
+                          else np.asarray(touchable, bool))
         # per-triangle table: (T, 3, 9), row k = K of the triangle's k-th vertex, flattened
         self.table = np.ascontiguousarray(self.K_vertex[self.triangles].reshape(len(self.triangles), 3, 9))
 
@@ -143,27 +187,83 @@ class Stiffness(SurfaceStiffness):
     """Surface stiffness built from Green's functions and pressure masks, with deformation (eq. 16).
 
     Made by :meth:`pmask.runtime.Model.stiffness`; holds the masks and a reference to Ξ.
+    ``K_full``: the unsymmetrised K_i of the core contact vertices (eq. 12), in mask-centre order.
     """
 
-    def __init__(self, model, masks: Masks, K_free: np.ndarray, k_rigid: float, symmetric: bool):
+    def __init__(self, model, masks: Masks, K_free: np.ndarray, k_rigid: float, symmetric: bool, *,
+                 band_masks: Masks | None = None, K_band: np.ndarray | None = None, support_blend: float,
+                 device=None):
         self.model = model
         self.masks = masks
         self.k_rigid = float(k_rigid)
         self.symmetric = bool(symmetric)
-        self.K_full = K_free  # unsymmetrised K_i of the core contact vertices (eq. 12)
+        self.support_blend = float(support_blend)
+        self.device = device
+        self.K_full = K_free
         self.asymmetry = asymmetry(K_free)
         n_s = len(model.points)
+        sym = (lambda K: 0.5 * (K + np.swapaxes(K, 1, 2))) if symmetric else (lambda K: K)
         Kv = np.zeros((n_s, 3, 3))
-        Kv[:] = self.k_rigid * np.eye(3)  # eq. 14 on fixed vertices (free ones overwritten below)
-        K_render = 0.5 * (K_free + np.swapaxes(K_free, 1, 2)) if symmetric else K_free
+        taper = np.zeros(n_s)
+        known = np.zeros(n_s, bool)
         core_surface = model.contact[masks.centres]
-        Kv[core_surface] = K_render
-        vertex_ok = np.zeros(n_s, bool)
-        vertex_ok[model.fixed] = True
-        vertex_ok[core_surface] = True
-        super().__init__(model.points, model.triangles, Kv, touchable=vertex_ok[model.triangles].all(axis=1))
+        Kv[core_surface] = sym(K_free)
+        taper[core_surface] = 1.0
+        known[core_surface] = True
+        if band_masks is not None and len(band_masks.centres):
+            band_surface = model.contact[band_masks.centres]
+            Kv[band_surface] = sym(K_band)
+            known[band_surface] = True
+            d = _nearest_distance(model.points[band_surface], model.points[core_surface])
+            taper[band_surface] = smoothstep(1.0 - d / max(model.r_max, 1e-300))
+        self._fill_unknown_free(Kv, known)
+        self._blend_support(Kv, taper)
+        super().__init__(model.points, model.triangles, Kv, taper=taper)
         self._row_of_surface = np.full(n_s, -1)
         self._row_of_surface[core_surface] = np.arange(len(core_surface))
+        self._contact_row = np.full(n_s, -1)
+        self._contact_row[model.contact] = np.arange(len(model.contact))
+        self._zeta_table = None
+
+    def _fill_unknown_free(self, Kv: np.ndarray, known: np.ndarray) -> None:
+        """Free vertices outside Ξ (λ = 0 there): the nearest known vertex's K, so that K(x) stays
+        positive definite where the taper reaches zero."""
+        m = self.model
+        unknown = np.setdiff1d(m.free, np.flatnonzero(known))
+        if len(unknown) and known.any():
+            src = np.flatnonzero(known)
+            Kv[unknown] = Kv[src[_nearest_index(m.points[unknown], m.points[src])]]
+
+    def _blend_support(self, Kv: np.ndarray, taper: np.ndarray) -> None:
+        """Fixed vertices: the nearby free tissue's K, ramping to k_rigid I with the distance into the support."""
+        m = self.model
+        fixed = m.fixed
+        if len(fixed) == 0:
+            return
+        src = m.contact[self.masks.centres]
+        taper[fixed] = 1.0
+        if len(src) == 0:
+            Kv[fixed] = self.k_rigid * np.eye(3)
+            return
+        h = m.mean_edge_length
+        d = _nearest_distance(m.points[fixed], m.points[src])
+        sigma = d + 2.0 * h
+        K_ext = np.empty((len(fixed), 3, 3))
+        for k0 in range(0, len(fixed), 256):
+            k1 = min(k0 + 256, len(fixed))
+            r2 = _sq_dist(m.points[fixed[k0:k1]], m.points[src])
+            w = np.exp(-r2 / sigma[k0:k1, None] ** 2)
+            w[r2 > (3.0 * sigma[k0:k1, None]) ** 2] = 0.0
+            K_ext[k0:k1] = np.einsum("fs,sij->fij", w, Kv[src]) / w.sum(axis=1)[:, None, None]
+        s = smoothstep(d / max(self.support_blend, 1e-300))[:, None, None]
+        Kv[fixed] = (1.0 - s) * K_ext + s * self.k_rigid * np.eye(3)
+        # relax the fixed vertices' values (Jacobi, one-ring means; the free ones stay eq. 12's): the
+        # nearest-vertex distance has kinks along the support's medial lines, and the force's tangential
+        # term ½ δ² ∇k_n, large on the ramp at 5 mm depth, followed them (~8 % change per tick there)
+        rings = one_rings(n_s := len(Kv), m.triangles)
+        nbr = [rings[j] for j in fixed]
+        for _ in range(SUPPORT_RELAX_SWEEPS):
+            Kv[fixed] = np.array([Kv[r].mean(axis=0) if len(r) else Kv[j] for j, r in zip(fixed, nbr)])
 
     @property
     def single_vertex_masks(self) -> int:
@@ -179,6 +279,32 @@ class Stiffness(SurfaceStiffness):
         X = self.model.Xi.reshape(self.model.Xi.shape[0], -1, 3)[:, cols, :]  # (3n_c, |M|, 3)
         return np.einsum("rmc,m->rc", X, w)
 
+    def zeta_table(self) -> np.ndarray:
+        r"""Zt (3 n_c, 3 n_c) with rows 3m..3m+2 = ζ_mᵀ for every core contact vertex m (zero rows
+        elsewhere): the deformation of eq. 16 for a force f at vertex m is ``f @ Zt[3m:3m+3]``, three
+        contiguous rows (a column of ζ would be a strided gather of Ξ, 8-10x slower).  Computed once, from
+        the transpose of Ξ in blocks of mask centres: Zt_m = Σ_j ρ^m_j Ξ[:, j]ᵀ."""
+        if self._zeta_table is not None:
+            return self._zeta_table
+        Xi = self.model.Xi
+        n3 = Xi.shape[0]
+        Zt = np.zeros((n3, n3))
+        XiT = np.ascontiguousarray(Xi.T, dtype=float)  # rows 3j..3j+2 = Ξ[:, 3j:3j+3]ᵀ
+        XiT3 = XiT.reshape(n3 // 3, 3 * n3)
+        Zt3 = Zt.reshape(n3 // 3, 3 * n3)
+        masks = self.masks
+        for k0 in range(0, len(masks.centres), 64):
+            k1 = min(k0 + 64, len(masks.centres))
+            cols = masks.indices[masks.indptr[k0]:masks.indptr[k1]]
+            J, inv = np.unique(cols, return_inverse=True)
+            W = np.zeros((k1 - k0, len(J)))
+            rows = np.repeat(np.arange(k1 - k0), np.diff(masks.indptr[k0:k1 + 1]))
+            np.add.at(W, (rows, inv), masks.values[masks.indptr[k0]:masks.indptr[k1]])
+            Zt3[masks.centres[k0:k1]] = W @ XiT3[J]
+        del XiT, XiT3
+        self._zeta_table = Zt
+        return Zt
+
     def deformation(self, triangle, bary, force) -> np.ndarray:
         """Displacement (n_s, 3) of every surface vertex for contact force ``force`` at x (eq. 16).
 
@@ -190,22 +316,89 @@ class Stiffness(SurfaceStiffness):
             raise InputError(f"force must be 3 finite numbers, got {force!r}")
         if not self.touchable[t]:
             raise InputError(f"triangle {t} lies outside the precomputed contact region")
-        v_contact = np.zeros(self.model.Xi.shape[0])
-        for vertex, phi in zip(self.triangles[t], b):
-            if phi != 0.0:
-                v_contact += phi * (self.zeta(vertex) @ f)
+        return self.deformation_of([(t, b, f)])
+
+    def deformation_of(self, loads) -> np.ndarray:
+        """Displacement (n_s, 3) for several point loads ``[(triangle, barycentrics, force), ...]`` (eq. 16
+        summed): three contiguous rows of the ζ table per load vertex, one vector-matrix product each."""
+        Zt = self.zeta_table()
+        v_contact = np.zeros(Zt.shape[1])
+        for t, b, f in loads:
+            for vertex, phi in zip(self.triangles[t], b):
+                row = self._contact_row[vertex]
+                if phi != 0.0 and row >= 0:
+                    v_contact += (phi * np.asarray(f, float)) @ Zt[3 * row:3 * row + 3]
         v = np.zeros((len(self.points), 3))
         v[self.model.contact] = v_contact.reshape(-1, 3)
         return v
 
+    def compliance_between(self, t_l, b_l, t_k, b_k) -> np.ndarray:
+        r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k:
+        Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i), from the ζ table (nine 3x3 blocks)."""
+        Zt = self.zeta_table()
+        C = np.zeros((3, 3))
+        for i, phi_i in zip(self.triangles[t_l], b_l):
+            ri = self._contact_row[i]
+            if phi_i == 0.0 or ri < 0:
+                continue
+            for m, phi_m in zip(self.triangles[t_k], b_k):
+                rm = self._contact_row[m]
+                if phi_m == 0.0 or rm < 0:
+                    continue
+                C += phi_i * phi_m * Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].T
+        return C
+
+    def coupled_forces(self, points, displacements) -> np.ndarray:
+        r"""Forces at several contact points that impose the given displacements, solved together through the
+        body (the capacitance method of James & Pai's companion paper, which the paper's §3 defers to).
+
+        points : [(triangle, barycentrics), ...] of s contact points x_l; displacements : (s, 3) ū_l.
+        Solves Σ_k C_lk f_k = ū_l with C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i) (exact: unsymmetrised, every
+        component constrained); at a vertex and s = 1 this is eq. 12, f = K_i ū.  Returns f (s, 3), the
+        forces on the body; :meth:`deformation_of` gives the surface they deform.
+        """
+        pts = [_check_query(t, b, self.n_triangles) for t, b in points]
+        u = np.asarray(displacements, float).reshape(len(pts), 3)
+        if not np.all(np.isfinite(u)):
+            raise InputError("displacements must be finite")
+        s = len(pts)
+        C = np.zeros((3 * s, 3 * s))
+        for i, (ta, ba) in enumerate(pts):
+            for j, (tb, bb) in enumerate(pts):
+                C[3 * i:3 * i + 3, 3 * j:3 * j + 3] = self.compliance_between(ta, ba, tb, bb)
+        return np.linalg.solve(C, u.ravel()).reshape(s, 3)
+
     def report(self) -> dict:
-        """Numbers a user should see: mask reach, asymmetry of K_i, stiffness range."""
+        """Numbers a user should see: mask reach, asymmetry of K_i, stiffness range, k_rigid and the bound."""
         norms = np.linalg.norm(self.K_full, ord=2, axis=(1, 2))
-        return {
+        out = {
             "mask": self.masks.kind, "radius": self.masks.radius,
             "vertices": len(self.masks.centres), "single_vertex_masks": self.single_vertex_masks,
             "mean_mask_size": float(np.mean(np.diff(self.masks.indptr))),
             "asymmetry_max": float(self.asymmetry.max()), "asymmetry_mean": float(self.asymmetry.mean()),
             "stiffness_norm_min": float(norms.min()), "stiffness_norm_median": float(np.median(norms)),
             "stiffness_norm_max": float(norms.max()), "k_rigid": self.k_rigid, "symmetric": self.symmetric,
+            "support_blend": self.support_blend,
         }
+        if self.device is not None:
+            out["stable_stiffness"] = self.device.stable_stiffness()
+            out["device"] = {"rate": self.device.rate, "damping": self.device.damping}
+        return out
+
+
+def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.maximum(np.sum(a * a, axis=1)[:, None] + np.sum(b * b, axis=1)[None, :] - 2.0 * a @ b.T, 0.0)
+
+
+def _nearest_index(a: np.ndarray, b: np.ndarray, chunk: int = 512) -> np.ndarray:
+    out = np.empty(len(a), np.int64)
+    for k in range(0, len(a), chunk):
+        out[k:k + chunk] = np.argmin(_sq_dist(a[k:k + chunk], b), axis=1)
+    return out
+
+
+def _nearest_distance(a: np.ndarray, b: np.ndarray, chunk: int = 512) -> np.ndarray:
+    out = np.empty(len(a))
+    for k in range(0, len(a), chunk):
+        out[k:k + chunk] = np.sqrt(np.min(_sq_dist(a[k:k + chunk], b), axis=1))
+    return out

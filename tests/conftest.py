@@ -123,3 +123,15 @@ def patch_loads(elements, n: int, k: int, rng):
         for node in e[:rng.integers(1, len(e) + 1)]:
             B[node, c] = rng.uniform(-1.0, 1.0)
     return B.tocsc()
+
+
+@pytest.fixture(scope="session")
+def kidney_default(tmp_path_factory) -> Path:
+    """The default kidney (1,446 free vertices): what the haptics issue measured on."""
+    return build(tmp_path_factory, "kidney_default", Spec(model="kidney"))
+
+
+@pytest.fixture(scope="session")
+def kidney_top(tmp_path_factory) -> Path:
+    """The default kidney with a contact region (the upper half, z > 0): Ξ only there, widened by r_max."""
+    return build(tmp_path_factory, "kidney_top", Spec(model="kidney", contact="z>0"))

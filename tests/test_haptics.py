@@ -1,6 +1,8 @@
-"""Haptic contact: contact life cycle, bad samples, passivity of the rendered stiffness, fuzzing."""
+"""Haptic contact: the issue's passivity and continuity bounds on a scripted tour of the default kidney,
+the contact law, never-raise and validation, several contacts against independent finite-element solves."""
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -8,18 +10,34 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pmask.runtime import HapticContact, Model, Status
+from pmask.pipeline.strokes import region_edge_slide, run_contact, tour, tour_metrics
+from pmask.runtime import Contacts, Device, HapticContact, Model, Status
 from pmask.runtime.geometry import vertex_normals
+
+FRICTION = {"friction": 0.4, "dynamic_friction": 0.3}  # a typical instrument on wet tissue
 
 
 @pytest.fixture(scope="module")
-def model(kidney_small):
-    return Model.load(kidney_small)
+def model(kidney_default):
+    return Model.load(kidney_default)
 
 
 @pytest.fixture(scope="module")
 def stiff(model):
     return model.stiffness("linear", 2 * model.mean_edge_length)
+
+
+@pytest.fixture(scope="module")
+def surface(stiff):
+    """The haptic surface built once (normals, gradients, grid), for the many short contacts of the fuzz tests."""
+    from pmask.runtime.haptics import Surface
+
+    return Surface(stiff)
+
+
+@pytest.fixture(scope="module")
+def the_tour():
+    return tour()
 
 
 def top_vertex(model):
@@ -30,30 +48,76 @@ def top_vertex(model):
 
 
 def press(h, p0, n, depths):
-    out = []
-    for d in depths:
-        out.append(h.step(p0 - d * n))
-    return out
+    return [h.step(p0 - d * n) for d in depths]
 
 
-def test_contact_life_cycle(model, stiff):
+# ------------------------------------------------------------------------------------- the tour's bounds
+@pytest.mark.parametrize("options", [{}, FRICTION], ids=["frictionless", "friction"])
+def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, options):
+    """The haptics issue's three bounds on its tour (press, over the top and round the pole, onto and across
+    the hilum 5 mm deep and back, lift off, re-enter, circles and tilted circles at 1-4 mm, 12 mm deep at
+    the pole), in the default settings:
+
+    - the energy the body gives the hand over every closed loop is <= 1 % of the loop's peak stored energy
+      (a tick's work is the force the device holds times the probe's motion; the trapezoid rule too);
+    - the largest force change per tick anywhere is <= 3x the largest on smooth free surface at the same
+      speed (the tour's reference segments: slides over the top face, presses to 6 mm on four faces);
+    - the proxy never moves more than twice the probe's own motion in one tick.
+    """
+    probes, segments = the_tour
+    m = tour_metrics(run_contact(HapticContact(stiff, **options), probes), probes, segments)
+    loops = [s for s in m["segments"] if s["loop"]]
+    assert len(loops) >= 25
+    for s in loops:
+        assert s["given"] <= 0.01 and s["given_trapezoid"] <= 0.01, s
+    for s in m["segments"]:
+        assert s["ratio"] <= 3.0, s
+        assert s["proxy"] <= 2.0, s
+    assert m["reference"] > 0
+
+
+@pytest.mark.parametrize("options", [{}, FRICTION], ids=["frictionless", "friction"])
+def test_crossing_the_edge_of_a_contact_region(kidney_top, options):
+    """Across the edge of a --contact artifact the force fades out over r_max instead of dropping in one
+    tick, and the loop out and back is passive."""
+    m = Model.load(kidney_top)
+    s = m.stiffness("linear", 2 * m.mean_edge_length)
+    probes = region_edge_slide(0.0)
+    r = run_contact(HapticContact(s, **options), probes)
+    statuses = set(r["status"].tolist())
+    assert {Status.CONTACT, Status.REGION_EDGE, Status.OUTSIDE_REGION} <= statuses
+    dF = np.linalg.norm(np.diff(r["force"], axis=0), axis=1)
+    f = np.linalg.norm(r["force"], axis=1)
+    # the force changes per tick by a small fraction of its largest value (pressing 2 mm takes ~100 ticks)
+    assert dF.max() <= 0.03 * f.max()
+    given = np.einsum("ij,ij->i", r["force"][:-1], np.diff(probes, axis=0)).sum()
+    assert given <= 0.01 * r["stored"].max()
+
+
+# ------------------------------------------------------------------------------------- the contact law
+def test_contact_life_cycle_and_the_frictionless_force(model, stiff):
+    """Pressing straight in: no force until the surface is crossed, then a force along the contact
+    normal that grows with depth, with no sideways push from K's coupling (the old law gave 0.5-0.8 x the
+    normal force sideways), and it fades to zero as the probe leaves."""
     p0, n = top_vertex(model)
     h = HapticContact(stiff)
-    res = press(h, p0, n, np.linspace(-2e-3, 1e-3, 31))
+    res = press(h, p0, n, np.linspace(-2e-3, 2e-3, 201))
     status = [s for _, s in res]
     assert status[0] == Status.NO_CONTACT and status[-1] == Status.CONTACT
     first = status.index(Status.CONTACT)
-    assert all(s == Status.NO_CONTACT for s in status[:first])
-    f = np.array(res[-1][0])
-    assert f @ n > 0  # the user is pushed back out
+    f = np.array([r[0] for r in res[first:]])
+    normal = f @ n
+    assert np.all(np.diff(normal) > 0) and normal[-1] > 0  # pushes the user out, harder with depth
+    sideways = np.linalg.norm(f - normal[:, None] * n, axis=1)
+    assert sideways.max() <= 0.1 * normal.max()
+    # k_n = 1/(nᵀK⁻¹n): the normal force per depth is the normal stiffness with the surface free to slide
     K = stiff.at(h.triangle, h.bary)
-    np.testing.assert_allclose(-f, K @ np.array(h.u_bar), rtol=1e-10)
-    # the rendered force grows with depth (monotone for a symmetric positive definite K)
-    mags = [np.linalg.norm(r[0]) for r in res[first:]]
-    assert np.all(np.diff(mags) > 0)
-    # leaving the body ends the contact
-    f_out, s_out = h.step(p0 + 1e-3 * n)
-    assert s_out == Status.NO_CONTACT and f_out == (0.0, 0.0, 0.0)
+    k_n = 1.0 / (n @ np.linalg.solve(K, n))
+    assert normal[-1] / h.depth == pytest.approx(k_n, rel=0.05)  # the contact normal is the averaged one
+    out = press(h, p0, n, np.linspace(2e-3, -1e-3, 301))
+    g = np.array([r[0] for r in out])
+    assert out[-1][1] == Status.NO_CONTACT and np.all(g[-1] == 0)
+    assert np.linalg.norm(np.diff(g, axis=0), axis=1).max() <= 0.02 * np.linalg.norm(g, axis=1).max()
 
 
 def test_starting_inside_is_not_a_contact(model, stiff):
@@ -65,118 +129,130 @@ def test_starting_inside_is_not_a_contact(model, stiff):
     assert h.step(p0 - 1e-3 * n)[1] == Status.CONTACT
 
 
-def test_bad_samples_hold_the_last_force_decaying(model, stiff):
+def test_a_sticking_contact_stores_what_it_is_given(model, stiff):
+    """With friction that never slips, the contact is a spring (½ k_n δ² + ½ k_t |w|²): driving the probe
+    round a closed loop (0.5 mm, tilted) returns the work put in.  Not exactly: k_n and k_t are taken at the
+    proxy, which follows the probe (measured: 0.6 % of the stored energy per loop), hence the issue's 1 %."""
     p0, n = top_vertex(model)
-    h = HapticContact(stiff, decay=0.5)
-    press(h, p0, n, np.linspace(-1e-3, 1e-3, 21))
-    good = np.array(h.force)
-    assert h.status == Status.CONTACT and np.linalg.norm(good) > 0
-    for k, bad in enumerate([(np.nan, 0, 0), (0, np.inf, 0), "xyz", None, (1, 2)], start=1):
-        f, s = h.step(bad)
-        assert s == Status.BAD_SAMPLE
-        np.testing.assert_allclose(f, good * 0.5 ** k)
-    # a good sample resumes the same contact
-    f, s = h.step(p0 - 1e-3 * n)
-    assert s == Status.CONTACT
-    np.testing.assert_allclose(f, good, rtol=1e-9)
+    h = HapticContact(stiff, friction=1e6)
+    press(h, p0, n, np.linspace(-1e-3, 2e-3, 150))
+    e1 = np.cross(n, [1.0, 0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    centre = p0 - 2e-3 * n
+    path = [centre + 0.5e-3 * (np.cos(t) * e1 + np.sin(t) * (e2 + n) / np.sqrt(2)) - 0.5e-3 * e1
+            for t in np.linspace(0, 2 * np.pi, 2001)]
+    F = np.array([h.step(p)[0] for p in path])
+    assert not h.sliding
+    given = np.einsum("ij,ij->i", F[:-1], np.diff(path, axis=0)).sum()
+    stored = 0.5 * np.dot(-np.array(h.force), h.u_bar)
+    assert given <= 0.01 * stored
 
 
-def test_implausible_jump_is_held_then_reset(model, stiff):
+def test_a_tool_tip_rests_on_the_surface(model, stiff):
+    """A spherical tip of radius r_tool touches when its centre is r_tool above the surface."""
     p0, n = top_vertex(model)
-    h = HapticContact(stiff, reset_after=3)
-    press(h, p0, n, np.linspace(-1e-3, 1e-3, 21))
-    far = p0 + np.array([0.0, 0.0, 0.05])
-    statuses = [h.step(far)[1] for _ in range(5)]
-    assert statuses[:3] == [Status.JUMP] * 3
-    assert statuses[3] == Status.NO_CONTACT  # accepted after reset_after samples: tracking restarts
+    r = 1.5e-3
+    h = HapticContact(stiff, tool_radius=r)
+    assert press(h, p0, n, [-5e-3, -r - 1e-4])[-1][1] == Status.NO_CONTACT
+    f, s = press(h, p0, n, np.linspace(-r - 1e-4, -r + 5e-4, 20))[-1]
+    assert s == Status.CONTACT and h.depth == pytest.approx(5e-4, rel=0.05)
 
 
-def test_sliding_stroke_force_is_continuous(model, stiff):
-    """Halving the probe step halves the largest force change per step: no jumps in the force."""
+def test_viscous_damping_resists_motion(model, stiff):
     p0, n = top_vertex(model)
-    t = np.cross(n, [1.0, 0.0, 0.0])
-    t /= np.linalg.norm(t)
-
-    def stroke(steps):
-        h = HapticContact(stiff)
-        press(h, p0, n, np.linspace(-1e-3, 1e-3, 40))
-        fs = []
-        for s in np.linspace(0, 8e-3, steps):
-            f, st_ = h.step(p0 - 1e-3 * n + s * t)
-            assert st_ == Status.CONTACT
-            fs.append(f)
-        return np.abs(np.diff(np.array(fs), axis=0)).max()
-
-    coarse, fine = stroke(200), stroke(800)
-    assert fine < 0.5 * coarse
+    forces = {}
+    for b in (0.0, 2.0):
+        h = HapticContact(stiff, damping=b, passivity=False)
+        forces[b] = press(h, p0, n, np.linspace(-1e-3, 1.5e-3, 126))[-1][0]  # pressing in at 20 mm/s
+    assert forces[2.0] @ n > forces[0.0] @ n  # more resistance while moving in
 
 
-@pytest.mark.parametrize("loop_plane_seed", [0])
-def test_closed_stroke_work_symmetric_vs_full(model, loop_plane_seed):
-    """A sticking contact driven round a closed loop: the full (non-symmetric) K does net work,
-    the default symmetric one does none (below 1e-9 of the peak stored energy ½ūᵀKū)."""
-    r = 2 * model.mean_edge_length
-    full = model.stiffness("linear", r, symmetric=False)
-    sym = model.stiffness("linear", r)
-    p0, n = top_vertex(model)
-    depth = 1e-3
-    works, energies = {}, {}
-    for name, s in (("full", full), ("sym", sym)):
-        h = HapticContact(s, friction=1e6)
-        press(h, p0, n, np.linspace(-1e-3, depth, 30))
-        K = s.at(h.triangle, h.bary)
-        skew = 0.5 * (K - K.T)
-        w = np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
-        w = w / np.linalg.norm(w) if np.linalg.norm(w) > 0 else n
-        e1 = np.cross(w, n if abs(w @ n) < 0.9 else [1.0, 0, 0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(w, e1)
-        proxy = (h.triangle, h.bary)
-        centre = p0 - depth * n
-        W, prev_p, prev_f, peak = 0.0, None, None, 0.0
-        for th in np.linspace(0, 2 * np.pi, 2001):
-            p = centre + 0.5 * depth * (np.cos(th) * e1 + np.sin(th) * e2) - 0.5 * depth * np.cos(th) * 0
-            f, st_ = h.step(p)
-            assert st_ == Status.CONTACT
-            fb = -np.array(f)  # force on the body
-            if prev_p is not None:
-                W += 0.5 * (fb + prev_f) @ (p - prev_p)
-            u = np.array(h.u_bar)
-            peak = max(peak, 0.5 * u @ K @ u)
-            prev_p, prev_f = p, fb
-        assert (h.triangle, h.bary) == proxy  # the contact stuck: the loop is closed in ū
-        works[name], energies[name] = W, peak
-    assert abs(works["sym"]) < abs(works["full"])
-    assert abs(works["sym"]) < 1e-9 * energies["sym"]
-    assert abs(works["full"]) > 1e-4 * energies["full"]
+# ------------------------------------------------------------------------------------- safety
+class Raises:
+    def __float__(self):
+        raise RuntimeError("a bad driver value")
 
 
 samples = st.one_of(
     st.tuples(*[st.floats(allow_nan=True, allow_infinity=True, width=64)] * 3),
     st.tuples(*[st.floats(-0.2, 0.2)] * 3),
     st.lists(st.floats(-0.1, 0.1), min_size=0, max_size=5),
+    st.just([10 ** 400, 0, 0]), st.just([Raises(), 0.0, 0.0]), st.just(Raises()),
     st.none(), st.text(max_size=3),
 )
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.lists(samples, min_size=1, max_size=60))
-def test_haptic_loop_never_raises_and_never_returns_nan(stiff, seq):
-    h = HapticContact(stiff)
+def test_the_step_never_raises_and_never_returns_nan(surface, seq):
+    h = HapticContact(surface)
     for p in seq:
         f, s = h.step(p)
-        assert isinstance(s, Status)
+        assert isinstance(s, Status) and s != Status.INTERNAL_ERROR
         assert len(f) == 3 and all(math.isfinite(c) for c in f)
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.integers(0, 10**6), st.floats(0, 1), st.floats(0, 1))
-def test_random_queries_are_finite_and_interpolate(stiff, t, u, v):
-    touch = np.flatnonzero(stiff.touchable)
-    t = int(touch[t % len(touch)])
-    b = np.array([1 - u, u * (1 - v), u * v])
-    b[0] = 1.0 - b[1] - b[2]
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.integers(1, 4), st.lists(st.lists(samples, min_size=4, max_size=4), min_size=1, max_size=30),
+       st.booleans())
+def test_the_several_contact_step_never_raises_and_never_returns_nan(surface, n, seq, friction):
+    h = Contacts(surface, n, **(FRICTION if friction else {}))
+    for row in seq:
+        forces, statuses = h.step(row[:n])
+        assert len(forces) == n and all(isinstance(s, Status) and s != Status.INTERNAL_ERROR for s in statuses)
+        assert all(math.isfinite(c) for f in forces for c in f)
+
+
+def test_a_probe_far_outside_says_so(model, stiff, caplog):
+    """A probe given in mm to a model in metres is 1000x outside: the status says so, and a warning once."""
+    p0, _ = top_vertex(model)
+    h = HapticContact(stiff)
+    with caplog.at_level(logging.WARNING):
+        statuses = [h.step(p0 * 1000.0)[1] for _ in range(3)]
+    assert statuses == [Status.FAR_OUTSIDE] * 3
+    assert sum("same length unit" in r.message for r in caplog.records) == 1
+
+
+@pytest.mark.parametrize("option,value", [("max_jump", -1.0), ("max_jump", float("nan")), ("max_jump", 0.0),
+                                          ("decay", 1.0), ("decay", -0.1), ("friction", -0.2),
+                                          ("friction", float("inf")), ("damping", float("nan")),
+                                          ("tool_radius", 10.0), ("reset_after", 0), ("proxy_speed", 0.5),
+                                          ("device", "phantom"), ("engine", "gpu")])
+def test_constructor_parameters_are_validated(stiff, option, value):
+    with pytest.raises(ValueError, match=option):
+        HapticContact(stiff, **{option: value})
+
+
+def test_the_default_support_stiffness_respects_the_device(model):
+    """k_rigid defaults to at most half the sampled-data bound 2 b / T of the device, and the report says so."""
+    for device in (Device(), Device(damping=0.05), Device(damping=2.0, rate=2000.0)):
+        s = model.stiffness("linear", 2 * model.mean_edge_length, device=device)
+        bound = 2 * device.damping * device.rate
+        assert s.report()["stable_stiffness"] == pytest.approx(bound)
+        assert s.k_rigid <= 0.5 * bound + 1e-12
+
+
+def test_float32_barycentrics_are_accepted(stiff):
+    t = int(np.flatnonzero(stiff.touchable)[0])
+    b = np.array([0.2, 0.3, 0.5], np.float32) + np.float32(3e-8)  # sum off by ~1e-7, as float32 math gives
     K = stiff.at(t, b)
-    assert np.all(np.isfinite(K))
-    manual = sum(b[k] * stiff.K_vertex[stiff.triangles[t, k]] for k in range(3))
-    np.testing.assert_allclose(K, manual, rtol=1e-12, atol=1e-12 * np.abs(manual).max())
+    np.testing.assert_allclose(K, stiff.at(t, [0.2, 0.3, 0.5]), rtol=1e-6)
+
+
+def test_green_functions_that_are_not_positive_definite_are_refused(kidney_small, tmp_path):
+    """A sign-flipped Ξ (which the checksums refuse too) loaded without verification: the stiffness is
+    refused by name of the vertices, whatever the checksums say."""
+    import shutil
+
+    import h5py
+
+    from pmask.runtime.stiffness import StiffnessError
+
+    p = tmp_path / "flipped.h5"
+    shutil.copy(kidney_small, p)
+    with h5py.File(p, "r+") as f:
+        f["greens/Xi"][...] = -f["greens/Xi"][()]
+    m = Model.load(p, verify=False)
+    with pytest.raises(StiffnessError, match=r"not positive definite at \d+ of \d+ surface vertices \(\d+"):
+        m.stiffness("linear", 2 * m.mean_edge_length)

@@ -1,0 +1,159 @@
+"""Several contacts coupled through the body: the capacitance solve against independent full finite-element
+solves, a grasp in equilibrium with the support reactions, the haptic several-contact step, and the
+displayed deformation meeting every contact."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import full_solve, relerr
+from pmask.precompute.elasticity import dofs
+from pmask.runtime import Contacts, HapticContact, Model, Status
+from pmask.runtime.geometry import vertex_normals
+
+
+@pytest.fixture(scope="module")
+def model(kidney_small):
+    return Model.load(kidney_small)
+
+
+@pytest.fixture(scope="module")
+def stiff(model):
+    return model.stiffness("linear", 2 * model.mean_edge_length)
+
+
+def contact_points(model, stiff, count, seed):
+    """``count`` points inside touchable triangles, well apart, with random barycentrics."""
+    rng = np.random.default_rng(seed)
+    touch = np.flatnonzero(stiff.touchable & np.all(np.isin(model.triangles, model.contact[model.core]), axis=1))
+    chosen = []
+    while len(chosen) < count:
+        t = int(rng.choice(touch))
+        c = model.points[model.triangles[t]].mean(axis=0)
+        if all(np.linalg.norm(c - model.points[model.triangles[u]].mean(axis=0)) > 0.015 for u in chosen):
+            chosen.append(t)
+    return [(t, rng.dirichlet([2.0, 2.0, 2.0])) for t in chosen]
+
+
+def fe_displacements(model, stiff, points, forces):
+    """Independent route: the masked tractions of every contact (ρ(x_l) = Σ_m φ_m(x_l) ρ^m, times f_l)
+    as nodal forces a_j ρ_j f on the whole tet mesh, solved by SuperLU with the support held."""
+    from pmask.runtime.artifact import read_artifact
+
+    P, T = model.volume()
+    vi = read_artifact(model.path, datasets=("surface/volume_index",))["surface/volume_index"]
+    loads = np.zeros((3 * len(P), 1))
+    row_of = {int(v): k for k, v in enumerate(model.contact[stiff.masks.centres])}
+    for (t, b), f in zip(points, forces):
+        for m_vertex, phi in zip(model.triangles[t], b):
+            cols, rho = stiff.masks.row(row_of[int(m_vertex)])
+            for j, w in zip(cols, rho):
+                s = model.contact[j]
+                loads[dofs([vi[s]]), 0] += phi * model.vertex_areas[s] * w * np.asarray(f)
+    u, r = full_solve(P, T, model.E, model.nu, vi[model.fixed], loads)
+    return u[:, 0].reshape(-1, 3)[vi], r
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_several_masked_loads_against_a_full_finite_element_solve(model, stiff, count):
+    """The capacitance solve: forces that impose displacements at 2 and 3 points at once; a full FE solve
+    with those forces as masked tractions gives those displacements at the points (interpolated, eq. 16)
+    and the same surface displacement field as eq. 16 from the ζ table, to 1e-8."""
+    pts = contact_points(model, stiff, count, seed=count)
+    rng = np.random.default_rng(10 + count)
+    u_bar = rng.normal(0, 1e-3, (count, 3))
+    f = stiff.coupled_forces(pts, u_bar)
+    v_fe, _ = fe_displacements(model, stiff, pts, f)
+    at = np.array([b @ v_fe[model.triangles[t]] for t, b in pts])
+    assert relerr(at, u_bar) < 1e-8
+    v = stiff.deformation_of([(t, b, fk) for (t, b), fk in zip(pts, f)])
+    assert relerr(v[model.contact], v_fe[model.contact]) < 1e-8
+    # and one load alone at a vertex is eq. 12: f = K_i ū with the unsymmetrised K_i
+    i = 7
+    vertex = model.contact[stiff.masks.centres[i]]
+    t = int(np.flatnonzero(np.any(model.triangles == vertex, axis=1))[0])
+    b = (model.triangles[t] == vertex).astype(float)
+    np.testing.assert_allclose(stiff.coupled_forces([(t, b)], [u_bar[0]])[0], stiff.K_full[i] @ u_bar[0],
+                               rtol=1e-10, atol=1e-12 * np.abs(stiff.K_full[i] @ u_bar[0]).max())
+
+
+def test_a_grasp_is_in_equilibrium_with_the_support_reactions(model, stiff):
+    """Two jaws squeezing the kidney from above and below: the jaw forces and the support reactions (the
+    precomputed reaction Green's functions applied to the same tractions) sum to zero force and moment."""
+    top = np.argmax(model.points[model.contact[model.core], 2])
+    bottom = np.argmin(model.points[model.contact[model.core], 2])
+    pts = []
+    for k in (top, bottom):
+        v = model.contact[model.core][k]
+        t = int(np.flatnonzero(np.any(model.triangles == v, axis=1))[0])
+        pts.append((t, (model.triangles[t] == v).astype(float)))
+    u_bar = np.array([[0, 0, -1e-3], [0, 0, 1e-3]])
+    f = stiff.coupled_forces(pts, u_bar)
+    R = model.reactions()
+    assert R is not None
+    traction = np.zeros(R.shape[1])
+    row_of = {int(v): k for k, v in enumerate(model.contact[stiff.masks.centres])}
+    for (t, b), fk in zip(pts, f):
+        for m_vertex, phi in zip(model.triangles[t], b):
+            cols, rho = stiff.masks.row(row_of[int(m_vertex)])
+            for j, w in zip(cols, rho):
+                traction[3 * j:3 * j + 3] += phi * w * fk
+    react = (R @ traction).reshape(-1, 3)  # support forces on the fixed vertices
+    xs = model.points
+    scale = np.abs(f).sum()
+    np.testing.assert_allclose(react.sum(axis=0) + f.sum(axis=0), 0.0, atol=1e-9 * scale)
+    # moments: the tractions act at the mask vertices, not at the contact points, so compare with those
+    tr = traction.reshape(-1, 3) * model.vertex_areas[model.contact][:, None]
+    m_applied = np.cross(xs[model.contact], tr).sum(axis=0)
+    m_support = np.cross(xs[model.fixed], react).sum(axis=0)
+    assert np.linalg.norm(m_applied + m_support) <= 1e-9 * scale * np.abs(xs).max()
+    # the grasp squeezes: coupled, each jaw needs more force than alone (the other jaw's push is felt)
+    alone = [np.linalg.norm(stiff.coupled_forces([p], [u])) for p, u in zip(pts, u_bar)]
+    assert np.linalg.norm(f[0]) > 1.2 * alone[0] and np.linalg.norm(f[1]) > 1.2 * alone[1]
+
+
+def test_one_coupled_contact_is_the_single_contact(model, stiff):
+    """s = 1 through the several-contact solver is the single contact, tick for tick."""
+    p0 = model.points[model.contact[model.core]][np.argmax(model.points[model.contact[model.core], 2])]
+    n = np.array([0.0, 0.0, 1.0])
+    path = [p0 + (2e-3 - 4e-3 * k / 300) * n + 1e-3 * np.array([np.sin(k / 50), 0, 0]) for k in range(600)]
+    a, b = HapticContact(stiff, engine="python"), Contacts(stiff, 1, engine="python")
+    for p in path:
+        fa, sa = a.step(p)
+        (fb,), (sb,) = b.step([p])
+        assert sa == sb and fa == fb
+
+
+def test_two_instruments_press_through_each_other(model, stiff):
+    """Two probes on the top face 15 mm apart, pressed 2 mm: coupled, each feels the body yield under the
+    other, so each force is smaller than alone; both are in contact and finite."""
+    top = model.contact[model.core]
+    i = top[np.argmax(model.points[top, 2])]
+    p1 = model.points[i]
+    p2 = p1 + np.array([0.015, 0.0, 0.0])
+    p2[2] = model.points[top][np.argmin(np.linalg.norm(model.points[top][:, :2] - p2[:2], axis=1)), 2]
+    n = np.array([0.0, 0.0, 1.0])
+    coupled, alone = Contacts(stiff, 2), Contacts(stiff, 2, coupled=False)
+    for d in np.linspace(-1e-3, 2e-3, 150):
+        fc, sc = coupled.step([p1 - d * n, p2 - d * n])
+        fa, sa = alone.step([p1 - d * n, p2 - d * n])
+    assert sc == [Status.CONTACT, Status.CONTACT] == sa
+    assert np.linalg.norm(fc[0]) < np.linalg.norm(fa[0]) and np.linalg.norm(fc[1]) < np.linalg.norm(fa[1])
+
+
+def test_the_displayed_surface_meets_the_tool(model, stiff):
+    """The display deformation (eq. 16 with the display forces) moves the surface point under each
+    contact exactly by that contact's displacement ū': within 1 % of |ū'| (here to round-off)."""
+    top = model.contact[model.core]
+    i = top[np.argmax(model.points[top, 2])]
+    n = vertex_normals(model.points, model.triangles)[i]
+    for count in (1, 2):
+        c = Contacts(stiff, count, friction=0.5)
+        starts = [model.points[i], model.points[i] + np.array([0.015, 0.0, -0.001])][:count]
+        for d in np.linspace(-1e-3, 1.5e-3, 120):
+            c.step([s - d * n + np.array([0.0, 2e-4 * d / 1.5e-3, 0.0]) for s in starts])
+        v = c.deformation()
+        for st in c.states:
+            assert st.status == Status.CONTACT
+            moved = np.asarray(st.b) @ v[model.triangles[st.tri]]
+            assert np.linalg.norm(moved - st.u_bar) <= 1e-8 * np.linalg.norm(st.u_bar)
