@@ -21,7 +21,7 @@ system-deps:
 venv: $(VENV)/.installed
 
 # the package in editable mode; the build backend (setup.py) compiles the C extensions in place
-$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c)
+$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c runtime/servo/*.c runtime/servo/*.h)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip "setuptools>=77" wheel
 	$(PIP) --no-build-isolation -e '.[$(EXTRAS)]'

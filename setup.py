@@ -3,6 +3,10 @@
 - ``pmask.precompute._selinv``: the P1/P2 Green's-function stage by selected inversion, C over the
   system's CHOLMOD and LAPACK (needs SuiteSparse's headers: ``make system-deps``).  Loaded with ctypes
   by ``pmask.precompute.native``; without it the pip-only route (cvxopt + numpy) runs the same algorithm.
+- ``pmask.runtime.servo._core``: the haptic servo core (``runtime/servo/pmask_servo.c``, C99 over libc,
+  libm and pthreads) with its CPython binding.  Without it the Python engine runs the same step.
+  ``-ffp-contract=off``: no fused multiply-adds, so that the C's forces equal the Python engine's to
+  the last bit (a test holds them to 1e-12).
 
 Every extension is optional: a machine without a compiler or without the headers still installs,
 and runs the pure-Python fallbacks.  ``PMASK_REQUIRE_NATIVE=1`` (CI sets it) turns a missing header
@@ -21,7 +25,11 @@ WARN = ["-Wall", "-Wextra", "-Wno-unused-parameter"] + (["-Werror"] if REQUIRED 
 
 
 def extensions():
-    exts = []
+    exts = [Extension(
+        "pmask.runtime.servo._core", ["runtime/servo/_coremodule.c", "runtime/servo/pmask_servo.c"],
+        include_dirs=["runtime/servo"], depends=["runtime/servo/pmask_servo.h"],
+        extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math", "-pthread", *WARN],
+        extra_link_args=["-pthread"], libraries=["m"], optional=not REQUIRED)]
     if Path(SUITESPARSE, "cholmod.h").is_file():
         exts.append(Extension(
             "pmask.precompute._selinv", ["precompute/_selinv_module.c", "precompute/_selected_inverse.c"],

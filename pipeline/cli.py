@@ -1,6 +1,6 @@
 """``pmask`` command line (also ``python -m pmask.pipeline``).
 
-Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``reference``, ``figures``.  An error the
+Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``export-table``, ``reference``, ``figures``.  An error the
 user can fix (:class:`pmask.errors.PmaskError`) prints one line and exits with 2; anything else is a
 bug in pmask and shows its traceback with a request to report it.  ``--verbose`` shows the traceback
 of every error.
@@ -232,13 +232,38 @@ def cmd_export(args) -> int:
     return 0
 
 
+def add_export_table(sub) -> None:
+    p = sub.add_parser("export-table", help="write a runtime table for the native servo core (C/C++ applications)",
+                       description="Export what the haptic step reads for one mask and radius: the mesh, contact "
+                                   "normals, rendered vertex stiffness K_i, taper, spatial grid and (unless --no-zeta) "
+                                   "the zeta table for coupled contacts and deformation.  See pmask.runtime.table.")
+    p.add_argument("artifact")
+    p.add_argument("-o", "--out", required=True, help="table file to write, e.g. kidney.tbl")
+    p.add_argument("--mask", default="linear", help="pressure mask: linear, gaussian, wendland, disk or single")
+    p.add_argument("--radius", type=float, help="mask radius in model units (default 2 x mean edge length)")
+    p.add_argument("--k-rigid", type=float, help="stiffness the support ramps to [N/m] (default: see Model.stiffness)")
+    p.add_argument("--normal-radius", type=float, help="crease-blending radius of the contact normals (default 3 mask radii)")
+    p.add_argument("--no-zeta", action="store_true",
+                   help="leave out the zeta table (3n_c x 3n_c doubles): single contacts only, no deformation")
+    p.set_defaults(func=cmd_export_table)
+
+
+def cmd_export_table(args) -> int:
+    from pmask.runtime.table import export_table
+
+    out = export_table(args.artifact, Path(args.out), mask=args.mask, radius=args.radius, k_rigid=args.k_rigid,
+                       normal_radius=args.normal_radius, zeta=not args.no_zeta)
+    print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=version_line())
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (add_precompute, add_models, add_info, add_export, add_reference, add_figures):
+    for add in (add_precompute, add_models, add_info, add_export, add_export_table, add_reference, add_figures):
         add(sub)
     return parser
 
@@ -255,7 +280,8 @@ def version_line() -> str:
         except ImportError:
             return False
 
-    parts = {"selected inversion (C over CHOLMOD)": built("pmask.precompute._selinv")}
+    parts = {"selected inversion (C over CHOLMOD)": built("pmask.precompute._selinv"),
+             "servo core (C)": built("pmask.runtime.servo._core")}
     have = ", ".join(f"{k}: {'built' if v else 'not built, pip-only fallback'}" for k, v in parts.items())
     return f"pmask {pmask.__version__} ({have})"
 

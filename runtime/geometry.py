@@ -34,6 +34,20 @@ def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
+def triangle_frames(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(T, 12) per triangle: its first vertex v0, the dual vectors a, b of its edges e1 = v1 − v0,
+    e2 = v2 − v0 in its plane, and its unit normal n; a point's barycentrics on the triangle's plane are
+    b1 = a·(p − v0), b2 = b·(p − v0), and its height n·(p − v0).  What the contact tracking and the
+    spatial grid read per triangle (Python and the native core alike)."""
+    P = np.asarray(points, float)
+    T = np.asarray(triangles, np.int64)
+    v0 = P[T[:, 0]]
+    e1, e2 = P[T[:, 1]] - v0, P[T[:, 2]] - v0
+    n = triangle_normals(P, T)
+    inv = np.linalg.inv(np.stack([e1, e2, n], axis=2)) if len(T) else np.zeros((0, 3, 3))  # rows: duals
+    return np.ascontiguousarray(np.concatenate([v0, inv[:, 0], inv[:, 1], n], axis=1))
+
+
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
     p = points[triangles]

@@ -58,8 +58,9 @@ import numpy as np
 
 from pmask.errors import InputError
 from pmask.runtime.device import Device
-from pmask.runtime.geometry import contact_normals, triangle_neighbours, triangle_normals
+from pmask.runtime.geometry import contact_normals, triangle_frames, triangle_neighbours
 from pmask.runtime.spatial import TriangleGrid
+from pmask.runtime.stiffness import zeta_compliance, zeta_deformation
 
 log = logging.getLogger(__name__)
 
@@ -119,52 +120,99 @@ def _int(name, v, lo=1):
 
 
 class Surface:
-    """What the contact algorithm reads of a stiffness, as plain Python lists (and the arrays the
-    native core is given): the mesh, normals, per-vertex rendered K and taper λ, a spatial grid, and
-    (for several contacts and the display) the ζ table."""
+    """What the contact algorithm reads of a stiffness: the mesh, triangle frames and neighbours, contact
+    normals, per-vertex rendered K, taper λ and ∇k_n, a spatial grid, and (for several contacts and the
+    display) the ζ table.  The arrays are what a runtime table stores (:mod:`pmask.runtime.table`), and
+    :meth:`from_table` rebuilds a Surface from one; plain-Python copies serve the per-tick code.
+
+    stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
+    normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
+    """
 
     def __init__(self, stiffness, normal_radius: float | None = None):
-        self.stiffness = stiffness
         P = np.asarray(stiffness.points, float)
         T = np.asarray(stiffness.triangles, np.int64)
-        self.P, self.T = P, T
-        v0, e1, e2 = P[T[:, 0]], P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]]
-        n = triangle_normals(P, T)
-        inv = np.linalg.inv(np.stack([e1, e2, n], axis=2))  # rows: dual vectors of e1, e2, n
-        self.tri_geom = np.ascontiguousarray(np.concatenate([v0, inv[:, 0], inv[:, 1], n], axis=1))  # (T, 12)
-        self.neighbours = np.ascontiguousarray(triangle_neighbours(T))
+        frames = triangle_frames(P, T)
+        e = np.linalg.norm(P[T[:, 1]] - P[T[:, 0]], axis=1)
+        mean_edge = float(e.mean()) if len(e) else 1.0
         if normal_radius is None:  # 3 mask radii (a single-vertex mask or a bare surface: 6 mean edges)
             masks = getattr(stiffness, "masks", None)
             r = getattr(masks, "radius", 0.0) if masks is not None else 0.0
-            normal_radius = 3.0 * (r if r > 0 else 2.0 * float(np.linalg.norm(e1, axis=1).mean()))
-        self.normal_radius = float(normal_radius)
-        self.vertex_normals = np.ascontiguousarray(contact_normals(P, T, self.normal_radius))
-        self.K = np.ascontiguousarray(np.asarray(stiffness.K_vertex, float).reshape(len(P), 9))
-        self.taper = np.ascontiguousarray(np.asarray(getattr(stiffness, "taper", np.ones(len(P))), float))
-        self.gradient = np.ascontiguousarray(normal_stiffness_gradient(P, T, self.vertex_normals, self.K, self.taper,
-                                                                       inv[:, 0], inv[:, 1]))
-        self.grid = TriangleGrid(P, T)
-        e = np.linalg.norm(e1, axis=1)
-        self.mean_edge = float(e.mean()) if len(e) else 1.0
-        self.lo, self.hi = P.min(axis=0), P.max(axis=0)
-        self.diag = float(np.linalg.norm(self.hi - self.lo))
+            normal_radius = 3.0 * (r if r > 0 else 2.0 * mean_edge)
+        normals = contact_normals(P, T, float(normal_radius))
+        K = np.asarray(stiffness.K_vertex, float).reshape(len(P), 9)
+        taper = np.asarray(getattr(stiffness, "taper", np.ones(len(P))), float)
+        gradient = normal_stiffness_gradient(P, T, normals, K, taper, frames[:, 3:6], frames[:, 6:9])
+        grid = TriangleGrid(P, T, frames=frames)
+        lo, hi = P.min(axis=0), P.max(axis=0)
+        self._setup(P, T, frames, triangle_neighbours(T), normals, K, taper, gradient, grid, lo, hi,
+                    mean_edge, float(np.linalg.norm(hi - lo)), float(normal_radius))
+        self.stiffness = stiffness
+        self.meta = {}
+
+    @classmethod
+    def from_table(cls, table) -> "Surface":
+        """A Surface from a runtime table (:func:`pmask.runtime.table.read_table`'s result or a path)."""
+        from pmask.runtime.table import read_table
+
+        t = table if isinstance(table, dict) else read_table(table)
+        P, T = t["points"], t["triangles"]
+        grid = TriangleGrid(P, T, frames=t["frames"])
+        mean_edge, diag = (float(x) for x in t["lengths"][0])
+        srf = cls.__new__(cls)
+        srf._setup(P, T, t["frames"], t["neighbours"], t["normals"], t["stiffness"], t["taper"][:, 0], t["gradient"],
+                   grid, t["bounds"][0], t["bounds"][1], mean_edge, diag, float(t["meta"].get("normal_radius", 0.0)))
+        srf.stiffness = None
+        srf.meta = t["meta"]
+        if not isinstance(table, (dict, bytes, bytearray, memoryview)):  # the native core loads the same file
+            srf.table_source, srf.table_sections = str(table), frozenset(t)
+        if "zeta" in t:
+            srf._coupling = (t["zeta"], t["contact_row"][:, 0])
+        return srf
+
+    def _setup(self, P, T, frames, neighbours, normals, K, taper, gradient, grid, lo, hi, mean_edge, diag,
+               normal_radius):
+        c = np.ascontiguousarray
+        self.P, self.T = c(P, dtype=float), c(T, dtype=np.int64)
+        self.tri_geom = c(frames, dtype=float)
+        self.neighbours = c(neighbours, dtype=np.int64)
+        self.vertex_normals = c(normals, dtype=float)
+        self.K = c(np.reshape(K, (len(P), 9)), dtype=float)
+        self.taper = c(taper, dtype=float)
+        self.gradient = c(gradient, dtype=float)
+        self.grid = grid
+        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
+        self.mean_edge, self.diag, self.normal_radius = float(mean_edge), float(diag), float(normal_radius)
         # plain-Python views for the per-tick code
         self._tri = [tuple(r) for r in self.tri_geom.tolist()]
         self._nb = [tuple(r) for r in self.neighbours.tolist()]
-        self._idx = [tuple(r) for r in T.tolist()]
-        self._P = [tuple(r) for r in P.tolist()]
+        self._idx = [tuple(r) for r in self.T.tolist()]
+        self._P = [tuple(r) for r in self.P.tolist()]
         self._N = [tuple(r) for r in self.vertex_normals.tolist()]
         self._K = [tuple(r) for r in self.K.tolist()]
         self._lam = self.taper.tolist()
         self._G = [tuple(r) for r in self.gradient.tolist()]
         self._coupling = None
+        self._row = None
 
     def coupling(self):
         """(ζ table, surface vertex -> its row in the table) for the coupled solve and the display;
         None for a surface stiffness without Green's functions."""
-        if self._coupling is None and hasattr(self.stiffness, "zeta_table"):
+        if self._coupling is None and self.stiffness is not None and hasattr(self.stiffness, "zeta_table"):
             self._coupling = (self.stiffness.zeta_table(), self.stiffness._contact_row)
         return self._coupling
+
+    def compliance(self, t_l, b_l, t_k, b_k) -> list:
+        """C_lk (9 floats): :func:`pmask.runtime.stiffness.zeta_compliance` on this surface's ζ table."""
+        Zt, row = self.coupling()
+        if self._row is None:
+            self._row = np.asarray(row).tolist()
+        return zeta_compliance(Zt, self._row, self._idx, t_l, b_l, t_k, b_k)
+
+    def deformation_of(self, loads) -> np.ndarray:
+        """The surface's displacement (n_s, 3) for point loads (eq. 16; :func:`zeta_deformation`)."""
+        Zt, row = self.coupling()
+        return zeta_deformation(Zt, row, self.T, loads)
 
 
 def normal_stiffness_gradient(P, T, VN, K, taper, dual_a, dual_b) -> np.ndarray:
@@ -207,6 +255,7 @@ class _State:
         self.vel = (0.0, 0.0, 0.0)        # that motion, low-pass filtered (the damping terms' velocity x T)
         self.target = None                # this tick's projection (triangle, b0, b1, b2) while in contact
         self.bad = 0                      # consecutive implausible samples
+        self.law_force = (0.0, 0.0, 0.0)  # the contact law's force at the last tick (the coupled solve's start)
         self.force = (0.0, 0.0, 0.0)      # force rendered to the user (−f)
         self.good_force = (0.0, 0.0, 0.0)
         self.body_force = (0.0, 0.0, 0.0)  # force on the body held during the next tick (PC's work)
@@ -277,9 +326,10 @@ class Contacts:
         self._pc_damping = 0.0
         self._far_warned = False
         self._trace = None  # a list to record (contact, law's force, output body force, δ, λ) per tick
-        self.states = [_State() for _ in range(self.n)]
+        self._states = [_State() for _ in range(self.n)]
         self.engine = "python"
         self._native = None
+        self._thread = None
         if engine not in (None, "native", "python"):
             raise InputError(f"engine must be 'native', 'python' or None, got {engine!r}")
         if engine != "python":
@@ -287,14 +337,17 @@ class Contacts:
             if servo is not None and servo.available():
                 self._native = servo.NativeContacts(self)
                 self.engine = "native"
+                self.step = self._native.step  # the C step straight from the caller: no Python frame between
             elif engine == "native":
                 raise InputError("engine='native' but the native servo core is not built (no compiler at "
                                  "install time?); pip install the package again with a C compiler present")
 
     # ------------------------------------------------------------------ public
     def reset(self) -> None:
-        """Forget all contact state."""
-        for st in self.states:
+        """Forget all contact state (not while the servo thread runs)."""
+        if self.running:
+            raise InputError("reset() while the servo thread runs: stop() it first")
+        for st in self._states:
             st.reset()
         self._energy = 0.0
         self._pc_damping = 0.0
@@ -303,8 +356,6 @@ class Contacts:
 
     def step(self, probes):
         """One tick: a probe sample per instrument; returns (forces on the users, statuses).  Never raises."""
-        if self._native is not None:
-            return self._native.step(probes)
         try:
             samples = list(probes)
             if len(samples) != self.n:
@@ -315,9 +366,72 @@ class Contacts:
             self._step(samples)
         except Exception:  # a bug: never let it reach the servo loop
             log.exception("internal error in the haptic step (please report it); holding the last force")
-            for st in self.states:
+            for st in self._states:
                 self._hold(st, Status.INTERNAL_ERROR)
-        return [st.force for st in self.states], [st.status for st in self.states]
+        return [st.force for st in self._states], [st.status for st in self._states]
+
+    @property
+    def states(self) -> list:
+        """Each contact after the last step (``tri``, ``b``, ``u_bar``, ``force``, ``body_force``, ``status``,
+        ``in_contact``, ``depth``, ``taper``, ``sliding``), from whichever engine runs."""
+        if self._native is not None:
+            return [self._native.state(k) for k in range(self.n)]
+        return self._states
+
+    # ------------------------------------------------------------------ thread mode
+    def start(self, rate: float | None = None) -> None:
+        """Run the step on a thread of its own at ``rate`` Hz (default the device's), on the probes last given
+        to :meth:`set_probes`; :meth:`read` returns the latest forces.  With the native core the thread is a
+        native one: its ticks never take the GIL, so Python threads beside it (graphics, I/O) cannot delay
+        them.  Without it, a Python thread runs the Python step (the same API; its ticks share the GIL)."""
+        rate = float(self.device.rate if rate is None else _num("rate", rate, lo=0.0, lo_open=True, hi=1e5))
+        if self.running:
+            raise InputError("the servo thread is already running")
+        if self._native is not None:
+            self._native.start(rate)
+        else:
+            self._thread = _PythonServoThread(self, rate)
+            self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the servo thread (waits for its current tick)."""
+        if self._native is not None:
+            self._native.stop()
+        elif self._thread is not None:
+            self._thread.stop()
+            self._last_stats = dict(self._thread.stats)
+            self._thread = None
+
+    @property
+    def running(self) -> bool:
+        if self._native is not None:
+            return self._native.running()
+        return self._thread is not None
+
+    def set_probes(self, probes) -> None:
+        """The probe samples the servo thread uses from its next tick (never blocks the thread)."""
+        if self._native is not None:
+            self._native.set_probes(probes)
+        elif self._thread is not None:
+            self._thread.probes = probes
+        else:
+            raise InputError("set_probes() needs a running servo thread: start() it first")
+
+    def read(self):
+        """(forces, statuses) of the servo thread's latest tick."""
+        if self._native is not None:
+            return self._native.read()[:2]
+        return [st.force for st in self._states], [st.status for st in self._states]
+
+    def tick_stats(self) -> dict:
+        """The servo thread's timing: ticks, late (a force not ready within its own period, or a tick
+        skipped), max_lateness and step_max [s]."""
+        if self._native is not None:
+            return self._native.read()[2]
+        t = self._thread
+        if t is not None:
+            return dict(t.stats)
+        return getattr(self, "_last_stats", {"ticks": 0, "late": 0, "max_lateness": 0.0, "step_max": 0.0})
 
     # ------------------------------------------------------------------ geometry (same as the C)
     def _project(self, t, px, py, pz):
@@ -416,7 +530,7 @@ class Contacts:
         st.status = status
 
     def _none(self, st, status=Status.NO_CONTACT):
-        st.force = st.good_force = st.body_force = (0.0, 0.0, 0.0)
+        st.force = st.good_force = st.body_force = st.law_force = (0.0, 0.0, 0.0)
         st.u_bar = (0.0, 0.0, 0.0)
         st.depth = 0.0
         st.taper = 0.0
@@ -487,7 +601,8 @@ class Contacts:
                 if st.bad <= self.reset_after:
                     self._hold(st, Status.JUMP)
                     return None, False
-                st.reset()
+                st.reset()  # tracking restarts here: the jump is not a motion
+                last = None
         st.bad = 0
         s = self.surface
         lo, hi = s.lo, s.hi
@@ -584,7 +699,7 @@ class Contacts:
                 (p[0] - r * Nx - cx, p[1] - r * Ny - cy, p[2] - r * Nz - cz))
 
     def _step(self, samples):
-        states = self.states
+        states = self._states
         probes = [self._prepare(st, smp) for st, smp in zip(states, samples)]
         frictionless = self._frictionless
         geo, ubar, active = {}, {}, []
@@ -668,6 +783,8 @@ class Contacts:
                 c = fm / vm
                 vx, vy, vz = c * vx, c * vy, c * vz
             bx, by, bz = bx + vx, by + vy, bz + vz
+            if not (math.isfinite(bx) and math.isfinite(by) and math.isfinite(bz)):
+                raise FloatingPointError("non-finite contact force")  # never sent to a device
             if self._trace is not None:
                 self._trace.append((l, f, (bx, by, bz), delta, lam))
             st.body_force = (bx, by, bz)
@@ -688,9 +805,12 @@ class Contacts:
     def _solve(self, active, geo, ubar):
         """Step 3: the contact law for every active contact, the several coupled by block Gauss-Seidel on
         the compliance (one sweep when uncoupled).  Returns {l: ((f, ū', sliding, δ), ū left to l)}."""
-        states = self.states
+        states = self._states
         coupling = self._coupling_blocks(active) if self.coupled and len(active) > 1 else None
-        force = {l: (0.0, 0.0, 0.0) for l in active}
+        if coupling and self._frictionless:
+            force = self._normal_start(active, geo, ubar, coupling)
+        else:
+            force = {l: states[l].law_force for l in active}  # warm start: last tick's forces
         result = {}
         for _ in range(GS_SWEEPS if coupling else 1):
             change, size = 0.0, 0.0
@@ -711,18 +831,52 @@ class Contacts:
                 size = max(size, abs(res[0][0]), abs(res[0][1]), abs(res[0][2]))
             if change <= 1e-13 * size:
                 break
+        for l in active:
+            states[l].law_force = force[l]
         return result
+
+    def _normal_start(self, active, geo, ubar, coupling):
+        """Frictionless contacts' start for the sweeps: the normal forces φ (f_l = −φ_l N_l) that solve the
+        coupled normal problem with every active contact pressing, A φ = δ̄ with A_ll = Nᵀ K⁻¹ N / λ (the law's
+        own compliance), A_lk = N_lᵀ C_lk N_k and δ̄_l = −N_l · ū_l (the Delassus system, symmetric positive
+        definite: Gaussian elimination without pivoting), clipped at zero.  When no contact would pull
+        (the usual case) this is the solution and the sweeps stop after one; otherwise they release the
+        pulling ones from there.  (From last tick's forces the sweeps took 12-15 to converge to 1e-13.)"""
+        s = len(active)
+        A = [[0.0] * s for _ in range(s)]
+        r = [0.0] * s
+        for x, l in enumerate(active):
+            Nx, Ny, Nz, K, Ki, lam, _ = geo[l]
+            nkn = (Nx * (Ki[0] * Nx + Ki[1] * Ny + Ki[2] * Nz) + Ny * (Ki[3] * Nx + Ki[4] * Ny + Ki[5] * Nz)
+                   + Nz * (Ki[6] * Nx + Ki[7] * Ny + Ki[8] * Nz))
+            A[x][x] = nkn / lam
+            ux, uy, uz = ubar[l]
+            r[x] = -(Nx * ux + Ny * uy + Nz * uz)
+            for y, k in enumerate(active):
+                if k != l:
+                    C = coupling[(l, k)]
+                    Mx, My, Mz = geo[k][0], geo[k][1], geo[k][2]
+                    cx = C[0] * Mx + C[1] * My + C[2] * Mz
+                    cy = C[3] * Mx + C[4] * My + C[5] * Mz
+                    cz = C[6] * Mx + C[7] * My + C[8] * Mz
+                    A[x][y] = Nx * cx + Ny * cy + Nz * cz
+        phi = _solve_spd(A, r)
+        out = {}
+        for x, l in enumerate(active):
+            p = 0.0 if phi is None else max(phi[x], 0.0)
+            Nx, Ny, Nz = geo[l][0], geo[l][1], geo[l][2]
+            out[l] = (-p * Nx, -p * Ny, -p * Nz)
+        return out
 
     def _coupling_blocks(self, active):
         """C_lk (symmetrised, 9 floats row-major) for every ordered pair of active contacts."""
-        Zt, row = self.surface.coupling()
-        st = self.states
+        st, srf = self._states, self.surface
         out = {}
         for a in active:
             for b in active:
                 if a < b:
-                    C = _compliance(Zt, row, self.surface._idx, st[a].tri, st[a].b, st[b].tri, st[b].b)
-                    Ct = _compliance(Zt, row, self.surface._idx, st[b].tri, st[b].b, st[a].tri, st[a].b)
+                    C = srf.compliance(st[a].tri, st[a].b, st[b].tri, st[b].b)
+                    Ct = srf.compliance(st[b].tri, st[b].b, st[a].tri, st[a].b)
                     S = [0.5 * (C[3 * i + j] + Ct[3 * j + i]) for i in range(3) for j in range(3)]
                     out[(a, b)] = S
                     out[(b, a)] = [S[3 * j + i] for i in range(3) for j in range(3)]
@@ -735,15 +889,16 @@ class Contacts:
         exactly: C_disp f_disp = ū', C_disp the exact interpolation of the ζ table (its diagonal blocks
         are Σ_i Σ_m φ_i φ_m ζ_m(i) rather than the inverse of eq. 15's K, which differ by 5-10 % between
         vertices).  Zero where nothing is in contact."""
-        stiff = self.surface.stiffness
-        if not hasattr(stiff, "deformation_of"):
-            raise InputError("deformation needs Green's functions (a Stiffness from Model.stiffness)")
+        if self.surface.coupling() is None:
+            raise InputError("deformation needs Green's functions (a Stiffness from Model.stiffness, or a "
+                             "runtime table exported with its zeta table)")
+        if self._native is not None and self._native.has_zeta:
+            return self._native.deformation()
         loads = self.display_loads()
-        return stiff.deformation_of(loads) if loads else np.zeros((len(self.surface.P), 3))
+        return self.surface.deformation_of(loads) if loads else np.zeros((len(self.surface.P), 3))
 
     def display_loads(self):
         """[(triangle, barycentrics, display force), ...] for the active contacts (see :meth:`deformation`)."""
-        stiff = self.surface.stiffness
         act = [st for st in self.states if st.status in (Status.CONTACT, Status.REGION_EDGE)]
         if not act:
             return []
@@ -751,7 +906,7 @@ class Contacts:
         C = np.zeros((3 * s, 3 * s))
         for i, a in enumerate(act):
             for j, b in enumerate(act):
-                C[3 * i:3 * i + 3, 3 * j:3 * j + 3] = stiff.compliance_between(a.tri, a.b, b.tri, b.b)
+                C[3 * i:3 * i + 3, 3 * j:3 * j + 3] = np.reshape(self.surface.compliance(a.tri, a.b, b.tri, b.b), (3, 3))
         u = np.concatenate([np.asarray(st.u_bar) for st in act])
         try:
             f = np.linalg.solve(C, u)
@@ -760,6 +915,49 @@ class Contacts:
         if not np.all(np.isfinite(f)):
             f = np.concatenate([-np.asarray(st.force) for st in act])
         return [(st.tri, np.asarray(st.b), f[3 * i:3 * i + 3]) for i, st in enumerate(act)]
+
+
+class _PythonServoThread:
+    """The Python engine's thread mode: the step at a set rate on an absolute schedule (the native core's
+    rules for late ticks), sharing the GIL with the other Python threads."""
+
+    def __init__(self, contacts, rate):
+        import threading
+
+        self.contacts, self.period = contacts, 1.0 / rate
+        self.probes = [None] * contacts.n
+        self.stats = {"ticks": 0, "late": 0, "max_lateness": 0.0, "step_max": 0.0}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pmask-servo", daemon=True)
+
+    def start(self):
+        self._thread.start()
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self):
+        import time
+
+        T, st = self.period, self.stats
+        nxt = time.perf_counter() + T
+        while not self._stop.is_set():
+            delay = nxt - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            begin = time.perf_counter()
+            Contacts.step(self.contacts, self.probes)
+            end = time.perf_counter()
+            st["ticks"] += 1
+            st["late"] += end > nxt + T
+            st["max_lateness"] = max(st["max_lateness"], begin - nxt)
+            st["step_max"] = max(st["step_max"], end - begin)
+            nxt += T
+            if end > nxt:
+                behind = math.floor((end - nxt) / T) + 1
+                st["late"] += behind
+                nxt += behind * T
 
 
 def _servo_module():
@@ -779,23 +977,26 @@ def _norm(v):
     return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
 
 
-def _compliance(Zt, row, idx, ta, ba, tb, bb):
-    """Σ_i Σ_m φ_i(x_a) φ_m(x_b) ζ_m(i) (9 floats row-major): displacement at a per unit force at b."""
-    C = [0.0] * 9
-    for i, pi in zip(idx[ta], ba):
-        ri = row[i]
-        if pi == 0.0 or ri < 0:
-            continue
-        for m, pm in zip(idx[tb], bb):
-            rm = row[m]
-            if pm == 0.0 or rm < 0:
-                continue
-            w = pi * pm
-            blk = Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3]  # ζ_m(i)ᵀ
-            for r in range(3):
-                for c in range(3):
-                    C[3 * r + c] += w * float(blk[c, r])
-    return C
+def _solve_spd(A, r):
+    """x with A x = r by Gaussian elimination without pivoting (A symmetric positive definite), in place;
+    None if a pivot is not positive.  The native core runs the same operations in the same order."""
+    s = len(r)
+    for k in range(s):
+        p = A[k][k]
+        if not p > 0.0:
+            return None
+        for i in range(k + 1, s):
+            q = A[i][k] / p
+            for j in range(k + 1, s):
+                A[i][j] = A[i][j] - q * A[k][j]
+            r[i] = r[i] - q * r[k]
+    x = [0.0] * s
+    for i in range(s - 1, -1, -1):
+        acc = r[i]
+        for j in range(i + 1, s):
+            acc = acc - A[i][j] * x[j]
+        x[i] = acc / A[i][i]
+    return x
 
 
 def _inverse3(K):
@@ -819,13 +1020,24 @@ class HapticContact(Contacts):
 
     def __init__(self, stiffness, **options):
         super().__init__(stiffness, 1, **options)
+        if self._native is not None:
+            self.step = self._native.step1
 
     def step(self, probe):
-        forces, statuses = super().step([probe])
+        """One tick: the probe sample; returns (force on the user, Status).  Never raises."""
+        forces, statuses = Contacts.step(self, [probe])
         return forces[0], statuses[0]
 
+    @property
+    def proxy(self):
+        """The proxy's position on the surface (x, y, z), None when not tracking."""
+        st = self._state()
+        if st.tri < 0:
+            return None
+        return self._point(st.tri, *st.b)
+
     def _state(self):
-        return self._native.state(0) if self._native is not None else self.states[0]
+        return self._native.state(0) if self._native is not None else self._states[0]
 
     triangle = property(lambda self: self._state().tri)
     bary = property(lambda self: self._state().b)

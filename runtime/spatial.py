@@ -6,8 +6,9 @@ finds in O(n) (62 ms at 328k triangles).  The grid answers in a few cells: every
 in the cells its bounding box overlaps; a query visits rings of cells around the point's cell,
 nearest first, and stops once the next ring cannot hold anything closer than the best found.
 
-The arrays (``origin``, ``cell``, ``dims``, ``start``, ``items``) are also what the native servo core
-loads from an exported table, and its query is the same algorithm (same visiting order, same ties).
+The answer is the lexicographic minimum of (distance, index) over all triangles, with the distance
+written element by element in the native servo core's order of operations, so the core's own index (a
+bounding-volume hierarchy, built when it loads a table) picks the same triangle, ties included.
 """
 from __future__ import annotations
 
@@ -15,15 +16,18 @@ import math
 
 import numpy as np
 
+from pmask.runtime.geometry import triangle_frames
+
 
 class TriangleGrid:
     """Uniform grid of triangle bounding boxes.
 
     points, triangles : the mesh.  cell : the cell's edge length (default: 2 x the mean edge length,
-    so that a cell holds a few triangles).
+    so that a cell holds a few triangles).  frames : :func:`pmask.runtime.geometry.triangle_frames`
+    (computed when not given).
     """
 
-    def __init__(self, points: np.ndarray, triangles: np.ndarray, cell: float | None = None):
+    def __init__(self, points: np.ndarray, triangles: np.ndarray, cell: float | None = None, frames=None):
         P = np.asarray(points, float)
         T = np.asarray(triangles, np.int64)
         V = P[T]  # (n_t, 3, 3)
@@ -31,17 +35,17 @@ class TriangleGrid:
             e = np.linalg.norm(V[:, 1] - V[:, 0], axis=1)
             cell = 2.0 * float(e.mean()) if len(e) else 1.0
         lo_all, hi_all = P.min(axis=0), P.max(axis=0)
-        self.cell = float(cell)
-        self.origin = lo_all - 1e-9 * max(float(np.abs(hi_all - lo_all).max()), 1e-300)
-        self.dims = np.maximum(1, np.ceil((hi_all - self.origin) / self.cell + 1e-9).astype(np.int64))
+        cell = float(cell)
+        origin = lo_all - 1e-9 * max(float(np.abs(hi_all - lo_all).max()), 1e-300)
+        dims = np.maximum(1, np.ceil((hi_all - origin) / cell + 1e-9).astype(np.int64))
         # cap the cell count (a needle-shaped mesh): at most ~8 cells per triangle
-        while np.prod(self.dims.astype(float)) > 8.0 * max(len(T), 1) + 64:
-            self.cell *= 1.5
-            self.dims = np.maximum(1, np.ceil((hi_all - self.origin) / self.cell + 1e-9).astype(np.int64))
-        lo = np.floor((V.min(axis=1) - self.origin) / self.cell).astype(np.int64)
-        hi = np.floor((V.max(axis=1) - self.origin) / self.cell).astype(np.int64)
-        lo = np.clip(lo, 0, self.dims - 1)
-        hi = np.clip(hi, 0, self.dims - 1)
+        while np.prod(dims.astype(float)) > 8.0 * max(len(T), 1) + 64:
+            cell *= 1.5
+            dims = np.maximum(1, np.ceil((hi_all - origin) / cell + 1e-9).astype(np.int64))
+        lo = np.floor((V.min(axis=1) - origin) / cell).astype(np.int64)
+        hi = np.floor((V.max(axis=1) - origin) / cell).astype(np.int64)
+        lo = np.clip(lo, 0, dims - 1)
+        hi = np.clip(hi, 0, dims - 1)
         counts = np.prod(hi - lo + 1, axis=1)
         tri = np.repeat(np.arange(len(T)), counts)
         # every (triangle, cell) pair: offsets within each triangle's box
@@ -51,53 +55,44 @@ class TriangleGrid:
         ix = lo[tri, 0] + k % ext[:, 0]
         iy = lo[tri, 1] + (k // ext[:, 0]) % ext[:, 1]
         iz = lo[tri, 2] + k // (ext[:, 0] * ext[:, 1])
-        cell_id = (iz * self.dims[1] + iy) * self.dims[0] + ix
+        cell_id = (iz * dims[1] + iy) * dims[0] + ix
         order = np.lexsort((tri, cell_id))
-        self.items = tri[order].astype(np.int64)
-        n_cells = int(np.prod(self.dims))
-        self.start = np.searchsorted(cell_id[order], np.arange(n_cells + 1)).astype(np.int64)
-        self._V = V
-        d1, d2 = V[:, 1] - V[:, 0], V[:, 2] - V[:, 0]
-        n = np.cross(d1, d2)
-        self._rows = np.linalg.inv(np.stack([d1, d2, n], axis=2))[:, :2, :]  # dual rows of d1, d2
-        self._lists = None
+        items = tri[order].astype(np.int64)
+        start = np.searchsorted(cell_id[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int64)
+        self._setup(P, T, origin, cell, dims, start, items, frames)
+
+    def _setup(self, P, T, origin, cell, dims, start, items, frames):
+        self.origin, self.cell, self.dims, self.start, self.items = origin, cell, dims, start, items
+        self._F = np.asarray(triangle_frames(P, T) if frames is None else frames, float)
+        self._P, self._T = P, T
 
     def nearest(self, p) -> int:
         """Index of the triangle whose (clamped) closest point is nearest ``p``; -1 for an empty mesh."""
-        if len(self._V) == 0:
+        if len(self._T) == 0:
             return -1
         px, py, pz = (float(c) for c in p)
         c = self.cell
         fx, fy, fz = (px - self.origin[0]) / c, (py - self.origin[1]) / c, (pz - self.origin[2]) / c
         nx, ny, nz = (int(d) for d in self.dims)
-        ix = min(max(int(math.floor(fx)), 0), nx - 1)
-        iy = min(max(int(math.floor(fy)), 0), ny - 1)
-        iz = min(max(int(math.floor(fz)), 0), nz - 1)
+        ix, iy, iz = _clamp_cell(fx, nx), _clamp_cell(fy, ny), _clamp_cell(fz, nz)
         # a triangle first listed in ring r lies outside the nearer cells, so at least (r - 1) cells from
         # p; and at least p's own distance (in cells) outside the grid's box
-        gap = self._box_gap(fx, fy, fz, ix, iy, iz)
+        gap = 0.0
+        for f, i in ((fx, ix), (fy, iy), (fz, iz)):
+            gap = max(gap, max(max(i - f, f - (i + 1)), 0.0))
         best, best_d2 = -1, math.inf
         for r in range(max(nx, ny, nz) + 1):
-            lower = max(r - 1.0, gap, 0.0) * c
+            lower = max(max(r - 1.0, gap), 0.0) * c
             if best >= 0 and lower * lower > best_d2:
                 break
             tris = self._ring(ix, iy, iz, r, nx, ny, nz)
             if len(tris):
-                d2 = self._distance2(tris, np.array([px, py, pz]))
+                d2 = self._distance2(tris, px, py, pz)
                 k = np.flatnonzero(d2 == d2.min())
                 t, d = int(tris[k].min()), float(d2[k[0]])
                 if d < best_d2 or (d == best_d2 and t < best):
                     best, best_d2 = t, d
         return best
-
-    @staticmethod
-    def _box_gap(fx, fy, fz, ix, iy, iz) -> float:
-        """How far (in cells) p lies outside its clamped cell (0 when inside the grid)."""
-        g = 0.0
-        for f, i in ((fx, ix), (fy, iy), (fz, iz)):
-            d = max(i - f, f - (i + 1), 0.0)
-            g = max(g, d)
-        return g
 
     def _ring(self, ix, iy, iz, r, nx, ny, nz) -> np.ndarray:
         """Triangles listed in the cells at Chebyshev distance r from (ix, iy, iz)."""
@@ -115,18 +110,39 @@ class TriangleGrid:
                         parts.append(items[start[cid]:start[cid + 1]])
         return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
-    def _distance2(self, tris: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """Squared distance from p to each triangle's barycentric-clamped projection."""
-        V = self._V[tris]
-        d = p - V[:, 0]
-        b12 = np.einsum("tij,tj->ti", self._rows[tris], d)
-        b = np.column_stack([1 - b12.sum(axis=1), b12])
-        b = np.clip(b, 0, None)
-        b /= b.sum(axis=1, keepdims=True)
-        q = np.einsum("tk,tkj->tj", b, V)
-        return np.sum((q - p) ** 2, axis=1)
+    def _distance2(self, tris: np.ndarray, px: float, py: float, pz: float) -> np.ndarray:
+        """Squared distance from p to each triangle's barycentric-clamped projection on its plane,
+        element by element in the native core's order of operations."""
+        F = self._F[tris]
+        V = self._P[self._T[tris]]
+        dx, dy, dz = px - F[:, 0], py - F[:, 1], pz - F[:, 2]
+        b1 = F[:, 3] * dx + F[:, 4] * dy + F[:, 5] * dz
+        b2 = F[:, 6] * dx + F[:, 7] * dy + F[:, 8] * dz
+        b0 = 1.0 - b1 - b2
+        b0, b1, b2 = _pymax0(b0), _pymax0(b1), _pymax0(b2)
+        tot = b0 + b1 + b2
+        b0, b1, b2 = b0 / tot, b1 / tot, b2 / tot
+        ex = b0 * V[:, 0, 0] + b1 * V[:, 1, 0] + b2 * V[:, 2, 0] - px
+        ey = b0 * V[:, 0, 1] + b1 * V[:, 1, 1] + b2 * V[:, 2, 1] - py
+        ez = b0 * V[:, 0, 2] + b1 * V[:, 1, 2] + b2 * V[:, 2, 2] - pz
+        return ex * ex + ey * ey + ez * ez
 
     def nearest_scan(self, p) -> int:
         """The same answer by scanning every triangle (for tests and the benchmark's reference)."""
-        d2 = self._distance2(np.arange(len(self._V)), np.asarray(p, float))
+        px, py, pz = (float(c) for c in p)
+        d2 = self._distance2(np.arange(len(self._T)), px, py, pz)
         return int(np.flatnonzero(d2 == d2.min())[0])
+
+
+def _clamp_cell(f: float, n: int) -> int:
+    """The cell index of coordinate f (in cells), clamped to [0, n)."""
+    if not f >= 0.0:
+        return 0
+    if f >= n:
+        return n - 1
+    return min(int(math.floor(f)), n - 1)
+
+
+def _pymax0(x: np.ndarray) -> np.ndarray:
+    """max(x, 0.0) element-wise as Python's max and the C's PYMAX take it (x unless 0.0 is larger)."""
+    return np.where(0.0 > x, 0.0, x)

@@ -320,33 +320,14 @@ class Stiffness(SurfaceStiffness):
 
     def deformation_of(self, loads) -> np.ndarray:
         """Displacement (n_s, 3) for several point loads ``[(triangle, barycentrics, force), ...]`` (eq. 16
-        summed): three contiguous rows of the ζ table per load vertex, one vector-matrix product each."""
-        Zt = self.zeta_table()
-        v_contact = np.zeros(Zt.shape[1])
-        for t, b, f in loads:
-            for vertex, phi in zip(self.triangles[t], b):
-                row = self._contact_row[vertex]
-                if phi != 0.0 and row >= 0:
-                    v_contact += (phi * np.asarray(f, float)) @ Zt[3 * row:3 * row + 3]
-        v = np.zeros((len(self.points), 3))
-        v[self.model.contact] = v_contact.reshape(-1, 3)
-        return v
+        summed); see :func:`zeta_deformation`."""
+        return zeta_deformation(self.zeta_table(), self._contact_row, self.triangles, loads)
 
     def compliance_between(self, t_l, b_l, t_k, b_k) -> np.ndarray:
-        r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k:
-        Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i), from the ζ table (nine 3x3 blocks)."""
-        Zt = self.zeta_table()
-        C = np.zeros((3, 3))
-        for i, phi_i in zip(self.triangles[t_l], b_l):
-            ri = self._contact_row[i]
-            if phi_i == 0.0 or ri < 0:
-                continue
-            for m, phi_m in zip(self.triangles[t_k], b_k):
-                rm = self._contact_row[m]
-                if phi_m == 0.0 or rm < 0:
-                    continue
-                C += phi_i * phi_m * Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].T
-        return C
+        r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k
+        (:func:`zeta_compliance`)."""
+        C = zeta_compliance(self.zeta_table(), self._contact_row, self.triangles, t_l, b_l, t_k, b_k)
+        return np.array(C).reshape(3, 3)
 
     def coupled_forces(self, points, displacements) -> np.ndarray:
         r"""Forces at several contact points that impose the given displacements, solved together through the
@@ -384,6 +365,47 @@ class Stiffness(SurfaceStiffness):
             out["stable_stiffness"] = self.device.stable_stiffness()
             out["device"] = {"rate": self.device.rate, "damping": self.device.damping}
         return out
+
+
+def zeta_compliance(Zt, row, triangles, t_l, b_l, t_k, b_k) -> list:
+    r"""C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i), 9 floats row-major: the displacement at x_l (interpolated,
+    eq. 16) per unit force at x_k (spread by the masks, eq. 13), from the ζ table (nine 3x3 blocks).
+
+    Zt : :meth:`Stiffness.zeta_table`; row : surface vertex -> its row block in Zt (-1: none).  Plain
+    Python floats in a fixed order: the haptic step couples contacts with it, and the native core
+    computes the same sums in the same order."""
+    C = [0.0] * 9
+    for i, pi in zip(triangles[t_l], b_l):
+        ri = row[i]
+        if pi == 0.0 or ri < 0:
+            continue
+        for m, pm in zip(triangles[t_k], b_k):
+            rm = row[m]
+            if pm == 0.0 or rm < 0:
+                continue
+            w = pi * pm
+            blk = Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].tolist()  # ζ_m(i)ᵀ
+            for r in range(3):
+                for c in range(3):
+                    C[3 * r + c] += w * blk[c][r]
+    return C
+
+
+def zeta_deformation(Zt, row, triangles, loads) -> np.ndarray:
+    """Displacement (n_s, 3) of the surface for point loads ``[(triangle, barycentrics, force), ...]``
+    (eq. 16 summed): three contiguous rows of the ζ table per load vertex, one vector-matrix product
+    each; zero at vertices without a row (fixed, or outside the contact region)."""
+    v_contact = np.zeros(Zt.shape[1])
+    for t, b, f in loads:
+        for vertex, phi in zip(triangles[t], b):
+            r = row[vertex]
+            if phi != 0.0 and r >= 0:
+                v_contact += (phi * np.asarray(f, float)) @ Zt[3 * r:3 * r + 3]
+    row = np.asarray(row)
+    v = np.zeros((len(row), 3))
+    has = row >= 0
+    v[has] = v_contact.reshape(-1, 3)[row[has]]
+    return v
 
 
 def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:

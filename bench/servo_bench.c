@@ -1,0 +1,245 @@
+/* Benchmark of the native servo core, called from C as a C/C++ haptic application calls it.
+ *
+ *   servo_bench TABLE TRACE N [--friction MU] [--paced TICKS] [--batch QUERIES] [--reacquire COUNT]
+ *
+ * TRACE: little-endian int64 tick count, then ticks x N x 3 float64 probe positions.  Prints one JSON
+ * object:
+ *   tight      the step over the whole trace back to back (median, p99, p99.9, max in µs)
+ *   paced      the step in a 1 kHz loop paced by clock_nanosleep on an absolute schedule, as a device
+ *              loop runs it (blocks of 500 ticks, alternating with the references below)
+ *   blend_*    the noise/physics reference in the same loops: eq. 15 at the contact's own point, three 3x3
+ *              blocks blended (the issue's "physical limit"), timed the same way
+ *   empty_*    the timer itself (two clock_gettime calls around nothing)
+ *   late       paced ticks whose step finished after the tick's period ended
+ *   batch      K(x) for random points, single thread: queries per second
+ *   reacquire  the step on a tick where tracking restarts (the first tick after a reset, at a trace point
+ *              near the surface): the spatial grid's query plus a short walk (median, p99, max µs)
+ */
+#define _POSIX_C_SOURCE 200809L
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#include "pmask_servo.h"
+
+static double now_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+static void sleep_until(double t)
+{
+    struct timespec ts;
+    ts.tv_sec = (time_t)t;
+    ts.tv_nsec = (long)((t - (double)ts.tv_sec) * 1e9);
+    clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
+}
+
+static int cmp(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static void stats(const char *name, double *t, size_t n, int comma)
+{
+    if (n == 0) {
+        printf("\"%s\": null%s", name, comma ? ", " : "");
+        return;
+    }
+    qsort(t, n, sizeof(double), cmp);
+    printf("\"%s\": {\"median_us\": %.4f, \"p99_us\": %.4f, \"p999_us\": %.4f, \"max_us\": %.4f, \"n\": %zu}%s", name,
+           1e6 * t[n / 2], 1e6 * t[(size_t)(0.99 * (double)(n - 1))], 1e6 * t[(size_t)(0.999 * (double)(n - 1))],
+           1e6 * t[n - 1], n, comma ? ", " : "");
+}
+
+static uint64_t rng_state = 0x9E3779B97F4A7C15ull;
+static double urand(void)
+{
+    rng_state ^= rng_state << 13;
+    rng_state ^= rng_state >> 7;
+    rng_state ^= rng_state << 17;
+    return (double)(rng_state >> 11) * (1.0 / 9007199254740992.0);
+}
+
+int main(int argc, char **argv)
+{
+    if (argc < 4) {
+        fprintf(stderr, "usage: %s TABLE TRACE N [--friction MU] [--paced TICKS] [--batch Q] [--reacquire C]\n", argv[0]);
+        return 2;
+    }
+    int32_t n = atoi(argv[3]);
+    double friction = 0.0;
+    long paced = 0, batch = 0, reacq = 0;
+    for (int i = 4; i + 1 < argc; i += 2) {
+        if (!strcmp(argv[i], "--friction")) friction = atof(argv[i + 1]);
+        else if (!strcmp(argv[i], "--paced")) paced = atol(argv[i + 1]);
+        else if (!strcmp(argv[i], "--batch")) batch = atol(argv[i + 1]);
+        else if (!strcmp(argv[i], "--reacquire")) reacq = atol(argv[i + 1]);
+    }
+    char err[512];
+    pm_table *table;
+    if (pm_table_load(argv[1], &table, err, sizeof err)) {
+        fprintf(stderr, "%s\n", err);
+        return 1;
+    }
+    FILE *f = fopen(argv[2], "rb");
+    int64_t ticks = 0;
+    if (!f || fread(&ticks, 8, 1, f) != 1 || ticks <= 0) {
+        fprintf(stderr, "cannot read the trace %s\n", argv[2]);
+        return 1;
+    }
+    double *trace = malloc((size_t)ticks * 3 * (size_t)n * sizeof(double));
+    if (!trace || fread(trace, sizeof(double), (size_t)ticks * 3 * (size_t)n, f) != (size_t)ticks * 3 * (size_t)n) {
+        fprintf(stderr, "short trace\n");
+        return 1;
+    }
+    fclose(f);
+    pm_options opt;
+    pm_options_default(table, &opt);
+    opt.friction = opt.dynamic_friction = friction;
+    if (getenv("PMASK_BENCH_UNCOUPLED")) opt.coupled = 0;  /* the s independent contacts, for comparison */
+    pm_servo *servo;
+    if (pm_servo_create(table, n, &opt, &servo, err, sizeof err)) {
+        fprintf(stderr, "%s\n", err);
+        return 1;
+    }
+    double *forces = malloc(3 * (size_t)n * sizeof(double));
+    int32_t *status = malloc((size_t)n * sizeof(int32_t));
+    double *t_step = malloc((size_t)ticks * sizeof(double));
+    double *t_blend = malloc((size_t)ticks * sizeof(double));
+    double *t_empty = malloc((size_t)ticks * sizeof(double));
+    if (!forces || !status || !t_step || !t_blend || !t_empty) return 1;
+
+    /* tight: the trace back to back; the blend at the same contact points, and the empty timer, interleaved */
+    int64_t contact = 0, nb = 0;
+    for (int64_t k = 0; k < ticks; k++) {
+        double a = now_s();
+        pm_servo_step(servo, trace + 3 * (size_t)n * (size_t)k, forces, status);
+        double b = now_s();
+        t_step[k] = b - a;
+        contact += status[0] == PM_CONTACT;
+        pm_contact_state cs;
+        pm_servo_state(servo, 0, &cs);
+        if (cs.triangle >= 0) {
+            double K[9];
+            a = now_s();
+            pm_table_stiffness(table, 1, &cs.triangle, cs.bary, K);
+            b = now_s();
+            t_blend[nb] = b - a;
+            a = now_s();
+            b = now_s();
+            t_empty[nb++] = b - a;
+        }
+    }
+    printf("{\"ticks\": %lld, \"contacts\": %d, \"contact_fraction\": %.4f, ", (long long)ticks, (int)n,
+           (double)contact / (double)ticks);
+    stats("tight", t_step, (size_t)ticks, 1);
+    stats("blend_tight", t_blend, (size_t)nb, 1);
+    stats("empty_tight", t_empty, (size_t)nb, 1);
+
+    if (paced > 0) {  /* 1 kHz on the wall clock: blocks of 500 ticks of the step, then 500 of the blend */
+        const double T = 1e-3;
+        pm_servo_reset(servo);
+        int64_t ns = 0, nbl = 0, late = 0, k = 0;
+        double next = now_s() + T;
+        int64_t done = 0;
+        pm_contact_state cs;
+        memset(&cs, 0, sizeof cs);
+        cs.triangle = -1;
+        while (done < paced) {
+            for (int phase = 0; phase < 2; phase++)
+                for (int j = 0; j < 500 && done < paced; j++) {
+                    sleep_until(next);
+                    if (phase == 0) {
+                        double a = now_s();
+                        pm_servo_step(servo, trace + 3 * (size_t)n * (size_t)(k % ticks), forces, status);
+                        double b = now_s();
+                        t_step[ns++] = b - a;
+                        if (b > next + T) late++;
+                        pm_servo_state(servo, 0, &cs);
+                        k++;
+                        done++;
+                    } else if (cs.triangle >= 0) {
+                        double K[9];
+                        double a = now_s();
+                        pm_table_stiffness(table, 1, &cs.triangle, cs.bary, K);
+                        double b = now_s();
+                        t_blend[nbl] = b - a;
+                        a = now_s();
+                        b = now_s();
+                        t_empty[nbl++] = b - a;
+                    }
+                    next += T;
+                    double t = now_s();
+                    if (t > next) next = t + T;  /* fell behind: restart the schedule */
+                }
+        }
+        stats("paced", t_step, (size_t)ns, 1);
+        stats("blend_paced", t_blend, (size_t)nbl, 1);
+        stats("empty_paced", t_empty, (size_t)nbl, 1);
+        printf("\"late\": %lld, \"paced_ticks\": %lld, ", (long long)late, (long long)ns);
+    }
+    if (batch > 0) {
+        int64_t nt = pm_table_triangles(table);
+        int64_t *tri = malloc((size_t)batch * sizeof(int64_t));
+        double *bary = malloc((size_t)batch * 3 * sizeof(double));
+        double *out = malloc((size_t)batch * 9 * sizeof(double));
+        if (!tri || !bary || !out) return 1;
+        for (long q = 0; q < batch; q++) {
+            tri[q] = (int64_t)(urand() * (double)nt) % nt;
+            double u = urand(), v = urand();
+            if (u + v > 1.0) {
+                u = 1.0 - u;
+                v = 1.0 - v;
+            }
+            bary[3 * q] = 1.0 - u - v;
+            bary[3 * q + 1] = u;
+            bary[3 * q + 2] = v;
+        }
+        double best = 1e30;
+        for (int r = 0; r < 3; r++) {
+            double a = now_s();
+            pm_table_stiffness(table, batch, tri, bary, out);
+            double b = now_s();
+            if (b - a < best) best = b - a;
+        }
+        printf("\"batch_per_s\": %.1f, ", (double)batch / best);
+        free(tri);
+        free(bary);
+        free(out);
+    }
+    if (reacq > 0 && n == 1) {
+        /* ticks where tracking (re)starts: after a reset (as after a probe left the model's margin), a trace
+           point near the surface: the grid's query and the walk to the projection */
+        double *t_re = malloc((size_t)reacq * sizeof(double));
+        if (!t_re) return 1;
+        long m = 0;
+        for (long r = 0; r < reacq; r++) {
+            pm_servo_reset(servo);
+            const double *p = trace + 3 * (size_t)((int64_t)(urand() * (double)ticks) % ticks);
+            double a = now_s();
+            pm_servo_step(servo, p, forces, status);
+            double b = now_s();
+            pm_contact_state cs;
+            pm_servo_state(servo, 0, &cs);
+            if (cs.triangle >= 0) t_re[m++] = b - a;
+        }
+        stats("reacquire", t_re, (size_t)m, 1);
+        free(t_re);
+    }
+    printf("\"triangles\": %lld}\n", (long long)pm_table_triangles(table));
+    pm_servo_free(servo);
+    pm_table_free(table);
+    free(trace);
+    free(forces);
+    free(status);
+    free(t_step);
+    free(t_blend);
+    free(t_empty);
+    return 0;
+}

@@ -1,0 +1,151 @@
+"""The native servo core: the haptic contact step in C, for C/C++ haptic loops and behind the Python API.
+
+- ``pmask_servo.h`` / ``pmask_servo.c`` (C99, libc + libm + pthreads; shipped in this folder and in the
+  wheel): load a runtime table (:mod:`pmask.runtime.table`), run the step of
+  :mod:`pmask.runtime.haptics` for n instruments (operation for operation the Python engine's
+  algorithm: a test holds them to identical statuses and forces equal to 1e-12), optionally on a thread
+  of its own at a set rate.  :func:`include_dir` tells a C/C++ build where the two files are.
+- ``_core``: the CPython binding, built by the package's build backend; :class:`pmask.runtime.Contacts`
+  and :class:`pmask.runtime.HapticContact` use it when it is built (``engine="native"`` insists,
+  ``engine="python"`` forces the fallback).
+
+Why the binding exists beside the Python engine: a Python step costs tens of µs, most of it the
+interpreter, and a Python tick shares the GIL with every other Python thread; the C step costs well
+under a µs, and in thread mode the tick never touches the GIL (``make bench`` measures both).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pmask.errors import InputError
+
+try:
+    from pmask.runtime.servo import _core
+except ImportError:  # no compiler at install time: the Python engine runs instead
+    _core = None
+
+log = logging.getLogger("pmask.runtime.haptics")
+
+
+def available() -> bool:
+    """Whether the native core is built into this installation."""
+    return _core is not None
+
+
+def include_dir() -> Path:
+    """The folder holding ``pmask_servo.h`` and ``pmask_servo.c`` (compile the .c into your application,
+    with ``-ffp-contract=off`` for results identical to the Python engine's)."""
+    return Path(__file__).resolve().parent
+
+
+def load_table(source):
+    """A runtime table loaded by the C loader (a path or bytes); refusals raise
+    :class:`pmask.runtime.table.TableError` with the C loader's message."""
+    from pmask.runtime.table import TableError
+
+    if _core is None:
+        raise InputError("the native servo core is not built in this installation")
+    try:
+        return _core.Table(source)
+    except ValueError as exc:
+        where = "" if isinstance(source, (bytes, bytearray, memoryview)) else f"{source}: "
+        raise TableError(f"{where}{exc}") from None
+
+
+def _native_table(surface, zeta: bool):
+    """The surface's table in the C core, made once per surface (with or without the ζ table)."""
+    cache = surface.__dict__.setdefault("_native_tables", {})
+    key = bool(zeta)
+    if key not in cache:
+        src = getattr(surface, "table_source", None)
+        if src is not None and (zeta or "zeta" not in getattr(surface, "table_sections", ())):
+            cache[key] = load_table(src)
+        else:
+            from pmask.runtime.table import surface_sections, table_bytes
+
+            cache[key] = load_table(table_bytes(surface_sections(surface, zeta), surface.meta))
+    return cache[key]
+
+
+class NativeState:
+    """One contact's state after a step, as the native core published it (the Python engine's fields)."""
+
+    __slots__ = ("tri", "b", "u_bar", "force", "body_force", "status", "in_contact", "depth", "taper", "sliding",
+                 "point")
+
+    def __init__(self, values):
+        (self.tri, self.b, self.u_bar, self.force, self.body_force, self.status, self.in_contact, self.depth,
+         self.taper, self.sliding, self.point) = values
+
+
+class NativeContacts:
+    """The C step for a validated :class:`pmask.runtime.Contacts` (its options, its surface)."""
+
+    def __init__(self, contacts):
+        from pmask.runtime.haptics import Status
+
+        _core.set_statuses(tuple(Status))
+        srf = contacts.surface
+        self.surface = srf
+        self.table = _native_table(srf, zeta=contacts.coupled or srf._coupling is not None)
+        c = contacts
+        options = (c.friction, c.dynamic_friction, c.damping, c.tool_radius, c.slip_length, float(c.device.rate),
+                   c.max_jump, c.decay, c.proxy_speed, c.reset_after, c.max_walk, int(c.passivity), int(c.coupled))
+        try:
+            self.servo = _core.Servo(self.table, c.n, options, self._warn)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        self.n = c.n
+        self.step = self.servo.step
+        self.step1 = self.servo.step1
+        self.reset = self.servo.reset
+        self.has_zeta = bool(self.table.counts()[2])
+        self._diag = srf.diag
+
+    @staticmethod
+    def _warn(kind, x, y, z):
+        if kind == "far":
+            log.warning("probe at (%.4g, %.4g, %.4g) is more than %g model sizes from the model: are the probe "
+                        "and the model in the same length unit?", x, y, z, 10.0)
+        else:
+            log.error("internal error in the native haptic step (please report it); holding the last force")
+
+    def state(self, k: int) -> NativeState:
+        return NativeState(self.servo.state(k))
+
+    def deformation(self) -> np.ndarray | None:
+        """eq. 16 with the display forces, computed by the C core (None without its ζ table)."""
+        if not self.has_zeta:
+            return None
+        out = np.empty((len(self.surface.P), 3))
+        self.servo.deformation(out)
+        return out
+
+    # thread mode
+    def start(self, rate: float) -> None:
+        rc = self.servo.start(float(rate))
+        if rc != 0:
+            raise InputError({-1: "the servo thread is already running", -2: f"rate must be in (0, 100 kHz], got {rate}",
+                              -4: "could not start the servo thread", -5: "no threads on this platform"}.get(rc, f"error {rc}"))
+
+    def stop(self) -> None:
+        self.servo.stop()
+
+    def running(self) -> bool:
+        return self.servo.running()
+
+    def set_probes(self, probes) -> None:
+        self.servo.set_probes(probes)
+
+    def read(self):
+        forces, statuses, (ticks, late, lateness, step_max) = self.servo.read()
+        return forces, statuses, {"ticks": ticks, "late": late, "max_lateness": lateness, "step_max": step_max}
+
+
+def table_meta(table) -> dict:
+    """The metadata of a table loaded by :func:`load_table`."""
+    return json.loads(table.meta())

@@ -1,0 +1,494 @@
+/* pmask.runtime.servo._core: the CPython binding of the native servo core (pmask_servo.c).
+ *
+ * Thin on purpose: it converts probes exactly as the Python engine's float() does (PyNumber_Float; a
+ * value that does not convert becomes NaN, a bad sample), calls pm_servo_step, and returns the same
+ * objects the Python engine returns (tuples of floats, pmask.runtime.Status members).  The step runs
+ * with the GIL held (it takes ~0.1-0.3 µs, less than releasing and taking the GIL back); the thread
+ * mode's ticks never touch the GIL, and deformation and batch queries release it.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <string.h>
+
+#include "pmask_servo.h"
+
+static PyObject *STATUS = NULL;   /* tuple of the 8 Status members, set by set_statuses */
+
+static PyObject *status_object(int32_t s)
+{
+    if (STATUS && s >= 0 && s < PyTuple_GET_SIZE(STATUS)) {
+        PyObject *o = PyTuple_GET_ITEM(STATUS, s);
+        Py_INCREF(o);
+        return o;
+    }
+    return PyLong_FromLong(s);
+}
+
+/* ------------------------------------------------------------------ probe conversion */
+static double to_double(PyObject *o)
+{
+    if (PyFloat_CheckExact(o)) return PyFloat_AS_DOUBLE(o);
+    PyObject *f = PyNumber_Float(o);   /* what float(o) does: __float__, __index__, strings */
+    if (!f) {
+        PyErr_Clear();
+        return NAN;
+    }
+    double v = PyFloat_AS_DOUBLE(f);
+    Py_DECREF(f);
+    return v;
+}
+
+static int is_double_format(const char *f)
+{
+    return f && (strcmp(f, "d") == 0 || strcmp(f, "<d") == 0 || strcmp(f, "=d") == 0 || strcmp(f, "@d") == 0);
+}
+
+/* one probe sample -> out[3]; anything that is not three numbers gives NaN (a bad sample) */
+static void sample_from(PyObject *o, double *out)
+{
+    out[0] = out[1] = out[2] = NAN;
+    if ((PyTuple_CheckExact(o) || PyList_CheckExact(o)) && PySequence_Fast_GET_SIZE(o) == 3) {
+        PyObject **it = PySequence_Fast_ITEMS(o);
+        for (int k = 0; k < 3; k++) out[k] = to_double(it[k]);
+        return;
+    }
+    if (PyObject_CheckBuffer(o)) {
+        Py_buffer v;
+        if (PyObject_GetBuffer(o, &v, PyBUF_RECORDS_RO) == 0) {
+            int ok = v.ndim == 1 && v.shape[0] == 3 && is_double_format(v.format) && v.itemsize == 8;
+            if (ok) {
+                for (int k = 0; k < 3; k++) memcpy(&out[k], (const char *)v.buf + k * v.strides[0], 8);
+            }
+            PyBuffer_Release(&v);
+            if (ok) return;
+        } else {
+            PyErr_Clear();
+        }
+    }
+    PyObject *seq = PySequence_Fast(o, "");
+    if (!seq) {
+        PyErr_Clear();
+        return;
+    }
+    if (PySequence_Fast_GET_SIZE(seq) == 3) {
+        PyObject **it = PySequence_Fast_ITEMS(seq);
+        for (int k = 0; k < 3; k++) out[k] = to_double(it[k]);
+    }
+    Py_DECREF(seq);
+}
+
+/* n probe samples -> out[3n]; a wrong count makes every sample bad, as the Python engine does */
+static void probes_from(PyObject *o, int32_t n, double *out)
+{
+    for (int32_t k = 0; k < 3 * n; k++) out[k] = NAN;
+    if (PyObject_CheckBuffer(o) && !PyTuple_CheckExact(o) && !PyList_CheckExact(o)) {
+        Py_buffer v;
+        if (PyObject_GetBuffer(o, &v, PyBUF_RECORDS_RO) == 0) {
+            int ok = v.ndim == 2 && v.shape[0] == n && v.shape[1] == 3 && is_double_format(v.format) && v.itemsize == 8;
+            if (ok)
+                for (int32_t l = 0; l < n; l++)
+                    for (int k = 0; k < 3; k++)
+                        memcpy(&out[3 * l + k], (const char *)v.buf + l * v.strides[0] + k * v.strides[1], 8);
+            PyBuffer_Release(&v);
+            if (ok) return;
+        } else {
+            PyErr_Clear();
+        }
+    }
+    PyObject *seq = PySequence_Fast(o, "");
+    if (!seq) {
+        PyErr_Clear();
+        return;
+    }
+    if (PySequence_Fast_GET_SIZE(seq) == n) {
+        PyObject **it = PySequence_Fast_ITEMS(seq);
+        for (int32_t l = 0; l < n; l++) sample_from(it[l], out + 3 * l);
+    }
+    Py_DECREF(seq);
+}
+
+static PyObject *triple(const double *v)
+{
+    PyObject *t = PyTuple_New(3);
+    if (!t) return NULL;
+    for (int k = 0; k < 3; k++) {
+        PyObject *f = PyFloat_FromDouble(v[k]);
+        if (!f) {
+            Py_DECREF(t);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(t, k, f);
+    }
+    return t;
+}
+
+/* ------------------------------------------------------------------ Table */
+typedef struct {
+    PyObject_HEAD
+    pm_table *table;
+} TableObject;
+
+static void Table_dealloc(TableObject *self)
+{
+    pm_table_free(self->table);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int Table_init(TableObject *self, PyObject *args, PyObject *kw)
+{
+    PyObject *src;
+    if (!PyArg_ParseTuple(args, "O", &src)) return -1;
+    char err[512] = "";
+    int rc;
+    if (PyObject_CheckBuffer(src)) {
+        Py_buffer v;
+        if (PyObject_GetBuffer(src, &v, PyBUF_SIMPLE)) return -1;
+        Py_BEGIN_ALLOW_THREADS
+        rc = pm_table_from_memory(v.buf, (size_t)v.len, &self->table, err, sizeof err);
+        Py_END_ALLOW_THREADS
+        PyBuffer_Release(&v);
+    } else {
+        PyObject *path = NULL;
+        if (!PyUnicode_FSConverter(src, &path)) return -1;
+        const char *p = PyBytes_AS_STRING(path);
+        Py_BEGIN_ALLOW_THREADS
+        rc = pm_table_load(p, &self->table, err, sizeof err);
+        Py_END_ALLOW_THREADS
+        Py_DECREF(path);
+    }
+    if (rc) {
+        PyErr_SetString(PyExc_ValueError, err);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *Table_counts(TableObject *self, PyObject *unused)
+{
+    return Py_BuildValue("LLi", (long long)pm_table_vertices(self->table), (long long)pm_table_triangles(self->table),
+                         (int)pm_table_has_zeta(self->table));
+}
+
+static PyObject *Table_meta(TableObject *self, PyObject *unused)
+{
+    return PyUnicode_FromString(pm_table_meta(self->table));
+}
+
+static PyObject *Table_nearest(TableObject *self, PyObject *arg)
+{
+    double p[3];
+    sample_from(arg, p);
+    if (!(isfinite(p[0]) && isfinite(p[1]) && isfinite(p[2]))) {
+        PyErr_SetString(PyExc_ValueError, "the point must be 3 finite numbers");
+        return NULL;
+    }
+    return PyLong_FromLongLong((long long)pm_table_nearest(self->table, p));
+}
+
+/* stiffness(triangles int64 (n,), barycentrics float64 (n, 3), out float64 (n, 9)): eq. 15 in a batch,
+ * unchecked (the Python wrapper validates) */
+static PyObject *Table_stiffness(TableObject *self, PyObject *args)
+{
+    Py_buffer t, b, o;
+    if (!PyArg_ParseTuple(args, "y*y*w*", &t, &b, &o)) return NULL;
+    Py_ssize_t n = t.len / 8;
+    PyObject *res = NULL;
+    if (b.len != n * 24 || o.len != n * 72) {
+        PyErr_SetString(PyExc_ValueError, "stiffness: buffer sizes do not match");
+    } else {
+        Py_BEGIN_ALLOW_THREADS
+        pm_table_stiffness(self->table, (int64_t)n, (const int64_t *)t.buf, (const double *)b.buf, (double *)o.buf);
+        Py_END_ALLOW_THREADS
+        res = Py_None;
+        Py_INCREF(res);
+    }
+    PyBuffer_Release(&t);
+    PyBuffer_Release(&b);
+    PyBuffer_Release(&o);
+    return res;
+}
+
+static PyMethodDef Table_methods[] = {
+    {"counts", (PyCFunction)Table_counts, METH_NOARGS, "(vertices, triangles, has_zeta)"},
+    {"meta", (PyCFunction)Table_meta, METH_NOARGS, "the table's JSON metadata"},
+    {"nearest", (PyCFunction)Table_nearest, METH_O, "the triangle nearest a point (bounding-volume hierarchy)"},
+    {"stiffness", (PyCFunction)Table_stiffness, METH_VARARGS, "K(x) for a batch, into a buffer"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject TableType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "pmask.runtime.servo._core.Table",
+    .tp_basicsize = sizeof(TableObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "A runtime table loaded by the native core: Table(path or bytes).",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Table_init,
+    .tp_dealloc = (destructor)Table_dealloc,
+    .tp_methods = Table_methods,
+};
+
+/* ------------------------------------------------------------------ Servo */
+typedef struct {
+    PyObject_HEAD
+    pm_servo *servo;
+    PyObject *table;   /* keeps the table alive */
+    PyObject *warn;    /* warn(kind, x, y, z): 'far' once, 'internal' when an internal error begins */
+    int32_t n;
+    int internal;
+    double *probes, *forces;
+    int32_t *status;
+} ServoObject;
+
+static void Servo_dealloc(ServoObject *self)
+{
+    if (self->servo) {
+        Py_BEGIN_ALLOW_THREADS
+        pm_servo_stop(self->servo);
+        Py_END_ALLOW_THREADS
+        pm_servo_free(self->servo);
+    }
+    Py_XDECREF(self->table);
+    Py_XDECREF(self->warn);
+    PyMem_Free(self->probes);
+    PyMem_Free(self->forces);
+    PyMem_Free(self->status);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* Servo(table, n, (friction, dynamic_friction, damping, tool_radius, slip_length, rate, max_jump, decay,
+ *        proxy_speed, reset_after, max_walk, passivity, coupled), warn) */
+static int Servo_init(ServoObject *self, PyObject *args, PyObject *kw)
+{
+    PyObject *table, *warn;
+    int n;
+    pm_options o;
+    int reset_after, max_walk, passivity, coupled;
+    if (!PyArg_ParseTuple(args, "O!i(dddddddddiiii)O", &TableType, &table, &n, &o.friction, &o.dynamic_friction,
+                          &o.damping, &o.tool_radius, &o.slip_length, &o.rate, &o.max_jump, &o.decay, &o.proxy_speed,
+                          &reset_after, &max_walk, &passivity, &coupled, &warn))
+        return -1;
+    o.reset_after = reset_after;
+    o.max_walk = max_walk;
+    o.passivity = passivity;
+    o.coupled = coupled;
+    char err[512] = "";
+    if (pm_servo_create(((TableObject *)table)->table, n, &o, &self->servo, err, sizeof err)) {
+        PyErr_SetString(PyExc_ValueError, err);
+        return -1;
+    }
+    self->n = n;
+    self->probes = PyMem_Calloc(3 * (size_t)n, sizeof(double));
+    self->forces = PyMem_Calloc(3 * (size_t)n, sizeof(double));
+    self->status = PyMem_Calloc((size_t)n, sizeof(int32_t));
+    if (!self->probes || !self->forces || !self->status) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    Py_INCREF(table);
+    self->table = table;
+    Py_INCREF(warn);
+    self->warn = warn;
+    return 0;
+}
+
+static int after_step(ServoObject *self)
+{
+    double p[3];
+    if (pm_servo_take_far_warning(self->servo, p)) {
+        PyObject *r = PyObject_CallFunction(self->warn, "sddd", "far", p[0], p[1], p[2]);
+        if (!r) return -1;
+        Py_DECREF(r);
+    }
+    int internal = 0;
+    for (int32_t l = 0; l < self->n; l++) internal |= self->status[l] == PM_INTERNAL_ERROR;
+    if (internal && !self->internal) {
+        PyObject *r = PyObject_CallFunction(self->warn, "sddd", "internal", 0.0, 0.0, 0.0);
+        if (!r) return -1;
+        Py_DECREF(r);
+    }
+    self->internal = internal;
+    return 0;
+}
+
+static PyObject *results(ServoObject *self)
+{
+    PyObject *f = PyList_New(self->n), *s = PyList_New(self->n);
+    if (!f || !s) goto fail;
+    for (int32_t l = 0; l < self->n; l++) {
+        PyObject *t = triple(self->forces + 3 * l), *st = status_object(self->status[l]);
+        if (!t || !st) {
+            Py_XDECREF(t);
+            Py_XDECREF(st);
+            goto fail;
+        }
+        PyList_SET_ITEM(f, l, t);
+        PyList_SET_ITEM(s, l, st);
+    }
+    return Py_BuildValue("(NN)", f, s);
+fail:
+    Py_XDECREF(f);
+    Py_XDECREF(s);
+    return NULL;
+}
+
+static PyObject *Servo_step(ServoObject *self, PyObject *probes)
+{
+    probes_from(probes, self->n, self->probes);
+    pm_servo_step(self->servo, self->probes, self->forces, self->status);
+    if (after_step(self)) return NULL;
+    return results(self);
+}
+
+/* one instrument: step1(probe) -> (force, status) */
+static PyObject *Servo_step1(ServoObject *self, PyObject *probe)
+{
+    sample_from(probe, self->probes);
+    pm_servo_step(self->servo, self->probes, self->forces, self->status);
+    if (after_step(self)) return NULL;
+    PyObject *f = triple(self->forces);
+    if (!f) return NULL;
+    return Py_BuildValue("(NN)", f, status_object(self->status[0]));
+}
+
+static PyObject *Servo_state(ServoObject *self, PyObject *arg)
+{
+    long k = PyLong_AsLong(arg);
+    if (k == -1 && PyErr_Occurred()) return NULL;
+    if (k < 0 || k >= self->n) {
+        PyErr_SetString(PyExc_IndexError, "no such contact");
+        return NULL;
+    }
+    pm_contact_state s;
+    pm_servo_state(self->servo, (int32_t)k, &s);
+    return Py_BuildValue("(L(ddd)NNNNOddON)", (long long)s.triangle, s.bary[0], s.bary[1], s.bary[2], triple(s.u_bar),
+                         triple(s.force), triple(s.body_force), status_object(s.status),
+                         s.in_contact ? Py_True : Py_False, s.depth, s.taper, s.sliding ? Py_True : Py_False,
+                         triple(s.point));
+}
+
+static PyObject *Servo_reset(ServoObject *self, PyObject *unused)
+{
+    pm_servo_reset(self->servo);
+    self->internal = 0;
+    Py_RETURN_NONE;
+}
+
+static PyObject *Servo_deformation(ServoObject *self, PyObject *arg)
+{
+    Py_buffer o;
+    if (PyObject_GetBuffer(arg, &o, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS)) return NULL;
+    PyObject *res = NULL;
+    /* the table's vertex count: the buffer must hold n_s x 3 doubles */
+    TableObject *t = (TableObject *)self->table;
+    if (o.len != 24 * (Py_ssize_t)pm_table_vertices(t->table)) {
+        PyErr_SetString(PyExc_ValueError, "deformation: the output must hold n_vertices x 3 doubles");
+    } else {
+        int rc;
+        Py_BEGIN_ALLOW_THREADS
+        rc = pm_servo_deformation(self->servo, (double *)o.buf);
+        Py_END_ALLOW_THREADS
+        res = PyLong_FromLong(rc);
+    }
+    PyBuffer_Release(&o);
+    return res;
+}
+
+static PyObject *Servo_start(ServoObject *self, PyObject *arg)
+{
+    double rate = PyFloat_AsDouble(arg);
+    if (rate == -1.0 && PyErr_Occurred()) return NULL;
+    return PyLong_FromLong(pm_servo_start(self->servo, rate, NULL));
+}
+
+static PyObject *Servo_stop(ServoObject *self, PyObject *unused)
+{
+    Py_BEGIN_ALLOW_THREADS
+    pm_servo_stop(self->servo);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+static PyObject *Servo_running(ServoObject *self, PyObject *unused)
+{
+    return PyBool_FromLong(pm_servo_running(self->servo));
+}
+
+static PyObject *Servo_set_probes(ServoObject *self, PyObject *probes)
+{
+    probes_from(probes, self->n, self->probes);
+    pm_servo_set_probes(self->servo, self->probes);
+    Py_RETURN_NONE;
+}
+
+static PyObject *Servo_read(ServoObject *self, PyObject *unused)
+{
+    pm_tick_stats st;
+    pm_servo_read(self->servo, self->forces, self->status, &st);
+    if (after_step(self)) return NULL;
+    PyObject *r = results(self);
+    if (!r) return NULL;
+    PyObject *out = Py_BuildValue("(OO(LLdd))", PyTuple_GET_ITEM(r, 0), PyTuple_GET_ITEM(r, 1), (long long)st.ticks,
+                                  (long long)st.late, st.max_lateness, st.step_max);
+    Py_DECREF(r);
+    return out;
+}
+
+static PyMethodDef Servo_methods[] = {
+    {"step", (PyCFunction)Servo_step, METH_O, "one tick for n probes -> (forces, statuses)"},
+    {"step1", (PyCFunction)Servo_step1, METH_O, "one tick for one probe -> (force, status)"},
+    {"state", (PyCFunction)Servo_state, METH_O, "contact k after the last tick"},
+    {"reset", (PyCFunction)Servo_reset, METH_NOARGS, "forget all contact state"},
+    {"deformation", (PyCFunction)Servo_deformation, METH_O, "eq. 16 into a buffer (n_s x 3)"},
+    {"start", (PyCFunction)Servo_start, METH_O, "run the step on a thread of its own at a rate [Hz]"},
+    {"stop", (PyCFunction)Servo_stop, METH_NOARGS, "stop the thread"},
+    {"running", (PyCFunction)Servo_running, METH_NOARGS, "whether the thread runs"},
+    {"set_probes", (PyCFunction)Servo_set_probes, METH_O, "the probes the thread uses from its next tick"},
+    {"read", (PyCFunction)Servo_read, METH_NOARGS, "(forces, statuses, (ticks, late, max_lateness, step_max))"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ServoType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "pmask.runtime.servo._core.Servo",
+    .tp_basicsize = sizeof(ServoObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Contact state for n instruments over a Table (see pmask.runtime.servo.NativeContacts).",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Servo_init,
+    .tp_dealloc = (destructor)Servo_dealloc,
+    .tp_methods = Servo_methods,
+};
+
+/* ------------------------------------------------------------------ module */
+static PyObject *set_statuses(PyObject *mod, PyObject *arg)
+{
+    if (!PyTuple_Check(arg)) {
+        PyErr_SetString(PyExc_TypeError, "set_statuses needs a tuple");
+        return NULL;
+    }
+    Py_XDECREF(STATUS);
+    Py_INCREF(arg);
+    STATUS = arg;
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef module_methods[] = {
+    {"set_statuses", set_statuses, METH_O, "the objects returned for each status value"},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_core", "The native servo core's binding.", -1,
+                                    module_methods, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__core(void)
+{
+    if (PyType_Ready(&TableType) < 0 || PyType_Ready(&ServoType) < 0) return NULL;
+    PyObject *m = PyModule_Create(&module);
+    if (!m) return NULL;
+    Py_INCREF(&TableType);
+    Py_INCREF(&ServoType);
+    if (PyModule_AddObject(m, "Table", (PyObject *)&TableType) || PyModule_AddObject(m, "Servo", (PyObject *)&ServoType) ||
+        PyModule_AddIntConstant(m, "TABLE_MAJOR", PM_TABLE_MAJOR) || PyModule_AddIntConstant(m, "TABLE_MINOR", PM_TABLE_MINOR)) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

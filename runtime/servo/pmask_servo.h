@@ -1,0 +1,162 @@
+/* pmask servo core: haptic contact with precomputed Green's functions and pressure masks, in C99.
+ *
+ * The same algorithm as pmask.runtime.haptics (the Python reference; a test requires both to give the
+ * same statuses and forces to 1e-12 on recorded probe traces): proxies that follow the probe's Phong
+ * projection along the surface, the frictionless normal law λ k_n δ with the tangential term ½ δ² ∇k_n,
+ * slip-weakening Coulomb friction, several contacts coupled through the Green's functions by block
+ * Gauss-Seidel, zero-order-hold compensation, viscous damping and a passivity observer/controller.
+ *
+ * A runtime table (``pmask export-table ARTIFACT -o FILE``; format in pmask/runtime/table.py) carries
+ * everything the step reads: the mesh, contact normals, per-vertex rendered stiffness K_i, taper λ and
+ * ∇k_n, triangle frames and neighbours, and optionally the ζ table for coupling and deformation.  Its
+ * layout (little-endian): a 64-byte header ("PMASKTBL", major, minor, size, section count, a CRC-32 of
+ * header and directory), a directory of named sections with a CRC-32 each, the sections.  A foreign,
+ * truncated or corrupt file, a newer major version and stiffnesses that are not positive definite are
+ * refused with a message.  Loading builds a bounding-volume hierarchy of the triangles, which restarts
+ * contact tracking in O(log n) whatever the probe's depth.
+ *
+ * Threads: a table is read-only after loading and may be shared.  A servo (contact state for n
+ * instruments) is used by one thread at a time, except in thread mode (pm_servo_start), where its own
+ * thread runs the step at a set rate and other threads only call pm_servo_set_probes / pm_servo_read
+ * (a sequence lock: no locks and no allocation inside the tick).
+ *
+ * Indices are int64_t and sizes size_t throughout (no `long`: Windows is LLP64).
+ */
+#ifndef PMASK_SERVO_H
+#define PMASK_SERVO_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#if defined(_WIN32) && defined(PMASK_SERVO_SHARED)
+#define PM_API __declspec(dllexport)
+#else
+#define PM_API
+#endif
+
+#define PM_TABLE_MAJOR 1
+#define PM_TABLE_MINOR 0
+
+/* contact statuses (the values of pmask.runtime.Status) */
+enum {
+    PM_NO_CONTACT = 0,
+    PM_CONTACT = 1,
+    PM_BAD_SAMPLE = 2,
+    PM_JUMP = 3,
+    PM_OUTSIDE_REGION = 4,
+    PM_FAR_OUTSIDE = 5,
+    PM_REGION_EDGE = 6,
+    PM_INTERNAL_ERROR = 7
+};
+
+typedef struct pm_table pm_table;
+typedef struct pm_servo pm_servo;
+
+/* The contact options (pmask.runtime.Contacts's keyword arguments); pm_options_default fills the
+ * defaults, some of which come from the table (max_jump, slip_length: from the mean edge length). */
+typedef struct {
+    double friction;          /* static Coulomb coefficient μ_s (0: frictionless) */
+    double dynamic_friction;  /* μ_d */
+    double damping;           /* viscous damping b_v [N s/m] */
+    double tool_radius;       /* radius of the spherical tip [model units] */
+    double slip_length;       /* μ weakens from μ_s to μ_d over this much slip */
+    double rate;              /* servo rate [Hz] (velocities) */
+    double max_jump;          /* largest plausible probe move per tick */
+    double decay;             /* per-tick factor on the last good force while samples are bad */
+    double proxy_speed;       /* the proxy moves at most this many times the probe's motion per tick */
+    int32_t reset_after;      /* implausible samples in a row before tracking restarts */
+    int32_t max_walk;         /* triangle steps per walk */
+    int32_t passivity;        /* the passivity observer/controller */
+    int32_t coupled;          /* several contacts solved together (needs the ζ table); -1: when n > 1 and
+                                 the table has one */
+} pm_options;
+
+/* One contact after a step (pmask.runtime.HapticContact's attributes). */
+typedef struct {
+    double force[3];      /* on the user */
+    double body_force[3]; /* on the body (what the device holds during the next tick, negated) */
+    double u_bar[3];      /* the displacement the contact imposes */
+    double bary[3];       /* proxy barycentrics */
+    double point[3];      /* proxy position */
+    double depth, taper;
+    int64_t triangle;     /* proxy triangle, -1 when not tracking */
+    int32_t status, in_contact, sliding, pad;
+} pm_contact_state;
+
+/* Timing of thread mode (pm_servo_start). */
+typedef struct {
+    int64_t ticks;        /* steps run */
+    int64_t late;         /* ticks whose force was not ready within their own period (finished after
+                             scheduled start + period), and ticks skipped because the loop fell behind */
+    double max_lateness;  /* [s] */
+    double step_max;      /* longest step [s] */
+} pm_tick_stats;
+
+/* Load a table from a file, or from memory (copied).  0 on success; otherwise a message in err. */
+PM_API int pm_table_load(const char *path, pm_table **out, char *err, size_t errlen);
+PM_API int pm_table_from_memory(const void *data, size_t size, pm_table **out, char *err, size_t errlen);
+PM_API void pm_table_free(pm_table *table);
+PM_API int64_t pm_table_vertices(const pm_table *table);
+PM_API int64_t pm_table_triangles(const pm_table *table);
+PM_API int32_t pm_table_has_zeta(const pm_table *table);
+/* The model's bounding box (lower and upper corner). */
+PM_API void pm_table_bounds(const pm_table *table, double *lo, double *hi);
+/* The table's metadata: a JSON object (mask, radius, k_rigid, units, source artifact). */
+PM_API const char *pm_table_meta(const pm_table *table);
+
+/* K(x) = Σ b_k K_{t_k} (eq. 15) for n points: out (n x 9, row-major 3x3 each).  No validation. */
+PM_API void pm_table_stiffness(const pm_table *table, int64_t n, const int64_t *triangles, const double *bary,
+                               double *out);
+/* The triangle whose barycentric-clamped projection is nearest a point (the bounding-volume hierarchy;
+ * ties: the smallest index, as the Python engine's grid). */
+PM_API int64_t pm_table_nearest(const pm_table *table, const double *point);
+
+PM_API void pm_options_default(const pm_table *table, pm_options *options);
+/* A servo for n instruments: all memory the step needs is allocated here.  0 or a message. */
+PM_API int pm_servo_create(const pm_table *table, int32_t n, const pm_options *options, pm_servo **out,
+                           char *err, size_t errlen);
+PM_API void pm_servo_free(pm_servo *servo);
+PM_API void pm_servo_reset(pm_servo *servo);
+/* One tick: probes (3n; a non-finite coordinate is a bad sample) -> forces on the users (3n), statuses (n).
+ * Allocates nothing, takes no lock, never fails. */
+PM_API void pm_servo_step(pm_servo *servo, const double *probes, double *forces, int32_t *status);
+/* Contact k after the last tick (a consistent copy, also while the servo's thread runs). */
+PM_API void pm_servo_state(pm_servo *servo, int32_t k, pm_contact_state *out);
+PM_API int32_t pm_servo_count(const pm_servo *servo);
+/* 1 once a probe came more than 10 model sizes from the model (wrong units?), with that probe in `probe`
+ * (may be NULL); 0 afterwards (it is reported once per servo, as the Python engine logs it once). */
+PM_API int32_t pm_servo_take_far_warning(pm_servo *servo, double *probe);
+/* The surface displacement (n_vertices x 3) of eq. 16 for the contacts after the last step, with display
+ * forces that make it meet every contact's displacement: 0, or -1 without a ζ table. */
+PM_API int pm_servo_deformation(pm_servo *servo, double *out);
+
+/* Device input/output inside the tick (thread mode): read fills the probes (3n) before the step, write
+ * receives the forces (3n) and statuses (n) right after it.  Both run on the servo's thread, so they must
+ * not block (a device driver's non-blocking read and write). */
+typedef struct {
+    void (*read)(void *user, double *probes);
+    void (*write)(void *user, const double *forces, const int32_t *status);
+    void *user;
+} pm_io;
+
+/* Thread mode: a thread of the servo's own runs the step at `rate` Hz (absolute schedule, CLOCK_MONOTONIC;
+ * a real-time priority where the process may have one), on the probes from `io` or, with io NULL, on the
+ * probes last given to pm_servo_set_probes.  While it runs, pm_servo_step returns the thread's latest
+ * results and pm_servo_reset does nothing.  0, or < 0: already running (-1), bad rate (-2), bad io (-3),
+ * no thread (-4), no threads on this platform (-5).  POSIX only. */
+PM_API int pm_servo_start(pm_servo *servo, double rate, const pm_io *io);
+PM_API void pm_servo_stop(pm_servo *servo);
+PM_API int32_t pm_servo_running(const pm_servo *servo);
+/* From one thread at a time; never blocks the servo's thread (a sequence lock). */
+PM_API void pm_servo_set_probes(pm_servo *servo, const double *probes);
+/* The latest forces (3n), statuses (n) and timing; any pointer may be NULL. */
+PM_API void pm_servo_read(pm_servo *servo, double *forces, int32_t *status, pm_tick_stats *stats);
+
+#ifdef __cplusplus
+}
+#endif
+#endif

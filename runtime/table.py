@@ -1,0 +1,250 @@
+"""Runtime tables: everything the haptic step reads, in one file a C/C++ application can load.
+
+A table is exported from an artifact for one mask and radius (``pmask export-table ARTIFACT --mask
+linear --radius R -o FILE``, or :func:`export_table`); the native servo core
+(``runtime/servo/pmask_servo.c``) and :meth:`pmask.runtime.haptics.Surface.from_table` read it.  It holds
+the rendered per-vertex stiffness K_i (eq. 12 with the support blend and the region taper of
+:mod:`pmask.runtime.stiffness`), so an application needs neither Ξ nor the masks.
+
+Format 1.0, little-endian::
+
+    header (64 bytes)   "PMASKTBL", u32 major, u32 minor, u64 file size, u64 directory offset (64),
+                        u32 section count, u32 CRC-32 of the header (this field zero) and the directory,
+                        24 reserved zero bytes
+    directory           per section 64 bytes: name (32, NUL-padded), u32 type (1 float64, 2 int64,
+                        3 bytes), u32 CRC-32 of its data, u64 offset, u64 rows, u64 columns
+    sections            each at an offset that is a multiple of 64
+
+Sections (n_s surface vertices, n_t triangles, n_c contact vertices):
+
+=============== ========== ==========================================================================
+points          n_s x 3    vertex positions [model units]
+triangles       n_t x 3    vertex indices, counter-clockwise seen from outside
+neighbours      n_t x 3    triangle across the edge opposite each vertex, -1 on an open edge
+frames          n_t x 12   v0, duals a and b of the edges, unit normal (:func:`~pmask.runtime.geometry.triangle_frames`)
+normals         n_s x 3    contact normals (crease-blended, :func:`~pmask.runtime.geometry.contact_normals`)
+stiffness       n_s x 9    rendered K_i [N/m], row-major
+taper           n_s x 1    λ: 1 in the contact region, falling to 0 across the band beyond it
+gradient        n_s x 3    ∇k_n per vertex (:func:`~pmask.runtime.haptics.normal_stiffness_gradient`)
+bounds          2 x 3      bounding box (lower, upper corner)
+lengths         1 x 2      mean edge length, bounding-box diagonal
+zeta            3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
+                           the deformation of eq. 16
+contact_row     n_s x 1    with zeta: each surface vertex's row block, -1 for none
+meta            bytes      JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
+=============== ========== ==========================================================================
+
+The spatial index that restarts contact tracking is built by each reader at load (the Python engine a
+uniform grid, :class:`~pmask.runtime.spatial.TriangleGrid`; the C core a bounding-volume hierarchy,
+whose cost does not grow with the probe's depth); both return the same triangle.
+
+A reader refuses a foreign file, a newer major version, a truncated or corrupt one (every section's
+CRC-32 is checked) and stiffnesses that are not positive definite, with one line that says so; it
+accepts a newer minor version and ignores sections it does not know.
+"""
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from pmask.errors import InputError
+from pmask.runtime.files import atomic_write
+
+MAGIC = b"PMASKTBL"
+TABLE_MAJOR, TABLE_MINOR = 1, 0
+HEADER, ENTRY, NAME = 64, 64, 32
+F64, I64, BYTES = 1, 2, 3
+
+
+class TableError(InputError):
+    """A file that is not a runtime table this version reads (foreign, newer, truncated, corrupt)."""
+
+
+def surface_sections(surface, zeta: bool = True) -> dict:
+    """The sections of a table for a :class:`pmask.runtime.haptics.Surface` (without ``meta``)."""
+    s = surface
+    out = {
+        "points": s.P, "triangles": s.T, "neighbours": s.neighbours, "frames": s.tri_geom,
+        "normals": s.vertex_normals, "stiffness": s.K, "taper": s.taper[:, None], "gradient": s.gradient,
+        "bounds": np.stack([s.lo, s.hi]), "lengths": np.array([[s.mean_edge, s.diag]]),
+    }
+    coupling = s.coupling() if zeta else None
+    if coupling is not None:
+        Zt, row = coupling
+        out["zeta"] = Zt
+        out["contact_row"] = np.asarray(row, np.int64)[:, None]
+    return out
+
+
+def table_bytes(sections: dict, meta: dict) -> bytes:
+    """Serialise sections (name -> 2-D float64/int64 array) and the metadata into a table."""
+    items = list(sections.items()) + [("meta", json.dumps(meta, sort_keys=True).encode())]
+    n = len(items)
+    offset = HEADER + n * ENTRY
+    directory, blobs = [], []
+    for name, value in items:
+        if isinstance(value, bytes):
+            data, kind, rows, cols = value, BYTES, len(value), 1
+        else:
+            a = np.asarray(value)
+            if a.ndim != 2:
+                raise ValueError(f"section {name} must be 2-D, got {a.shape}")
+            kind = I64 if np.issubdtype(a.dtype, np.integer) else F64
+            a = np.ascontiguousarray(a, dtype="<i8" if kind == I64 else "<f8")
+            data, (rows, cols) = a.tobytes(), a.shape
+        offset = -(-offset // 64) * 64
+        directory.append(struct.pack("<32sIIQQQ", name.encode(), kind, zlib.crc32(data), offset, rows, cols))
+        blobs.append((offset, data))
+        offset += len(data)
+    size = offset
+    head = struct.pack("<8sIIQQII24x", MAGIC, TABLE_MAJOR, TABLE_MINOR, size, HEADER, n, 0)
+    d = b"".join(directory)
+    crc = zlib.crc32(d, zlib.crc32(head))
+    head = head[:36] + struct.pack("<I", crc) + head[40:]
+    out = bytearray(size)
+    out[:HEADER] = head
+    out[HEADER:HEADER + len(d)] = d
+    for off, data in blobs:
+        out[off:off + len(data)] = data
+    return bytes(out)
+
+
+def write_table(path, surface, meta: dict, zeta: bool = True) -> Path:
+    """Write a table for ``surface`` atomically (a killed export leaves no partial file)."""
+    data = table_bytes(surface_sections(surface, zeta), meta)
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"the folder {path.parent} does not exist; create it or write the table elsewhere (-o)")
+    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+
+
+def read_table(source) -> dict:
+    """Read and check a table (a path or bytes): name -> array (2-D), ``meta`` -> dict.  Refuses what the
+    native loader refuses, with the same reasons (:class:`TableError`)."""
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        buf, where = bytes(source), "the runtime table"
+    else:
+        where = str(source)
+        try:
+            buf = Path(source).read_bytes()
+        except OSError as exc:
+            raise TableError(f"cannot read the runtime table {where}: {exc.strerror or exc}") from None
+    if len(buf) < HEADER or buf[:8] != MAGIC:
+        raise TableError(f"{where} is not a pmask runtime table (no PMASKTBL header); write one with "
+                         "`pmask export-table ARTIFACT -o FILE`")
+    magic, major, minor, size, dir_off, n, crc = struct.unpack_from("<8sIIQQII", buf)
+    if major > TABLE_MAJOR or major == 0:
+        raise TableError(f"{where}: runtime table format {major}.{minor} is not one this version reads "
+                         f"({TABLE_MAJOR}.x): export the table with this version of pmask, or update pmask")
+    if size != len(buf):
+        raise TableError(f"{where}: corrupt runtime table: truncated or padded (the header says {size} bytes, "
+                         f"there are {len(buf)})")
+    if dir_off != HEADER or n > 4096 or HEADER + n * ENTRY > size:
+        raise TableError(f"{where}: corrupt runtime table: bad section directory")
+    head = buf[:36] + b"\0\0\0\0" + buf[40:HEADER]
+    if zlib.crc32(buf[HEADER:HEADER + n * ENTRY], zlib.crc32(head)) != crc:
+        raise TableError(f"{where}: corrupt runtime table: the header's checksum does not match")
+    out = {}
+    for i in range(n):
+        name, kind, scrc, off, rows, cols = struct.unpack_from("<32sIIQQQ", buf, HEADER + i * ENTRY)
+        name = name.rstrip(b"\0").decode("utf-8", "replace")
+        item = 1 if kind == BYTES else 8
+        nbytes = rows * cols * item
+        if off % 8 or off > size or nbytes > size - off:
+            raise TableError(f"{where}: corrupt runtime table: section '{name}' lies outside the file")
+        data = buf[off:off + nbytes]
+        if zlib.crc32(data) != scrc:
+            raise TableError(f"{where}: corrupt runtime table: section '{name}' fails its checksum")
+        if kind == BYTES:
+            out[name] = data
+        elif kind in (F64, I64):
+            out[name] = np.frombuffer(data, "<f8" if kind == F64 else "<i8").reshape(rows, cols)
+        # a type this version does not know: a newer minor's addition, ignored
+    _check(out, where)
+    try:
+        out["meta"] = json.loads(out.get("meta", b"{}").decode())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise TableError(f"{where}: corrupt runtime table: its metadata is not JSON") from None
+    return out
+
+
+#: (rows, columns) of each required section; 'v' n_s, 't' n_t, None any
+_SHAPES = {"points": (None, 3), "triangles": (None, 3), "neighbours": ("t", 3), "frames": ("t", 12),
+           "normals": ("v", 3), "stiffness": ("v", 9), "taper": ("v", 1), "gradient": ("v", 3), "bounds": (2, 3),
+           "lengths": (1, 2)}
+_INTS = {"triangles", "neighbours", "contact_row"}
+
+
+def _check(t: dict, where: str) -> None:
+    for name in _SHAPES:
+        if name not in t:
+            raise TableError(f"{where}: not a complete runtime table: section '{name}' is missing (export it again)")
+    nv, nt = len(t["points"]), len(t["triangles"])
+    for name, (r, c) in _SHAPES.items():
+        a = t[name]
+        rows = {"v": nv, "t": nt}.get(r, r)
+        if (name in _INTS) != (a.dtype.kind == "i") or (rows is not None and a.shape[0] != rows) or a.shape[1] != c:
+            raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape {a.shape}")
+    if nv < 3 or nt < 1:
+        raise TableError(f"{where}: runtime table without a surface ({nv} vertices, {nt} triangles)")
+    T, nb = t["triangles"], t["neighbours"]
+    if T.min() < 0 or T.max() >= nv or nb.min() < -1 or nb.max() >= nt:
+        raise TableError(f"{where}: corrupt runtime table: a triangle or neighbour index is out of range")
+    floats = [k for k in _SHAPES if k not in _INTS]
+    if not all(np.all(np.isfinite(t[k])) for k in floats):
+        raise TableError(f"{where}: corrupt runtime table: a non-finite number")
+    lam = t["taper"][:, 0]
+    if lam.min() < 0 or lam.max() > 1:
+        raise TableError(f"{where}: corrupt runtime table: taper outside [0, 1] at vertex "
+                         f"{int(np.flatnonzero((lam < 0) | (lam > 1))[0])}")
+    K = t["stiffness"].reshape(-1, 3, 3)
+    bad = np.flatnonzero(~(np.linalg.eigvalsh(0.5 * (K + K.transpose(0, 2, 1)))[:, 0] > 0))
+    if len(bad):
+        raise TableError(f"{where}: runtime table: the stiffness at surface vertex {int(bad[0])} is not positive "
+                         "definite (a corrupt or hand-edited table; export it again from a checked artifact)")
+    if "zeta" in t:
+        Z = t["zeta"]
+        if Z.dtype.kind != "f" or Z.shape[0] != Z.shape[1] or Z.shape[0] % 3:
+            raise TableError(f"{where}: corrupt runtime table: the zeta table is not square")
+        if not np.all(np.isfinite(Z)):
+            raise TableError(f"{where}: corrupt runtime table: a non-finite number in the zeta table")
+        row = t.get("contact_row")
+        if row is None:
+            raise TableError(f"{where}: not a complete runtime table: section 'contact_row' is missing (export it again)")
+        if row.dtype.kind != "i" or row.shape != (nv, 1):
+            raise TableError(f"{where}: corrupt runtime table: section 'contact_row' has the wrong type or shape {row.shape}")
+        if row.min() < -1 or row.max() >= Z.shape[0] // 3:
+            raise TableError(f"{where}: corrupt runtime table: a contact row is out of range")
+
+
+def export_table(artifact, out, *, mask: str = "linear", radius: float | None = None, k_rigid: float | None = None,
+                 normal_radius: float | None = None, zeta: bool = True, device=None) -> Path:
+    """Export a runtime table from an artifact: :meth:`pmask.runtime.Model.stiffness` for the mask and
+    radius, the contact surface of :class:`pmask.runtime.haptics.Surface`, and (``zeta``) the ζ table
+    for several coupled contacts and the deformation (3n_c x 3n_c doubles: 150 MB at the default
+    kidney's 1,446 contact vertices).  radius : default 2 mean edge lengths."""
+    from pmask.runtime.haptics import Surface
+    from pmask.runtime.model import Model
+
+    model = artifact if isinstance(artifact, Model) else Model.load(artifact)
+    if radius is None and mask != "single":
+        radius = 2.0 * model.mean_edge_length
+    stiff = model.stiffness(mask, radius, k_rigid=k_rigid, device=device)
+    surface = Surface(stiff, normal_radius)
+    meta = {"format": f"{TABLE_MAJOR}.{TABLE_MINOR}", "mask": stiff.masks.kind, "radius": stiff.masks.radius,
+            "k_rigid": stiff.k_rigid, "symmetric": stiff.symmetric, "support_blend": stiff.support_blend,
+            "normal_radius": surface.normal_radius, "units": {"length": "model units (as the artifact)",
+                                                              "stiffness": "N/m"},
+            "source": str(getattr(model, "path", "")), "source_digest": str(model.attrs.get("metadata_sha256", "")),
+            "pmask_version": _version()}
+    return write_table(out, surface, meta, zeta)
+
+
+def _version() -> str:
+    from pmask import __version__
+
+    return __version__
