@@ -89,100 +89,6 @@ def check_cost(path: Path) -> dict:
     """What the metadata checksum costs at load (Fletcher-32 is checked by HDF5 on every read either way)."""
     return json.loads(sh([sys.executable, "-c", CHECK_SNIPPET, str(path)], cwd=ROOT).strip().splitlines()[-1])
 
-def gmsh_ellipsoid(n_target: int, axes=(0.055, 0.03, 0.02)):
-    """A gmsh (frontal-Delaunay) surface mesh of an ellipsoid with about n_target vertices: the synthetic
-    surfaces of the query benchmarks, with a mesher's valences (a UV sphere's pole fans are not)."""
-    from pmask.precompute.meshing import gmsh_session
-
-    a, b, c = axes
-    p = 1.6075
-    area = 4 * np.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
-    h = np.sqrt(2 * area / (np.sqrt(3) * n_target))
-    with gmsh_session("synthetic") as gmsh:
-        s = gmsh.model.occ.addSphere(0, 0, 0, 1.0)
-        gmsh.model.occ.dilate([(3, s)], 0, 0, 0, a, b, c)
-        gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", h)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
-        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-        gmsh.model.mesh.generate(2)
-        tags, coords, _ = gmsh.model.mesh.getNodes()
-        _, _, tri = gmsh.model.mesh.getElements(2)
-    order = np.argsort(tags)
-    pts = coords.reshape(-1, 3)[order]
-    tris = np.searchsorted(tags[order], np.concatenate(tri).reshape(-1, 3))
-    used, inv = np.unique(tris, return_inverse=True)
-    pts, tris = pts[used], inv.reshape(-1, 3)
-    q = pts[tris]
-    if np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), q[:, 0]).sum() < 0:
-        tris = tris[:, ::-1].copy()
-    return pts, tris
-
-
-def synthetic_stiffness(n: int):
-    from pmask.runtime import SurfaceStiffness
-
-    pts, tris = gmsh_ellipsoid(n)
-    rng = np.random.default_rng(1)
-    X = rng.standard_normal((len(pts), 3, 3)) * 10
-    K = np.einsum("nij,nkj->nik", X, X) + 50 * np.eye(3)
-    return SurfaceStiffness(pts, tris, K)
-
-def equator_path(axes=(0.055, 0.03, 0.02), depth=0.0015, steps=20000, turns=2.0):
-    """From 3 mm outside, in to ``depth`` over 100 steps, then round the equator ``turns`` times."""
-    approach = np.column_stack([np.full(100, axes[0] + 0.003 - np.linspace(0, 0.003 + depth, 100)),
-                                np.zeros(100), np.zeros(100)])
-    th = np.linspace(0, 2 * np.pi * turns, steps)
-    a, b = axes[0] - depth, axes[1] - depth
-    return np.concatenate([approach, np.column_stack([a * np.cos(th), b * np.sin(th), np.zeros(steps)])])
-
-
-def jitter_reference(target_us: float, steps=20000) -> dict:
-    """The same timing loop around a dummy Python function calibrated to the step's median cost:
-    what this machine's own interruptions do to a tail of that length."""
-    def dummy(n):
-        x = 0.0
-        for i in range(n):
-            x += i * 1.0
-        return x
-
-    pc = time.perf_counter_ns
-
-    def measure(n, k):
-        ts = np.empty(k)
-        for j in range(k):
-            t0 = pc()
-            dummy(n)
-            ts[j] = pc() - t0
-        return ts / 1e3
-
-    n = 60
-    for _ in range(4):  # calibrate the loop length to the target median
-        n = max(1, int(n * target_us / max(np.median(measure(n, 2000)), 1e-3)))
-    ts = measure(n, steps)
-    return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)),
-            "p999_us": float(np.percentile(ts, 99.9)), "max_us": float(ts.max()), "additions": n}
-
-
-def step_bench(stiff, path) -> dict:
-    from pmask.runtime import HapticContact, Status
-
-    h = HapticContact(stiff)
-    for p in path[:50]:
-        h.step(p)
-    pc = time.perf_counter_ns
-    ts = np.empty(len(path))
-    status = np.empty(len(path), dtype=int)
-    for k, p in enumerate(path.tolist()):  # lists of floats: what a device driver hands over
-        t0 = pc()
-        _, s = h.step(p)
-        ts[k] = pc() - t0
-        status[k] = s
-    ts /= 1e3
-    return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)),
-            "p999_us": float(np.percentile(ts, 99.9)), "max_us": float(ts.max()),
-            "contact_fraction": float(np.mean(status == Status.CONTACT)), "steps": len(path)}
-
 def batch_bench(stiff, n=1_000_000) -> dict:
     rng = np.random.default_rng(2)
     t = rng.integers(0, stiff.n_triangles, n)
@@ -227,27 +133,20 @@ def main() -> None:
     tot = np.array([sum(r["timings"].values()) for r in res["precompute"]])
     res["scaling"] = {"time_vs_free_exponent": float(np.polyfit(np.log(free), np.log(tot), 1)[0]),
                       "time_vs_condensed_dofs_exponent": float(np.polyfit(np.log(dofs), np.log(tot), 1)[0])}
-    # runtime: load + K_i on the real kidneys; per-step and batch on real and synthetic tables
+    # runtime: load + K_i and batch K(x) from numpy on the real kidneys; then the haptic step (runtime_bench)
     from pmask.runtime import Model
 
-    from pmask.pipeline import strokes as stroke
+    import runtime_bench
 
     for n_free, path in sorted(arts.items()):
         print(f"runtime kidney {n_free} ...", flush=True)
         m = Model.load(path)
         stiff = m.stiffness("linear", 2.0 * m.mean_edge_length)
         res["runtime"][f"kidney_{len(m.points)}"] = {
-            "surface_vertices": len(m.points), "synthetic": False, "load": load_bench(path),
-            "step": step_bench(stiff, np.concatenate([stroke.stroke_path(), stroke.stroke_path()[::-1]] * 3)),
-            "batch": batch_bench(stiff)}
-    for n in (500, 5000, 50000):
-        print(f"runtime synthetic {n} ...", flush=True)
-        stiff = synthetic_stiffness(n)
-        res["runtime"][f"synthetic_{len(stiff.points)}"] = {
-            "surface_vertices": len(stiff.points), "synthetic": True,
-            "step": step_bench(stiff, equator_path()), "batch": batch_bench(stiff)}
-    medians = [r["step"]["median_us"] for r in res["runtime"].values()]
-    res["jitter_reference"] = jitter_reference(float(np.median(medians)))
+            "surface_vertices": len(m.points), "synthetic": False, "load": load_bench(path), "batch": batch_bench(stiff)}
+    print("haptics ...", flush=True)
+    res["haptics"] = runtime_bench.run({len(Model.load(p).points): p for p in arts.values()},
+                                       runtime_bench.synthetic_stiffness, work)
     res["check_cost"] = check_cost(work / "kidney_0.005.h5")
     import shutil
 
@@ -367,10 +266,10 @@ def markdown(res: dict) -> str:
           f"{f['bytes_float64'] / 2**20:.0f} MiB, load {f['load_s_float32']:.3f} s vs {f['load_s_float64']:.3f} s "
           f"(warm), masked K_i relative error max {f['K_rel_error_max']:.1e} (median {f['K_rel_error_median']:.1e}), "
           f"single-vertex K_i max {f['K_single_rel_error_max']:.1e}.", ""]
-    L += ["**Runtime** (one contact step = tracking + K(x) + force, validation on, from Python; "
-          "batch = `at_batch` of 1 M random queries, validated)", "",
-          "| surface | vertices | load + all K_i (cold / warm) | deformation (eq. 16) | step median µs | "
-          "p99 µs | p99.9 µs | max µs | batch M queries/s |", "|---|---|---|---|---|---|---|---|---|"]
+    L += ["**Runtime, loading** (a fresh process: read the artifact and form every K_i; deformation = "
+          "`Stiffness.deformation` for one load; batch = `at_batch` of 1 M random queries from numpy, validated)", "",
+          "| surface | vertices | load + all K_i (cold / warm) | deformation (eq. 16) | numpy batch M queries/s |",
+          "|---|---|---|---|---|"]
     for name, r in res["runtime"].items():
         ld = r.get("load", {})
         lw = ld.get("warm")
@@ -380,20 +279,15 @@ def markdown(res: dict) -> str:
             load = (f"{lc['load_s'] + lc['vertex_stiffness_s']:.3f} / " if lc else "n/a / ") + \
                    f"{lw['load_s'] + lw['vertex_stiffness_s']:.3f} s"
         deform = f"{lw['deformation_s'] * 1e3:.2f} ms" if lw else "—"
-        st = r["step"]
-        label = "synthetic gmsh ellipsoid (random SPD K_i)" if r["synthetic"] else "kidney (cone mask, r = 2 mean edges)"
-        L.append(f"| {label} | {r['surface_vertices']} | {load} | {deform} | {st['median_us']:.1f} | "
-                 f"{st['p99_us']:.1f} | {st['p999_us']:.1f} | {st['max_us']:.0f} | "
+        L.append(f"| kidney (cone mask, r = 2 mean edges) | {r['surface_vertices']} | {load} | {deform} | "
                  f"{r['batch']['queries_per_s'] / 1e6:.1f} |")
     c = res["check_cost"]
     L += ["", f"Artifact checks at load (default kidney, warm): {c['load_verified_s']:.3f} s with the SHA-256 over "
               f"attributes and surface data, {c['load_unverified_s']:.3f} s without (Fletcher-32 on Ξ is verified "
               "by HDF5 on every read in both)."]
-    j = res["jitter_reference"]
-    L += ["", f"Machine jitter, same timing loop around a dummy Python function ({j['additions']} float additions, "
-              "calibrated to the steps' median): median "
-              f"{j['median_us']:.1f} µs, p99 {j['p99_us']:.1f} µs, p99.9 {j['p999_us']:.1f} µs, max {j['max_us']:.0f} µs. "
-              "Compare the step's tail with it: what exceeds it is the step's own."]
+    import runtime_bench
+
+    L += ["", runtime_bench.markdown(res["haptics"])]
     return "\n".join(L) + "\n"
 
 if __name__ == "__main__":

@@ -100,6 +100,11 @@ VELOCITY_FILTER = 0.1
 #: as virtual damping, and 6x the kT/2 that a 350 N/m support needs at 1 kHz
 PC_DAMPING_MAX = 1.0
 PC_RAMP_TICKS = 50
+#: thread mode: the servo thread sleeps to this many seconds before each tick and spins the rest.  On this
+#: 2-core VM with a busy Python thread beside it, a real-time thread woken from sleep began 0.3 % of its
+#: ticks more than a period late (up to 10 ms); sleeping to 200 µs before and spinning left 0-1 ticks in
+#: 15,000 more than 1 ms late.  It costs a fifth of a core at 1 kHz.
+SPIN = 2e-4
 
 
 def _num(name, v, lo=0.0, lo_open=False, hi=math.inf):
@@ -379,18 +384,21 @@ class Contacts:
         return self._states
 
     # ------------------------------------------------------------------ thread mode
-    def start(self, rate: float | None = None) -> None:
+    def start(self, rate: float | None = None, spin: float = SPIN) -> None:
         """Run the step on a thread of its own at ``rate`` Hz (default the device's), on the probes last given
         to :meth:`set_probes`; :meth:`read` returns the latest forces.  With the native core the thread is a
-        native one: its ticks never take the GIL, so Python threads beside it (graphics, I/O) cannot delay
-        them.  Without it, a Python thread runs the Python step (the same API; its ticks share the GIL)."""
+        native one (a real-time priority where the process may have one): its ticks never take the GIL, so
+        Python threads beside it (graphics, I/O) cannot delay them.  Without it, a Python thread runs the
+        Python step (the same API; its ticks share the GIL).  ``spin``: the thread sleeps to this many seconds
+        before each tick and spins the rest (:data:`SPIN`; 0 sleeps only)."""
         rate = float(self.device.rate if rate is None else _num("rate", rate, lo=0.0, lo_open=True, hi=1e5))
+        spin = _num("spin", spin, hi=0.01)
         if self.running:
             raise InputError("the servo thread is already running")
         if self._native is not None:
-            self._native.start(rate)
+            self._native.start(rate, spin)
         else:
-            self._thread = _PythonServoThread(self, rate)
+            self._thread = _PythonServoThread(self, rate, spin)
             self._thread.start()
 
     def stop(self) -> None:
@@ -921,10 +929,10 @@ class _PythonServoThread:
     """The Python engine's thread mode: the step at a set rate on an absolute schedule (the native core's
     rules for late ticks), sharing the GIL with the other Python threads."""
 
-    def __init__(self, contacts, rate):
+    def __init__(self, contacts, rate, spin):
         import threading
 
-        self.contacts, self.period = contacts, 1.0 / rate
+        self.contacts, self.period, self.spin = contacts, 1.0 / rate, min(spin, 0.5 / rate)
         self.probes = [None] * contacts.n
         self.stats = {"ticks": 0, "late": 0, "max_lateness": 0.0, "step_max": 0.0}
         self._stop = threading.Event()
@@ -943,9 +951,11 @@ class _PythonServoThread:
         T, st = self.period, self.stats
         nxt = time.perf_counter() + T
         while not self._stop.is_set():
-            delay = nxt - time.perf_counter()
+            delay = nxt - self.spin - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
+            while time.perf_counter() < nxt:
+                pass
             begin = time.perf_counter()
             Contacts.step(self.contacts, self.probes)
             end = time.perf_counter()

@@ -188,7 +188,7 @@ int main(int argc, char **argv)
 
     if (threaded) {
         pm_io io = {io_read, io_write, &s};
-        int rc = pm_servo_start(servo, RATE, &io);
+        int rc = pm_servo_start(servo, RATE, PM_SPIN_DEFAULT, &io);
         if (rc) {
             fprintf(stderr, "error: the servo thread did not start (%d)\n", rc);
             return 1;

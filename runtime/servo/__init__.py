@@ -126,10 +126,11 @@ class NativeContacts:
         return out
 
     # thread mode
-    def start(self, rate: float) -> None:
-        rc = self.servo.start(float(rate))
+    def start(self, rate: float, spin: float) -> None:
+        rc = self.servo.start(float(rate), float(spin))
         if rc != 0:
-            raise InputError({-1: "the servo thread is already running", -2: f"rate must be in (0, 100 kHz], got {rate}",
+            raise InputError({-1: "the servo thread is already running",
+                              -2: f"rate must be in (0, 100 kHz] and spin in [0, 10 ms], got {rate}, {spin}",
                               -4: "could not start the servo thread", -5: "no threads on this platform"}.get(rc, f"error {rc}"))
 
     def stop(self) -> None:

@@ -394,11 +394,11 @@ static PyObject *Servo_deformation(ServoObject *self, PyObject *arg)
     return res;
 }
 
-static PyObject *Servo_start(ServoObject *self, PyObject *arg)
+static PyObject *Servo_start(ServoObject *self, PyObject *args)
 {
-    double rate = PyFloat_AsDouble(arg);
-    if (rate == -1.0 && PyErr_Occurred()) return NULL;
-    return PyLong_FromLong(pm_servo_start(self->servo, rate, NULL));
+    double rate, spin = PM_SPIN_DEFAULT;
+    if (!PyArg_ParseTuple(args, "d|d", &rate, &spin)) return NULL;
+    return PyLong_FromLong(pm_servo_start(self->servo, rate, spin, NULL));
 }
 
 static PyObject *Servo_stop(ServoObject *self, PyObject *unused)
@@ -440,7 +440,7 @@ static PyMethodDef Servo_methods[] = {
     {"state", (PyCFunction)Servo_state, METH_O, "contact k after the last tick"},
     {"reset", (PyCFunction)Servo_reset, METH_NOARGS, "forget all contact state"},
     {"deformation", (PyCFunction)Servo_deformation, METH_O, "eq. 16 into a buffer (n_s x 3)"},
-    {"start", (PyCFunction)Servo_start, METH_O, "run the step on a thread of its own at a rate [Hz]"},
+    {"start", (PyCFunction)Servo_start, METH_VARARGS, "start(rate[, spin]): the step on a thread of its own"},
     {"stop", (PyCFunction)Servo_stop, METH_NOARGS, "stop the thread"},
     {"running", (PyCFunction)Servo_running, METH_NOARGS, "whether the thread runs"},
     {"set_probes", (PyCFunction)Servo_set_probes, METH_O, "the probes the thread uses from its next tick"},

@@ -724,7 +724,7 @@ struct pm_servo {
     int32_t *tick_status;
     pm_io io;
     int has_io;
-    double period;
+    double period, spin;
     int running;
     int stop_flag;
 #if PM_THREADS
@@ -1880,8 +1880,15 @@ static void *servo_thread(void *arg)
     pm_servo *s = arg;
     const double T = s->period;
     double next = now_s() + T;
+    const double spin = s->spin < T ? s->spin : 0.5 * T;
     for (int64_t k = 0;; k++) {
-        sleep_until(next);
+        if (spin > 0.0) {  /* sleep to just before the tick, then spin to it */
+            sleep_until(next - spin);
+            while (now_s() < next) {
+            }
+        } else {
+            sleep_until(next);
+        }
         if (__atomic_load_n(&s->stop_flag, __ATOMIC_ACQUIRE)) break;
         double begin = now_s();
         if (s->has_io) {
@@ -1924,13 +1931,14 @@ static void *servo_thread(void *arg)
 }
 #endif
 
-int pm_servo_start(pm_servo *s, double rate, const pm_io *io)
+int pm_servo_start(pm_servo *s, double rate, double spin, const pm_io *io)
 {
 #if PM_THREADS
     if (s->running) return -1;
-    if (!(isfinite(rate) && rate > 0.0 && rate <= 100000.0)) return -2;
+    if (!(isfinite(rate) && rate > 0.0 && rate <= 100000.0 && isfinite(spin) && spin >= 0.0 && spin <= 0.01)) return -2;
     if (io && (!io->read || !io->write)) return -3;
     s->period = 1.0 / rate;
+    s->spin = spin;
     s->has_io = io != NULL;
     if (io) s->io = *io;
     memset(&s->stats, 0, sizeof s->stats);
@@ -1950,6 +1958,7 @@ int pm_servo_start(pm_servo *s, double rate, const pm_io *io)
 #else
     (void)s;
     (void)rate;
+    (void)spin;
     (void)io;
     return -5;
 #endif

@@ -145,10 +145,13 @@ typedef struct {
 
 /* Thread mode: a thread of the servo's own runs the step at `rate` Hz (absolute schedule, CLOCK_MONOTONIC;
  * a real-time priority where the process may have one), on the probes from `io` or, with io NULL, on the
- * probes last given to pm_servo_set_probes.  While it runs, pm_servo_step returns the thread's latest
- * results and pm_servo_reset does nothing.  0, or < 0: already running (-1), bad rate (-2), bad io (-3),
- * no thread (-4), no threads on this platform (-5).  POSIX only. */
-PM_API int pm_servo_start(pm_servo *servo, double rate, const pm_io *io);
+ * probes last given to pm_servo_set_probes.  It sleeps to `spin` seconds before each tick and spins the
+ * rest (PM_SPIN_DEFAULT, a fifth of a core at 1 kHz: on a loaded VM a wake-up from sleep came up to 10 ms
+ * late, a spun one on time; 0 sleeps only).  While it runs, pm_servo_step returns the thread's latest
+ * results and pm_servo_reset does nothing.  0, or < 0: already running (-1), bad rate or spin (-2), bad io
+ * (-3), no thread (-4), no threads on this platform (-5).  POSIX only. */
+#define PM_SPIN_DEFAULT 2e-4
+PM_API int pm_servo_start(pm_servo *servo, double rate, double spin, const pm_io *io);
 PM_API void pm_servo_stop(pm_servo *servo);
 PM_API int32_t pm_servo_running(const pm_servo *servo);
 /* From one thread at a time; never blocks the servo's thread (a sequence lock). */

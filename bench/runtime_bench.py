@@ -1,0 +1,427 @@
+"""Runtime benchmarks for `make bench`: the haptic step from C, through the binding and in the Python
+engine, tight and in a paced 1 kHz loop, each beside its noise reference; several contacts; the
+native servo thread beside a busy Python thread; deformation and how long it holds the GIL;
+re-acquisition and batch K(x).
+
+Every timing here is a measurement, not a test: nothing asserts a time.  References:
+
+- C: the timer itself (two clock_gettime calls) and eq. 15 at the contact's own point (three 3x3 blocks
+  blended: the issue's "physical limit" of a step), timed the same way in the same loop;
+- Python: a trivial Python function taking the same probe list (the interpreter's floor), timed the same
+  way in the same loop.
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+PACED_TICKS = 3000
+
+
+def _stats(ts_us) -> dict:
+    ts = np.asarray(ts_us, float)
+    return {"median_us": float(np.median(ts)), "p99_us": float(np.percentile(ts, 99)),
+            "p999_us": float(np.percentile(ts, 99.9)), "max_us": float(ts.max()), "n": int(len(ts))}
+
+
+def gmsh_ellipsoid(n_target: int, axes=(0.055, 0.03, 0.02)):
+    """A gmsh (frontal-Delaunay) surface mesh of an ellipsoid with about n_target vertices: the synthetic
+    surfaces of the query benchmarks, with a mesher's valences (a UV sphere's pole fans are not)."""
+    from pmask.precompute.meshing import gmsh_session
+
+    a, b, c = axes
+    p = 1.6075
+    area = 4 * np.pi * (((a * b) ** p + (a * c) ** p + (b * c) ** p) / 3) ** (1 / p)
+    h = np.sqrt(2 * area / (np.sqrt(3) * n_target))
+    with gmsh_session("synthetic") as gmsh:
+        s = gmsh.model.occ.addSphere(0, 0, 0, 1.0)
+        gmsh.model.occ.dilate([(3, s)], 0, 0, 0, a, b, c)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", h)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+        gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+        gmsh.model.mesh.generate(2)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, _, tri = gmsh.model.mesh.getElements(2)
+    order = np.argsort(tags)
+    pts = coords.reshape(-1, 3)[order]
+    tris = np.searchsorted(tags[order], np.concatenate(tri).reshape(-1, 3))
+    used, inv = np.unique(tris, return_inverse=True)
+    pts, tris = pts[used], inv.reshape(-1, 3)
+    q = pts[tris]
+    if np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), q[:, 0]).sum() < 0:
+        tris = tris[:, ::-1].copy()
+    return pts, tris
+
+
+def synthetic_stiffness(n: int):
+    from pmask.runtime import SurfaceStiffness
+
+    pts, tris = gmsh_ellipsoid(n)
+    rng = np.random.default_rng(1)
+    X = rng.standard_normal((len(pts), 3, 3)) * 10
+    K = np.einsum("nij,nkj->nik", X, X) + 50 * np.eye(3)
+    return SurfaceStiffness(pts, tris, K)
+
+def equator_path(axes=(0.055, 0.03, 0.02), depth=0.0015, steps=20000, turns=2.0):
+    """From 3 mm outside, in to ``depth`` over 100 steps, then round the equator ``turns`` times."""
+    approach = np.column_stack([np.full(100, axes[0] + 0.003 - np.linspace(0, 0.003 + depth, 100)),
+                                np.zeros(100), np.zeros(100)])
+    th = np.linspace(0, 2 * np.pi * turns, steps)
+    a, b = axes[0] - depth, axes[1] - depth
+    return np.concatenate([approach, np.column_stack([a * np.cos(th), b * np.sin(th), np.zeros(steps)])])
+
+
+def build_servo_bench(work: Path) -> Path | None:
+    """Compile bench/servo_bench.c with the core, as a C application would."""
+    from pmask.runtime import servo
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        return None
+    exe = work / "servo_bench"
+    inc = servo.include_dir()
+    subprocess.run([cc, "-std=c99", "-O2", "-ffp-contract=off", f"-I{inc}", str(HERE / "servo_bench.c"),
+                    str(inc / "pmask_servo.c"), "-lm", "-lpthread", "-o", str(exe)], check=True)
+    return exe
+
+
+def write_trace(path: Path, probes: np.ndarray) -> Path:
+    P = np.ascontiguousarray(probes, "<f8")
+    with open(path, "wb") as f:
+        f.write(struct.pack("<q", len(P)))
+        f.write(P.tobytes())
+    return path
+
+
+def c_bench(exe: Path, table: Path, trace: Path, n: int = 1, paced: int = PACED_TICKS, batch: int = 0,
+            reacquire: int = 0, uncoupled: bool = False) -> dict:
+    import os
+
+    env = dict(os.environ, **({"PMASK_BENCH_UNCOUPLED": "1"} if uncoupled else {}))
+    args = [str(exe), str(table), str(trace), str(n), "--paced", str(paced)]
+    if batch:
+        args += ["--batch", str(batch)]
+    if reacquire:
+        args += ["--reacquire", str(reacquire)]
+    return json.loads(subprocess.run(args, check=True, capture_output=True, text=True, env=env).stdout)
+
+
+def python_loop(step, probes, paced: int = 0, reference=None) -> dict:
+    """Time ``step(p)`` over ``probes`` (lists of floats: what a device driver hands over) back to back, and
+    with ``paced`` > 0 in a 1 kHz loop paced by time.sleep on an absolute schedule, blocks of 500 ticks
+    alternating with ``reference`` (the same loop around a trivial function)."""
+    pc = time.perf_counter_ns
+    plist = [list(map(float, p)) if np.ndim(p) == 1 else [list(map(float, q)) for q in p] for p in probes]
+    for p in plist[:50]:
+        step(p)
+    ts = np.empty(len(plist))
+    for k, p in enumerate(plist):
+        t0 = pc()
+        step(p)
+        ts[k] = pc() - t0
+    out = {"tight": _stats(ts / 1e3)}
+    if reference is not None:
+        tr = np.empty(len(plist))
+        for k, p in enumerate(plist):
+            t0 = pc()
+            reference(p)
+            tr[k] = pc() - t0
+        out["reference_tight"] = _stats(tr / 1e3)
+    if paced:
+        T = 1e-3
+        nxt = time.perf_counter()
+        ts, tr, late, k = [], [], 0, 0
+        while len(ts) < paced:
+            for phase in (0, 1):
+                for _ in range(500):
+                    nxt += T
+                    d = nxt - time.perf_counter()
+                    if d > 0:
+                        time.sleep(d)
+                    p = plist[k % len(plist)]
+                    t0 = pc()
+                    if phase == 0:
+                        step(p)
+                        k += 1
+                    elif reference is not None:
+                        reference(p)
+                    t1 = pc()
+                    (ts if phase == 0 else tr).append((t1 - t0) / 1e3)
+                    if phase == 0 and t1 / 1e9 > nxt + T:
+                        late += 1
+                    if time.perf_counter() > nxt + T:
+                        nxt = time.perf_counter()
+        out["paced"] = _stats(ts)
+        out["late"] = late
+        if reference is not None:
+            out["reference_paced"] = _stats(tr)
+    return out
+
+
+def trivial(p):
+    """The reference: a Python function that takes the probe and returns a force-sized tuple."""
+    return (p[0], p[1], p[2]), 1
+
+
+def busy_python(stop: threading.Event, counter: list) -> None:
+    """A Python thread that takes the GIL as a viewer or a logger does: numpy calls and pure-Python loops."""
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((200, 200))
+    while not stop.is_set():
+        np.linalg.svd(A)
+        s = 0.0
+        for i in range(20000):
+            s += i * 0.5
+        counter[0] += 1
+
+
+def thread_bench(surface, probes, engine: str, seconds: float = 10.0, busy: bool = True) -> dict:
+    """The servo on its own thread at 1 kHz, its probes set from Python at ~200 Hz along the tour, with a
+    busy Python thread beside it: late ticks (a force not ready within its period, or skipped)."""
+    from pmask.runtime import Contacts
+
+    c = Contacts(surface, 1, engine=engine)
+    stop, counter = threading.Event(), [0]
+    worker = threading.Thread(target=busy_python, args=(stop, counter), daemon=True)
+    if busy:
+        worker.start()
+    c.start(1000.0)
+    t_end = time.perf_counter() + seconds
+    k = 0
+    try:
+        while time.perf_counter() < t_end:
+            c.set_probes([list(map(float, probes[k % len(probes)]))])
+            k += 5
+            time.sleep(0.005)
+    finally:
+        c.stop()
+        stop.set()
+        if busy:
+            worker.join()
+    st = c.tick_stats()
+    return {"engine": engine, "seconds": seconds, "busy_iterations": counter[0], "ticks": st["ticks"],
+            "late": st["late"], "late_fraction": st["late"] / max(st["ticks"], 1),
+            "max_lateness_us": 1e6 * st["max_lateness"], "step_max_us": 1e6 * st["step_max"]}
+
+
+def deformation_bench(stiff, model, engine: str, repeats: int = 30) -> dict:
+    """Contacts.deformation() for one contact on the top face, and the longest the GIL was held meanwhile
+    (a Python thread records the gaps between its own loop iterations; sys.setswitchinterval(1e-4))."""
+    from pmask.runtime import Contacts
+
+    c = Contacts(stiff, 1, engine=engine, coupled=True)
+    top = model.contact[model.core]
+    i = top[np.argmax(model.points[top, 2])]
+    for d in np.linspace(-1e-3, 1.5e-3, 60):
+        c.step([model.points[i] - d * np.array([0.0, 0.0, 1.0])])
+    c.deformation()
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-4)
+    gaps, stop = [0.0], threading.Event()
+
+    def ticker():
+        last = time.perf_counter()
+        while not stop.is_set():
+            t = time.perf_counter()
+            gaps[0] = max(gaps[0], t - last)
+            last = t
+
+    ts = []
+    th = threading.Thread(target=ticker, daemon=True)
+    try:
+        time.sleep(0.01)
+        th.start()
+        time.sleep(0.05)
+        base = gaps[0]
+        gaps[0] = 0.0
+        time.sleep(0.05)
+        idle_gap = gaps[0]  # the ticker's own gaps with nothing else running: the reference
+        gaps[0] = 0.0
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            c.deformation()
+            ts.append(time.perf_counter() - t0)
+            time.sleep(0.002)
+        busy_gap = gaps[0]
+    finally:
+        stop.set()
+        th.join()
+        sys.setswitchinterval(old)
+    del base
+    return {"engine": engine, "median_ms": 1e3 * float(np.median(ts)), "max_ms": 1e3 * float(np.max(ts)),
+            "gil_gap_ms": 1e3 * busy_gap, "idle_gap_ms": 1e3 * idle_gap}
+
+
+def several_contacts(exe, table_path: Path, surface, model, work: Path, counts=(1, 2, 4, 8, 16)) -> dict:
+    """s instruments on the upper face of the default kidney, pressing 0.5-1.5 mm and circling: per-tick cost
+    in C (coupled and, for comparison, the s contacts independent), through the binding, and in Python."""
+    from pmask.runtime import Contacts
+
+    top = model.contact[model.core]
+    cand = top[model.points[top, 2] > 0.8 * model.points[top, 2].max()]
+    chosen = [cand[np.argmax(model.points[cand, 2])]]
+    while len(chosen) < max(counts):
+        d = np.min(np.linalg.norm(model.points[cand][:, None] - model.points[chosen][None], axis=2), axis=1)
+        chosen.append(cand[np.argmax(d)])
+    ticks = 3000
+    out = {}
+    for s in counts:
+        starts = model.points[chosen[:s]]
+        P = np.array([[st + np.array([1e-3 * math.sin(0.01 * k + l), 1e-3 * math.cos(0.013 * k + l),
+                                      -(1e-3 * math.sin(math.pi * k / ticks) + 5e-4)])
+                       for l, st in enumerate(starts)] for k in range(ticks)])
+        trace = write_trace(work / f"several_{s}.bin", P.reshape(ticks, -1))
+        row = {"contacts": s}
+        if exe is not None:
+            c = c_bench(exe, table_path, trace, s, paced=0)
+            row["c_tight"] = c["tight"]
+            if s > 1:
+                row["c_uncoupled_tight"] = c_bench(exe, table_path, trace, s, paced=0, uncoupled=True)["tight"]
+        nat = Contacts(surface, s, engine="native") if _native() else None
+        if nat is not None:
+            row["binding_tight"] = python_loop(nat.step, P[:2000])["tight"]
+            states = [nat.step(list(p))[1] for p in P[:ticks]]
+            row["in_contact_fraction"] = float(np.mean([[x == 1 for x in r] for r in states]))
+        if s <= 8:
+            row["python_tight"] = python_loop(Contacts(surface, s, engine="python").step, P[:600])["tight"]
+        out[str(s)] = row
+    return out
+
+
+def _native() -> bool:
+    from pmask.runtime import servo
+
+    return servo.available()
+
+
+def surface_bench(name: str, surface, probes: np.ndarray, exe, work: Path, *, reacquire: int = 2000) -> dict:
+    """One surface: C (tight, paced, batch, re-acquisition), binding and Python engine."""
+    from pmask.runtime import HapticContact
+    from pmask.runtime.table import write_table
+
+    table = write_table(work / f"{name}.tbl", surface, {"bench": name}, zeta=False)
+    trace = write_trace(work / f"{name}.bin", probes)
+    row = {"surface_vertices": len(surface.P), "triangles": len(surface.T)}
+    if exe is not None:
+        row["c"] = c_bench(exe, table, trace, 1, batch=1_000_000, reacquire=reacquire)
+    short = probes[:20000]
+    if _native():
+        h = HapticContact(surface, engine="native")
+        row["binding"] = python_loop(h.step, short, paced=PACED_TICKS, reference=trivial)
+    h = HapticContact(surface, engine="python")
+    row["python"] = python_loop(h.step, probes[:5000], paced=PACED_TICKS, reference=trivial)
+    # the Python grid's scan: what re-acquisition cost before the spatial index
+    rng = np.random.default_rng(5)
+    pts = probes[rng.integers(0, len(probes), 20)]
+    t0 = time.perf_counter()
+    for p in pts:
+        surface.grid.nearest_scan(p)
+    row["scan_ms"] = 1e3 * (time.perf_counter() - t0) / len(pts)
+    t0 = time.perf_counter()
+    for p in pts:
+        surface.grid.nearest(p)
+    row["python_grid_ms"] = 1e3 * (time.perf_counter() - t0) / len(pts)
+    return row
+
+
+def run(kidneys: dict, synthetic, work: Path) -> dict:
+    """kidneys: {surface vertices: artifact path}; synthetic: callable n -> SurfaceStiffness."""
+    from pmask.pipeline.strokes import tour
+    from pmask.runtime import Model
+    from pmask.runtime.haptics import Surface
+    from pmask.runtime.table import write_table
+
+    exe = build_servo_bench(work) if _native() else None
+    res = {"surfaces": {}}
+    tour_probes, _ = tour()
+    default = None
+    for nv, path in sorted(kidneys.items()):
+        print(f"  haptics on kidney {nv} ...", flush=True)
+        m = Model.load(path)
+        stiff = m.stiffness("linear", 2.0 * m.mean_edge_length)
+        srf = Surface(stiff)
+        res["surfaces"][f"kidney_{len(m.points)}"] = dict(surface_bench(f"kidney_{nv}", srf, tour_probes, exe, work),
+                                                          synthetic=False)
+        res["surfaces"][f"kidney_{len(m.points)}"]["deformation"] = [deformation_bench(stiff, m, e)
+                                                                     for e in ("native", "python") if e == "python" or _native()]
+        if default is None or abs(len(m.points) - 1543) < abs(len(default[0].points) - 1543):
+            default = (m, stiff, srf)
+    eq = equator_path()
+    for n in (500, 5000, 50000, 164000):
+        print(f"  haptics on synthetic {n} ...", flush=True)
+        srf = Surface(synthetic(n))
+        res["surfaces"][f"synthetic_{len(srf.P)}"] = dict(surface_bench(f"synthetic_{n}", srf, eq, exe, work),
+                                                          synthetic=True)
+    m, stiff, srf = default
+    print("  several contacts ...", flush=True)
+    srf.coupling()
+    table = write_table(work / "kidney_default_zeta.tbl", srf, {"bench": "several"}, zeta=True)
+    res["several"] = several_contacts(exe, table, srf, m, work)
+    print("  servo thread beside a busy Python thread ...", flush=True)
+    res["thread"] = [thread_bench(srf, tour_probes, e) for e in ("native", "python") if e == "python" or _native()]
+    res["thread_idle"] = thread_bench(srf, tour_probes, "native", seconds=5.0, busy=False) if _native() else None
+    return res
+
+
+# ------------------------------------------------------------------------------------------ report
+def markdown(res: dict) -> str:
+    L = ["**The haptic step** (µs per tick, one instrument; tight = back to back over the probe trace, paced = in a "
+         "1 kHz loop on an absolute schedule as a device loop runs it; the kidneys run the haptics issue's tour, "
+         "the synthetic gmsh ellipsoids (random SPD K_i) a press and two turns round the equator)", "",
+         "| surface | vertices | C tight median / p99.9 | C paced median / p99.9 | C reference paced (eq. 15 at the point / timer) | "
+         "binding tight | binding paced | Python paced reference | Python engine paced | re-acquisition C median / p99 | "
+         "Python scan | C batch M K(x)/s |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in res["surfaces"].items():
+        c = r.get("c")
+        b = r.get("binding")
+        p = r["python"]
+        label = "synthetic" if r["synthetic"] else "kidney"
+        if c:
+            cc = (f"{c['tight']['median_us']:.2f} / {c['tight']['p999_us']:.2f} | {c['paced']['median_us']:.2f} / "
+                  f"{c['paced']['p999_us']:.2f} | {c['blend_paced']['median_us']:.2f} / {c['empty_paced']['median_us']:.2f}")
+            re = f"{c['reacquire']['median_us']:.1f} / {c['reacquire']['p99_us']:.1f}" if c.get("reacquire") else "—"
+            batch = f"{c['batch_per_s'] / 1e6:.0f}"
+        else:
+            cc, re, batch = "— | — | —", "—", "—"
+        bb = (f"{b['tight']['median_us']:.2f} | {b['paced']['median_us']:.2f}" if b else "— | —")
+        L.append(f"| {label} | {r['surface_vertices']} | {cc} | {bb} | {p['reference_paced']['median_us']:.2f} | "
+                 f"{p['paced']['median_us']:.1f} | {re} | {r['scan_ms']:.2f} ms | {batch} |")
+    L += ["", "**Several instruments** (default kidney, coupled through the ζ table; µs per tick, tight)", "",
+          "| s | C coupled median / p99 | C, s independent contacts | binding | Python engine | share of ticks in contact |",
+          "|---|---|---|---|---|---|"]
+    for s, r in res["several"].items():
+        c = r.get("c_tight")
+        u = r.get("c_uncoupled_tight")
+        L.append(f"| {s} | {c['median_us']:.2f} / {c['p99_us']:.2f} | "
+                 f"{(str(round(u['median_us'], 2))) if u else '—'} | "
+                 f"{r['binding_tight']['median_us']:.2f} | "
+                 f"{(str(round(r['python_tight']['median_us'], 1))) if 'python_tight' in r else '—'} | "
+                 f"{r.get('in_contact_fraction', float('nan')):.2f} |" if c else f"| {s} | — | — | — | — | — |")
+    L += ["", "**Servo thread at 1 kHz beside a busy Python thread** (numpy SVDs and pure-Python loops; probes set from "
+              "Python at 200 Hz)", "", "| engine | seconds | ticks | late | late share | largest lateness µs | longest step µs |",
+          "|---|---|---|---|---|---|---|"]
+    for t in res["thread"] + ([res["thread_idle"]] if res.get("thread_idle") else []):
+        label = t["engine"] + ("" if t is not res.get("thread_idle") else " (no busy thread)")
+        L.append(f"| {label} | {t['seconds']:.0f} | {t['ticks']} | {t['late']} | {100 * t['late_fraction']:.3f} % | "
+                 f"{t['max_lateness_us']:.0f} | {t['step_max_us']:.0f} |")
+    L += ["", "**Deformation for display** (whole surface, one contact, eq. 16 with the display forces; longest "
+              "time a Python thread waited for the GIL meanwhile, beside the same thread's gaps with nothing running)",
+          "", "| surface vertices | engine | median ms | max ms | longest GIL wait ms | idle reference ms |",
+          "|---|---|---|---|---|---|"]
+    for name, r in res["surfaces"].items():
+        for d in r.get("deformation", []):
+            L.append(f"| {r['surface_vertices']} | {d['engine']} | {d['median_ms']:.3f} | {d['max_ms']:.3f} | "
+                     f"{d['gil_gap_ms']:.3f} | {d['idle_gap_ms']:.3f} |")
+    return "\n".join(L) + "\n"
