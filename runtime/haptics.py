@@ -264,7 +264,8 @@ class _State:
         self.force = (0.0, 0.0, 0.0)      # force rendered to the user (−f)
         self.good_force = (0.0, 0.0, 0.0)
         self.body_force = (0.0, 0.0, 0.0)  # force on the body held during the next tick (PC's work)
-        self.u_bar = (0.0, 0.0, 0.0)      # the proxy's displacement ū' (after the law)
+        self.u_bar = (0.0, 0.0, 0.0)      # the surface's displacement at the contact (the law's ū' plus what
+                                          # the other contacts move it): what the display meets
         self.depth = 0.0
         self.taper = 0.0
         self.status = Status.NO_CONTACT
@@ -743,11 +744,19 @@ class Contacts:
         if not active:
             self._energy, self._pc_damping = 0.0, 0.0
             return
+        # each contact's displacement of the surface: the law's own ū' plus what the others' forces move it,
+        # (ū − ū left to it); the display meets it, and ½ Σ f·u is the coupled body's stored energy
+        total = {}
+        for l in active:
+            (f, u2, _, _), ueff = result[l]
+            u = ubar[l]
+            total[l] = (u2[0] + (u[0] - ueff[0]), u2[1] + (u[1] - ueff[1]), u2[2] + (u[2] - ueff[2]))
         # the passivity observer: the hand's work through the held forces against the energy stored
         stored, work, motion2 = 0.0, 0.0, 0.0
         for l in active:
             st = states[l]
-            (f, u2, _, _), _ = result[l]
+            (f, _, _, _), _ = result[l]
+            u2 = total[l]
             dpx, dpy, dpz = st.move
             vx, vy, vz = st.vel
             motion2 += vx * vx + vy * vy + vz * vz
@@ -797,7 +806,7 @@ class Contacts:
                 self._trace.append((l, f, (bx, by, bz), delta, lam))
             st.body_force = (bx, by, bz)
             st.force = st.good_force = (-bx, -by, -bz)
-            st.u_bar, st.depth, st.taper, st.sliding = u2, delta, lam, sliding
+            st.u_bar, st.depth, st.taper, st.sliding = total[l], delta, lam, sliding
             st.status = Status.CONTACT if lam >= 1.0 - 1e-9 else Status.REGION_EDGE
             if sliding and not frictionless:  # the anchor slides by the tangential part of (ū left to it) − ū'
                 mx, my, mz = ueff[0] - u2[0], ueff[1] - u2[1], ueff[2] - u2[2]

@@ -30,3 +30,23 @@ def test_stroke_example_writes_traces_and_plot(kidney_small, tmp_path, capsys):
         assert mag.min() > 0.2 * mag.max()
         # 1 kHz steps of a continuous force: no step larger than 3 % of the force
         assert np.linalg.norm(np.diff(f[200:], axis=0), axis=1).max() < 0.03 * mag.max()
+
+
+grasp = runpy.run_path(str(ROOT / "examples" / "grasp.py"), run_name="example")
+
+
+def test_grasp_example_squeezes_harder_coupled_and_the_display_meets_both_jaws(kidney_small, tmp_path, capsys):
+    """Two jaws through the body: each needs more force than as an independent contact (the other jaw's push
+    is felt), both hold contact, and the displayed surface meets each jaw to round-off (1e-8 of |u|)."""
+    assert grasp["main"]([str(kidney_small), "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    ratios = [float(x) for x in printed.split("coupled / independent: upper ")[1].split("\n")[0].replace(
+        "lower ", "").split(", ")]
+    assert min(ratios) > 1.2
+    meet = float(printed.split("it meets each jaw's displacement to ")[1].split(" ")[0])
+    assert meet < 1e-8
+    with open(tmp_path / "grasp.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    hold = [r for r in rows if 0.85 <= float(r["t_s"]) < 1.15]
+    assert hold and all(r["status_upper"] == "1" and r["status_lower"] == "1" for r in hold)
+    assert (tmp_path / "grasp.png").stat().st_size > 10_000

@@ -686,6 +686,7 @@ typedef struct {   /* _local's result and the displacement left to the contact *
     int sliding;
     double delta;
     double ueff[3];
+    double total[3];  /* the surface's displacement at the contact: u2 + (ū − ueff) */
 } lres;
 
 struct pm_servo {
@@ -1551,6 +1552,13 @@ static int step_inner(pm_servo *S, const double *probes)
         S->pc_damping = 0.0;
         return 0;
     }
+    /* each contact's displacement of the surface: the law's own plus what the others move it */
+    for (int32_t x = 0; x < na; x++) {
+        int32_t l = S->active[x];
+        lres *R = &S->res[l];
+        const double *u = S->ubar + 3 * l;
+        for (int a = 0; a < 3; a++) R->total[a] = R->u2[a] + (u[a] - R->ueff[a]);
+    }
     double stored = 0.0, work = 0.0, motion2 = 0.0;
     for (int32_t x = 0; x < na; x++) {
         int32_t l = S->active[x];
@@ -1561,7 +1569,7 @@ static int step_inner(pm_servo *S, const double *probes)
         motion2 += vx * vx + vy * vy + vz * vz;
         const double *hb = st->body_force;
         work += hb[0] * dpx + hb[1] * dpy + hb[2] * dpz;
-        stored += 0.5 * (R->f[0] * R->u2[0] + R->f[1] * R->u2[1] + R->f[2] * R->u2[2]);
+        stored += 0.5 * (R->f[0] * R->total[0] + R->f[1] * R->total[1] + R->f[2] * R->total[2]);
     }
     double slack = PASSIVITY_SLACK * stored;
     double energy = S->o.passivity ? PYMIN(S->energy + work, stored + slack) : stored;
@@ -1625,9 +1633,9 @@ static int step_inner(pm_servo *S, const double *probes)
         st->force[0] = st->good_force[0] = -bx;
         st->force[1] = st->good_force[1] = -by;
         st->force[2] = st->good_force[2] = -bz;
-        st->u_bar[0] = u2[0];
-        st->u_bar[1] = u2[1];
-        st->u_bar[2] = u2[2];
+        st->u_bar[0] = R->total[0];
+        st->u_bar[1] = R->total[1];
+        st->u_bar[2] = R->total[2];
         st->depth = delta;
         st->taper = lam;
         st->sliding = sliding;

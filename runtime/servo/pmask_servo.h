@@ -79,7 +79,8 @@ typedef struct {
 typedef struct {
     double force[3];      /* on the user */
     double body_force[3]; /* on the body (what the device holds during the next tick, negated) */
-    double u_bar[3];      /* the displacement the contact imposes */
+    double u_bar[3];      /* the surface's displacement at the contact (the law's, plus what the other
+                             contacts move it): what the displayed deformation meets */
     double bary[3];       /* proxy barycentrics */
     double point[3];      /* proxy position */
     double depth, taper;
