@@ -9,10 +9,16 @@ ARGS   ?=
 EXTRAS ?= precompute,figures,test
 PIP    := $(BIN)/pip install --quiet -c constraints.txt
 
-.PHONY: venv system-deps precompute test test-slow test-pip bench reference figures stroke clean distclean
+## make view [MODEL=kidney]: the model in a browser (pmask view; Ctrl-C stops)
+view: venv
+	$(BIN)/pmask view artifacts/$(MODEL).h5 $(ARGS)
 
-## make system-deps: Debian packages for the native routes (root; prints what it installs)
-SYSTEM_PACKAGES := gcc libsuitesparse-dev libopenblas0-pthread
+.PHONY: view venv system-deps precompute test test-slow test-pip bench reference figures stroke clean distclean
+
+## make system-deps: Debian packages for the native routes, the viewer's build (npm) and its browser tests
+## (chromium + chromedriver) (root; prints what it installs)
+# Debian's npm only where no Node.js is installed (a NodeSource nodejs brings its own npm and conflicts with it)
+SYSTEM_PACKAGES := gcc libsuitesparse-dev libopenblas0-pthread chromium chromium-driver $(if $(shell command -v npm),,nodejs npm)
 system-deps:
 	@echo "installing with apt-get: $(SYSTEM_PACKAGES)"
 	apt-get update
@@ -21,7 +27,7 @@ system-deps:
 venv: $(VENV)/.installed
 
 # the package in editable mode; the build backend (setup.py) compiles the C extensions in place
-$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c runtime/servo/*.c runtime/servo/*.h)
+$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c runtime/servo/*.c runtime/servo/*.h viewer/src/*.js viewer/package-lock.json)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip "setuptools>=77" wheel
 	$(PIP) --no-build-isolation -e '.[$(EXTRAS)]'
@@ -62,5 +68,6 @@ figures: venv
 clean:
 	rm -rf build *.egg-info .pytest_cache .hypothesis
 	find precompute runtime -name '*.so' -delete
+	rm -f viewer/static/viewer.bundle.js
 distclean: clean
 	rm -rf $(VENV) artifacts

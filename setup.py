@@ -8,16 +8,24 @@
   ``-ffp-contract=off``: no fused multiply-adds, so that the C's forces equal the Python engine's to
   the last bit (a test holds them to 1e-12).
 
+- ``pmask.viewer``'s page: ``viewer/src/viewer.js`` and three.js, bundled by esbuild into
+  ``viewer/static/viewer.bundle.js`` with the versions locked in ``viewer/package-lock.json`` (``npm ci``
+  from the npm registry at build time; nothing is fetched when the viewer runs).  Without npm the
+  package installs and ``pmask view`` says how to build the page.
+
 Every extension is optional: a machine without a compiler or without the headers still installs,
 and runs the pure-Python fallbacks.  ``PMASK_REQUIRE_NATIVE=1`` (CI sets it) turns a missing header
-or a compile error into a failed build, so that a broken C source cannot hide behind a fallback.
+or a compile error (or, for the viewer's page, a missing npm) into a failed build, so that a broken C source cannot hide behind a fallback.
 """
 import os
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
+from setuptools.command.build_py import build_py
 
 REQUIRED = os.environ.get("PMASK_REQUIRE_NATIVE", "") not in ("", "0")
 SUITESPARSE = os.environ.get("PMASK_SUITESPARSE_INCLUDE", "/usr/include/suitesparse")
@@ -57,4 +65,35 @@ class BuildExt(build_ext):
                   file=sys.stderr)
 
 
-setup(ext_modules=extensions(), cmdclass={"build_ext": BuildExt})
+VIEWER = Path(__file__).resolve().parent / "viewer"
+
+
+def build_viewer():
+    """npm ci + esbuild: the page's bundle, unless it is newer than its sources and the lock file."""
+    bundle = VIEWER / "static" / "viewer.bundle.js"
+    sources = [VIEWER / "package-lock.json", *sorted((VIEWER / "src").glob("*.js"))]
+    if not sources[0].is_file():
+        return  # an sdist or checkout without the viewer's sources: nothing to build
+    if bundle.is_file() and all(bundle.stat().st_mtime >= s.stat().st_mtime for s in sources):
+        return
+    npm = shutil.which("npm")
+    try:
+        if npm is None:
+            raise RuntimeError("npm is not installed")
+        if not (VIEWER / "node_modules" / "three").is_dir():
+            subprocess.run([npm, "ci", "--ignore-scripts", "--no-audit", "--no-fund"], cwd=VIEWER, check=True)
+        subprocess.run([npm, "run", "build"], cwd=VIEWER, check=True)
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
+        if REQUIRED:
+            raise SystemExit(f"PMASK_REQUIRE_NATIVE is set but the viewer's page did not build ({exc})")
+        print(f"note: the viewer's page was not built ({exc}); `pmask view` will say how to build it",
+              file=sys.stderr)
+
+
+class BuildPy(build_py):
+    def run(self):
+        build_viewer()
+        super().run()
+
+
+setup(ext_modules=extensions(), cmdclass={"build_ext": BuildExt, "build_py": BuildPy})

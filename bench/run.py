@@ -147,6 +147,9 @@ def main() -> None:
     print("haptics ...", flush=True)
     res["haptics"] = runtime_bench.run({len(Model.load(p).points): p for p in arts.values()},
                                        runtime_bench.synthetic_stiffness, work)
+    import viewer_bench
+
+    res["viewer"] = viewer_bench.run({n: p for n, p in ((len(Model.load(p).points), p) for p in arts.values()) if n > 1000})
     res["check_cost"] = check_cost(work / "kidney_0.005.h5")
     import shutil
 
@@ -288,6 +291,9 @@ def markdown(res: dict) -> str:
     import runtime_bench
 
     L += ["", runtime_bench.markdown(res["haptics"])]
+    import viewer_bench
+
+    L += ["", viewer_bench.markdown(res["viewer"])]
     return "\n".join(L) + "\n"
 
 if __name__ == "__main__":

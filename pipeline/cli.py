@@ -1,6 +1,6 @@
 """``pmask`` command line (also ``python -m pmask.pipeline``).
 
-Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``export-table``, ``reference``, ``figures``.  An error the
+Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``export-table``, ``reference``, ``figures``, ``view``.  An error the
 user can fix (:class:`pmask.errors.PmaskError`) prints one line and exits with 2; anything else is a
 bug in pmask and shows its traceback with a request to report it.  ``--verbose`` shows the traceback
 of every error.
@@ -168,10 +168,14 @@ def cmd_reference(args) -> int:
 
 
 def add_figures(sub) -> None:
-    p = sub.add_parser("figures", help="the paper's Figure 6 maps (PNG) and their two numbers for a model")
+    p = sub.add_parser("figures", help="the paper's Figure 6 maps for a model, and Figures 1 and 4 (PNG)",
+                       description="Figure 6 (vertex area, single-vertex and masked stiffness maps) for the model; "
+                                   "Figures 1 (a point load on three refinements) and 4 (single-vertex vs cone "
+                                   "mask pulls) on the Figure 5 ellipsoid family (stored meshes).")
     p.add_argument("model", help="registered model name or an artifact path (.h5)")
     p.add_argument("--out", default="docs", help="output folder (default docs)")
     p.add_argument("--radius-factor", type=float, default=2.0, help="cone radius in mean edge lengths")
+    p.add_argument("--no-loop", action="store_true", help="Figure 6 only (skip Figures 1 and 4)")
     p.set_defaults(func=cmd_figures)
 
 
@@ -197,6 +201,14 @@ def cmd_figures(args) -> int:
         n = nums[name]
         print(f"  {name:6s} rank correlation with vertex area {n['rank_correlation_with_area']:+.3f}, "
               f"roughness {n['roughness']:.4f}, median ‖K‖₂ {n['median_norm']:.2f} N/m")
+    if not args.no_loop:
+        from pmask.pipeline.figures import loop_figures
+
+        res = loop_figures(Path(args.out), Path("artifacts") / ".figures")
+        print(f"wrote {res['figure1']}: displacement at the point load "
+              + ", ".join(f"{p * 1e3:.2f}" for p in res["figure1_peaks"]) + " mm per N (finer to the right)")
+        print(f"wrote {res['figure4']}: single-vertex {res['figure4_peaks']['single'] * 1e3:.2f}, cone mask "
+              f"{res['figure4_peaks']['linear'] * 1e3:.2f} mm per N at the load")
     return 0
 
 
@@ -257,13 +269,41 @@ def cmd_export_table(args) -> int:
     return 0
 
 
+def add_view(sub) -> None:
+    p = sub.add_parser("view", help="see and probe a model in a browser (a local server; the servo runs at 1 kHz)",
+                       description="Serve a page that shows the surface coloured by stiffness, area or region, with "
+                                   "the mouse as a haptic probe (shift-drag: a second, coupled one).  Listens on "
+                                   "127.0.0.1 only unless --host is given.  Ctrl-C stops.")
+    p.add_argument("artifact")
+    p.add_argument("--port", type=int, default=8765, help="TCP port (default 8765; 0 picks a free one)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 exposes it)")
+    p.add_argument("--mask", default="linear", help="pressure mask: linear, gaussian, wendland, disk or single")
+    p.add_argument("--radius", type=float, help="initial mask radius in model units (default 2 x mean edge length)")
+    p.add_argument("--engine", choices=("native", "python"), help="servo engine (default: native if built)")
+    p.set_defaults(func=cmd_view)
+
+
+def cmd_view(args) -> int:
+    import signal
+
+    from pmask.viewer import serve
+
+    def stop(signum, frame):  # SIGTERM stops as Ctrl-C does
+        raise KeyboardInterrupt
+    signal.signal(signal.SIGTERM, stop)
+    serve(args.artifact, host=args.host, port=args.port, mask=args.mask, radius=args.radius, engine=args.engine)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=version_line())
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (add_precompute, add_models, add_info, add_export, add_export_table, add_reference, add_figures):
+    for add in (add_precompute, add_models, add_info, add_export, add_export_table, add_reference, add_figures,
+                add_view):
         add(sub)
     return parser
 

@@ -54,3 +54,135 @@ def figure6(model, out: Path, radius_factor: float = 2.0, numbers: dict | None =
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
+
+
+# ------------------------------------------------------------------ Figures 1 and 4 (the Loop ellipsoid family)
+def vertex_pull(model, vertex: int, kind: str = "single", radius: float | None = None, force=None) -> np.ndarray:
+    """Surface displacement (n_s, 3) under a force applied at surface ``vertex`` through a mask (eq. 11, 13):
+    u_i = Σ_j Ξ_ij ρ_j f, with ρ = e_v / a_v for ``single`` (a point force).  Default force: a unit pull
+    along the vertex's outward normal [N]."""
+    from pmask.runtime.geometry import vertex_normals
+
+    k = int(np.flatnonzero(model.contact == vertex)[0])
+    if force is None:
+        force = vertex_normals(model.points, model.triangles)[vertex]
+    force = np.asarray(force, float)
+    if kind == "single":
+        idx, w = np.array([k]), np.array([1.0 / model.vertex_areas[vertex]])
+    else:
+        m = model.masks(kind, radius)
+        idx, w = m.row(int(np.flatnonzero(m.centres == k)[0]))
+    load = np.zeros(3 * len(model.contact))
+    for j, wj in zip(idx, w):
+        load[3 * j:3 * j + 3] = wj * force
+    u = np.zeros((len(model.points), 3))
+    u[model.contact] = (np.asarray(model.Xi, float) @ load).reshape(-1, 3)
+    return u
+
+
+def _deformed_panel(ax, model, u, scale, vertex, title, vmax):
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    import matplotlib.pyplot as plt
+
+    from pmask.runtime.geometry import vertex_normals
+
+    P = (model.points + scale * u) * 1e3
+    mag = np.linalg.norm(u, axis=1)
+    face = mag[model.triangles].mean(axis=1)
+    cmap = plt.get_cmap("viridis")
+    pc = Poly3DCollection(P[model.triangles], facecolors=cmap(np.clip(face / vmax, 0, 1)), edgecolors="0.25",
+                          linewidths=0.15)
+    ax.add_collection3d(pc)
+    lo, hi = model.points.min(axis=0) * 1e3, model.points.max(axis=0) * 1e3
+    c = 0.5 * (lo + hi)
+    half = 0.38 * (hi - lo).max()
+    ax.set_xlim(c[0] - half, c[0] + half); ax.set_ylim(c[1] - half, c[1] + half); ax.set_zlim(c[2] - half, c[2] + half)
+    # look across the pull (perpendicular to the normal and the long axis): the pull shows in the outline
+    n = vertex_normals(model.points, model.triangles)[vertex]
+    d = np.cross(n, [1.0, 0.0, 0.0])
+    d = d / np.linalg.norm(d) + 0.35 * n  # and a little from the pulled side
+    d /= np.linalg.norm(d)
+    ax.view_init(elev=float(np.degrees(np.arcsin(np.clip(d[2], -1, 1)))), azim=float(np.degrees(np.arctan2(d[1], d[0]))))
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_axis_off()
+    ax.set_title(title, fontsize=9)
+
+
+def _loop_models(work: Path):
+    from pmask.pipeline.reference import REFERENCE_DIR, artifact_for, ensure_meshes
+    from pmask.runtime import Model
+
+    mesh_dir = REFERENCE_DIR / "meshes"
+    ensure_meshes(mesh_dir)
+    return [Model.load(artifact_for(f"loop{k}", mesh_dir, work)) for k in range(4)]
+
+
+def _base_vertex(model) -> int:
+    from pmask.meshes.loop import BASE_VERTEX
+
+    return BASE_VERTEX  # Loop subdivision keeps the base surface's vertex order
+
+
+def figure1(models, out: Path) -> tuple[Path, list[float]]:
+    """Paper Figure 1: a unit vertex force (a pull along the normal, single-vertex mask) on three
+    refinements of one body; the displacement at the loaded vertex grows without bound with refinement
+    (a point load on an elastic solid is singular, u ~ 1/r).  Returns the PNG and those displacements [m/N]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(13, 4.6))
+    us = [vertex_pull(m, _base_vertex(m)) for m in models]
+    peaks = [float(np.linalg.norm(u[_base_vertex(m)])) for m, u in zip(models, us)]
+    scale = 0.008 / peaks[0]  # the coarsest pull drawn 8 mm long; the same exaggeration in every panel
+    for k, (m, u, p) in enumerate(zip(models, us, peaks)):
+        ax = fig.add_subplot(1, len(models), k + 1, projection="3d")
+        _deformed_panel(ax, m, u, scale, _base_vertex(m),
+                        f"{len(m.points)} vertices: |u| at the load = {p * 1e3:.2f} mm per N", peaks[0])
+    fig.suptitle("Figure 1: a unit vertex force on three refinements of one body: the point load's displacement "
+                 f"grows with refinement\n(same exaggeration {scale:.3g}x; colour |u| up to the coarsest load's)",
+                 fontsize=10)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out, peaks
+
+
+def figure4(model, radius: float, out: Path) -> tuple[Path, dict]:
+    """Paper Figure 4: the same pull through a single-vertex mask and through a multi-vertex (cone) mask on
+    a once-refined mesh, exaggerated alike.  Returns the PNG and the displacement at the loaded vertex [m/N]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    v = _base_vertex(model)
+    us = {"single": vertex_pull(model, v), "linear": vertex_pull(model, v, "linear", radius)}
+    peaks = {k: float(np.linalg.norm(u[v])) for k, u in us.items()}
+    scale = 0.008 / peaks["linear"]
+    vmax = max(peaks.values())
+    fig = plt.figure(figsize=(9.5, 4.6))
+    titles = {"single": f"single-vertex mask: {peaks['single'] * 1e3:.2f} mm per N at the load",
+              "linear": f"cone mask, r = {radius * 1e3:.1f} mm: {peaks['linear'] * 1e3:.2f} mm per N"}
+    for k, name in enumerate(us):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        _deformed_panel(ax, model, us[name], scale, v, titles[name], vmax)
+    fig.suptitle(f"Figure 4: pulling deformations on a once-refined mesh ({len(model.points)} vertices), "
+                 f"same force, same exaggeration {scale:.3g}x", fontsize=10)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out, peaks
+
+
+def loop_figures(out_dir: Path, work: Path) -> dict:
+    """Figures 1 and 4 on the Figure 5 family (stored meshes, artifacts in ``work``)."""
+    models = _loop_models(Path(work))
+    f1, peaks1 = figure1(models[1:], Path(out_dir) / "figure1_point_load.png")
+    f4, peaks4 = figure4(models[1], models[0].mean_edge_length, Path(out_dir) / "figure4_masks.png")
+    return {"figure1": f1, "figure1_peaks": peaks1, "figure4": f4, "figure4_peaks": peaks4}

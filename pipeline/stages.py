@@ -12,6 +12,7 @@ goes once the artifact is written; a failure keeps only checkpoints a corrected 
 from __future__ import annotations
 
 import ast
+import functools
 import contextlib
 import hashlib
 import inspect
@@ -227,6 +228,8 @@ def validate(spec: Spec, out: Path) -> None:
         raise InputError(f"--r-max must be a finite length > 0, got {spec.r_max}")
     if spec.E is not None or spec.nu is not None:
         elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
+    if spec.nu is not None:  # a locking element is refused (or warned about) before any meshing
+        _warn_once(elements.get_element(spec.element).locking(spec.nu))
     for sel in (spec.fixed, spec.contact):
         if sel is not None:
             selectors.parse(sel)
@@ -287,12 +290,21 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
     return Surface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "")
 
 
+@functools.lru_cache(maxsize=16)
+def _warn_once(message: str | None) -> None:
+    if message:
+        log.warning(message)
+
+
 def material(spec: Spec, mesh: ModelMesh) -> tuple[float, float]:
     from pmask.precompute.elasticity import check_material
+
+    from pmask.precompute.elements import get_element
 
     E = spec.E if spec.E is not None else mesh.material["E"]
     nu = spec.nu if spec.nu is not None else mesh.material["nu"]
     check_material(E, nu)
+    _warn_once(get_element(spec.element).locking(nu))
     return float(E), float(nu)
 
 

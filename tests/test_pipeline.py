@@ -9,6 +9,7 @@ import pytest
 
 from conftest import relerr
 from pmask.meshes import kidney, loop
+from pmask.errors import InputError
 from pmask.pipeline.cli import main
 from pmask.pipeline.stages import Spec, input_hash, run
 from pmask.precompute.surface import boundary_surface
@@ -137,3 +138,22 @@ def test_halfspace_contact_region_is_widened_by_r_max(halfspace_small):
     assert np.sum(dist <= r_max) == len(x)
     assert core.sum() < len(x) < len(free_x)
     assert np.all(np.abs(x[:, 2]) < 1e-12)  # all on the flat face
+
+
+def test_p1_is_refused_where_it_locks_and_warned_about_where_it_stiffens(tmp_path, caplog):
+    """ν = 0.499 with P1 (2.1x Boussinesq on the half-space) is one line before any meshing, naming the
+    element that does not lock; ν = 0.45 with P1 warns with the measured excess; P2 at 0.499 is accepted."""
+    import logging
+
+    from pmask.pipeline.stages import _warn_once, validate
+
+    out = tmp_path / "x.h5"
+    with pytest.raises(InputError, match=r"P1 tetrahedra lock at nu = 0.499.*--element P2"):
+        run(Spec(model="kidney", nu=0.499), out)
+    assert not out.exists() and not (tmp_path / ".work").exists()
+    _warn_once.cache_clear()
+    with caplog.at_level(logging.WARNING, logger="pmask.pipeline.stages"):
+        validate(Spec(model="kidney", nu=0.45), out)
+        validate(Spec(model="kidney", nu=0.499, element="P2"), out)
+    warned = [r.getMessage() for r in caplog.records]
+    assert len(warned) == 1 and "nu = 0.45" in warned[0] and "17 %" in warned[0]

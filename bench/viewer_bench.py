@@ -1,0 +1,130 @@
+"""The viewer in a real browser (Debian's chromium, headless, software WebGL through SwiftShader): frames
+per second the page draws and servo reads per second it makes, idle and while a probe presses and slides
+with the deformation shown, at the default kidney and at ~4,000 surface vertices; the servo thread's late
+ticks meanwhile; and the README's screenshot (docs/viewer.png).
+
+Headless chromium here draws with the CPU (no GPU on this machine), on the same 2 cores as the server, its
+1 kHz servo thread and the browser's own processes: a floor, not what a desktop with a GPU shows.
+"""
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+WINDOW = (1280, 800)
+
+
+def _browser():
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    o = Options()
+    o.binary_location = shutil.which("chromium")
+    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", f"--window-size={WINDOW[0]},{WINDOW[1]}",
+              "--enable-unsafe-swiftshader", "--use-angle=swiftshader"):
+        o.add_argument(a)
+    return webdriver.Chrome(options=o, service=Service(shutil.which("chromedriver")))
+
+
+def _windows(d, since: int, touching: bool):
+    h = d.execute_script("return window.pmaskView.stats.history")[since:]
+    return [w for w in h if w["touching"] == touching]
+
+
+def one(path: Path, screenshot: Path | None = None) -> dict:
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    from pmask.runtime import Model
+    from pmask.viewer.server import ViewerSession, make_server
+
+    m = Model.load(path)
+    session = ViewerSession(m)
+    srv = make_server(session, "127.0.0.1", 0)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    d = _browser()
+    try:
+        d.get(f"http://127.0.0.1:{srv.server_address[1]}/")
+        for _ in range(400):
+            if d.execute_script("return document.body.dataset.ready") == "1":
+                break
+            time.sleep(0.05)
+        time.sleep(6.5)  # idle: rendering alone
+        idle = _windows(d, 1, False)
+        # a probe on the vertex nearest the screen centre that faces the camera, far from the support
+        P = m.points
+        core = m.contact[m.core]
+        far = core[np.min(np.linalg.norm(P[core][:, None] - P[m.fixed][None], axis=2), axis=1) > 4 * m.mean_edge_length]
+        order = far[np.argsort(np.linalg.norm(P[far] - P.mean(axis=0), axis=1))]
+        v = next(int(i) for i in order if d.execute_script(f"return window.pmaskView.facing({int(i)})"))
+        x, y = d.execute_script(f"return window.pmaskView.screenOf({v})")
+        n0 = len(d.execute_script("return window.pmaskView.stats.history"))
+        t0 = session.contacts.tick_stats()
+        a = ActionChains(d, duration=50)
+        a.w3c_actions.pointer_action.move_to_location(int(x), int(y))
+        a.w3c_actions.pointer_action.pointer_down()
+        for k in range(160):  # 8 s of sliding back and forth, 50 ms per move
+            a.w3c_actions.pointer_action.move_by(6 if (k // 20) % 2 == 0 else -6, 0)
+        a.perform()
+        t1 = session.contacts.tick_stats()
+        if screenshot is not None:
+            d.execute_script("const e = document.getElementById('exaggeration'); e.value = 3; e.dispatchEvent(new Event('input'));")
+            time.sleep(1.0)
+            d.save_screenshot(str(screenshot))
+        ActionChains(d).release().perform()
+        probing = _windows(d, n0 + 1, True)
+    finally:
+        d.quit()
+        srv.shutdown()
+        srv.server_close()
+        session.close()
+
+    def summary(ws):
+        f = [w["fps"] for w in ws]
+        u = [w["ups"] for w in ws]
+        return {"windows": len(ws), "fps_median": float(np.median(f)) if f else None, "fps_min": min(f) if f else None,
+                "reads_median": float(np.median(u)) if u else None}
+
+    return {"surface_vertices": len(m.points), "idle": summary(idle), "probing": summary(probing),
+            "servo_ticks": t1["ticks"] - t0["ticks"], "servo_late": t1["late"] - t0["late"], "window": list(WINDOW)}
+
+
+def run(arts: dict) -> dict:
+    """arts: {surface vertices: artifact path}; the default kidney's run also writes docs/viewer.png."""
+    if not (shutil.which("chromium") and shutil.which("chromedriver")):
+        return {"skipped": "no chromium + chromedriver (make system-deps)"}
+    out = {}
+    for n, path in sorted(arts.items()):
+        print(f"viewer {n} vertices ...", flush=True)
+        out[str(n)] = one(path, DOCS / "viewer.png" if 1000 < n < 2000 else None)
+    return out
+
+
+def markdown(res: dict) -> str:
+    if "skipped" in res:
+        return f"**Viewer**: not measured ({res['skipped']})."
+    L = [f"**Viewer** (`pmask view` in headless chromium, {res[next(iter(res))]['window'][0]}x"
+         f"{res[next(iter(res))]['window'][1]}, software WebGL on the same 2 cores as the server and its 1 kHz servo "
+         "thread; 1 s windows): frames per second drawn and servo reads per second (each a round trip that sets the "
+         "probes and fetches forces and the deformation), idle and while a probe presses and slides",
+         "", "| surface vertices | idle fps (median) | probing fps median | probing fps min | servo reads/s median | "
+         "servo late ticks while probing |", "|---|---|---|---|---|---|"]
+    for n, r in res.items():
+        i, p = r["idle"], r["probing"]
+        L.append(f"| {n} | {i['fps_median']:.0f} | {p['fps_median']:.0f} | {p['fps_min']:.0f} | {p['reads_median']:.0f} | "
+                 f"{r['servo_late']} of {r['servo_ticks']} |")
+    return "\n".join(L)
+
+
+if __name__ == "__main__":
+    import sys
+
+    from pmask.runtime import Model
+
+    res = run({len(Model.load(p).points): Path(p) for p in sys.argv[1:]})
+    print(markdown(res))

@@ -1,0 +1,355 @@
+"""``pmask view``: the page in a real browser against the runtime, and a server that hostile input cannot stop.
+
+The browser tests drive Debian's chromium headless through selenium (``make system-deps`` installs it);
+without it they skip, except where ``PMASK_REQUIRE_BROWSER=1`` (CI) makes a missing browser a failure.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pmask.runtime import Contacts, Model
+from pmask.viewer.server import N_PROBES, ViewerSession, make_server
+
+CHROMIUM, CHROMEDRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+
+
+@pytest.fixture(scope="module")
+def session(kidney_small):
+    s = ViewerSession(Model.load(kidney_small))
+    yield s
+    s.close()
+
+
+@pytest.fixture(scope="module")
+def server(session):
+    srv = make_server(session, "127.0.0.1", 0)
+    t = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    t.start()
+    yield f"http://127.0.0.1:{srv.server_address[1]}/", srv.server_address[1]
+    srv.shutdown()
+    srv.server_close()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not (CHROMIUM and CHROMEDRIVER):
+        if os.environ.get("PMASK_REQUIRE_BROWSER", "") not in ("", "0"):
+            pytest.fail("PMASK_REQUIRE_BROWSER is set but chromium/chromedriver are missing (make system-deps)")
+        pytest.skip("no chromium + chromedriver (make system-deps installs them)")
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    opts = Options()
+    opts.binary_location = CHROMIUM
+    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1100,800",
+              "--enable-unsafe-swiftshader", "--use-angle=swiftshader"):
+        opts.add_argument(a)
+    d = webdriver.Chrome(options=opts, service=Service(CHROMEDRIVER))
+    yield d
+    d.quit()
+
+
+def _open(browser, url):
+    browser.get(url)
+    for _ in range(200):
+        if browser.execute_script("return document.body.dataset.ready") == "1":
+            return
+        time.sleep(0.05)
+    raise AssertionError("the page did not start: " + browser.find_element("id", "error").text)
+
+
+def _screen_vertices(browser, model, count, min_sep):
+    """Core contact vertices that face the camera, far from the support and (several) from each other."""
+    P = model.points
+    core = model.contact[model.core]
+    far = core[np.min(np.linalg.norm(P[core][:, None] - P[model.fixed][None], axis=2), axis=1) > 4 * model.mean_edge_length]
+    centre = P.mean(axis=0)
+    chosen = []
+    for i in far[np.argsort(np.linalg.norm(P[far] - centre, axis=1))]:
+        if any(np.linalg.norm(P[i] - P[j]) < min_sep for j in chosen):
+            continue
+        if browser.execute_script(f"return window.pmaskView.facing({int(i)})"):
+            chosen.append(int(i))
+            if len(chosen) == count:
+                return chosen
+    raise AssertionError("no vertex of the contact region faces the camera")
+
+
+def _steady(browser, element_id, attr, tries=60):
+    """The page's value once two reads 0.25 s apart agree (the servo has settled on a held probe)."""
+    last = None
+    for _ in range(tries):
+        el = browser.find_element("id", element_id)
+        now = (el.text, el.get_attribute(attr))
+        if now == last:
+            return now
+        last = now
+        time.sleep(0.25)
+    raise AssertionError(f"{element_id} never settled: {last}")
+
+
+def _displayed_force(browser, k):
+    text, _ = _steady(browser, f"force{k}", "data-force")
+    # "|f| N (fx, fy, fz)": what the page shows, to 6 significant digits
+    inner = text.split("(", 1)[1].rstrip(")")
+    return np.array([float(x) for x in inner.split(",")]), browser.find_element("id", f"status{k}").text
+
+
+def _reference(session, targets, approach):
+    """The runtime's own forces for these probe positions, by a fresh Contacts (Python engine) that comes in
+    from outside along ``approach`` and holds still for 1.5 s of ticks."""
+    c = Contacts(session.stiffness, N_PROBES, engine="python", max_jump=2.0 * session.diag)
+    starts = [session.park if t is None else (np.asarray(t) + a).tolist() for t, a in zip(targets, approach)]
+    for s in np.linspace(0.0, 1.0, 300):
+        c.step([session.park if t is None else ((1 - s) * np.asarray(a0) + s * np.asarray(t)).tolist()
+                for t, a0 in zip(targets, starts)])
+    for _ in range(1500):
+        forces, statuses = c.step([session.park if t is None else t for t in targets])
+    return np.array(forces), [int(x) for x in statuses]
+
+
+def _drag(browser, xy, shift=False, slide=(24, 10)):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    a = ActionChains(browser, duration=20)
+    if shift:
+        a.key_down(Keys.SHIFT)
+    a.w3c_actions.pointer_action.move_to_location(int(xy[0]), int(xy[1]))
+    a.w3c_actions.pointer_action.pointer_down()
+    for _ in range(6):  # press, then slide over the surface
+        a.w3c_actions.pointer_action.move_by(slide[0] // 6, slide[1] // 6)
+    a.perform()
+    if shift:
+        ActionChains(browser).key_up(Keys.SHIFT).perform()
+
+
+def test_the_force_the_page_shows_is_the_runtimes_for_that_probe(browser, server, session):
+    """Drag a probe onto the body and slide, hold, and read the force the panel shows: it equals the force
+    a fresh runtime contact gives for the probe position the page reports, to the 6 digits shown (the
+    servo is frictionless, so a held probe's force depends on where it is, not on the path)."""
+    url, _ = server
+    _open(browser, url)
+    m = session.model
+    (v,) = _screen_vertices(browser, m, 1, 0.0)
+    _drag(browser, browser.execute_script(f"return window.pmaskView.screenOf({v})"))
+    try:
+        f_page, status = _displayed_force(browser, 0)
+        probe = json.loads(browser.find_element("id", "probe0").get_attribute("data-probe"))
+    finally:
+        from selenium.webdriver.common.action_chains import ActionChains
+        ActionChains(browser).release().perform()
+    assert status == "CONTACT"
+    out = 1.5 * m.mean_edge_length * _outward(m, probe)
+    f_ref, statuses = _reference(session, [probe, None], [out, None])
+    assert statuses[0] == 1
+    assert np.linalg.norm(f_ref[0]) > 1e-2  # a real press: newtons, not round-off
+    # 6 significant digits per shown component
+    assert np.allclose(f_page, f_ref[0], rtol=1e-5, atol=1e-5 * np.linalg.norm(f_ref[0]))
+
+
+def test_two_probes_are_coupled_through_the_body(browser, server, session):
+    """Shift-drag leaves a second probe on the body; dragging the first next to it, both forces shown are
+    the runtime's coupled two-contact solve for the two probe positions, and they differ from what two
+    independent contacts would give (the coupling is visible)."""
+    url, _ = server
+    _open(browser, url)
+    m = session.model
+    v1, v2 = _screen_vertices(browser, m, 2, 3.0 * m.mean_edge_length)
+    _drag(browser, browser.execute_script(f"return window.pmaskView.screenOf({v2})"), shift=True, slide=(0, 0))
+    from selenium.webdriver.common.action_chains import ActionChains
+    ActionChains(browser).release().perform()  # probe 2 stays pressed
+    _drag(browser, browser.execute_script(f"return window.pmaskView.screenOf({v1})"), slide=(0, 0))
+    try:
+        f0, s0 = _displayed_force(browser, 0)
+        f1, s1 = _displayed_force(browser, 1)
+        probes = [json.loads(browser.find_element("id", f"probe{k}").get_attribute("data-probe")) for k in (0, 1)]
+    finally:
+        ActionChains(browser).release().perform()
+    assert (s0, s1) == ("CONTACT", "CONTACT")
+    out = [1.5 * m.mean_edge_length * _outward(m, p) for p in probes]
+    f_ref, statuses = _reference(session, probes, out)
+    assert statuses == [1, 1]
+    for f_page, f in zip((f0, f1), f_ref):
+        assert np.allclose(f_page, f, rtol=1e-5, atol=1e-5 * np.linalg.norm(f))
+    alone = [_reference(session, [p, None], [o, None])[0][0] for p, o in zip(probes, out)]
+    assert max(np.linalg.norm(a - f) / np.linalg.norm(f) for a, f in zip(alone, f_ref)) > 0.01
+
+
+def test_the_radius_slider_rebuilds_the_stiffness_and_its_colour_range(browser, server, session):
+    """The End key on the radius slider (a user's keyboard) moves it to its largest radius; the server
+    rebuilds every K_i and the colour bar's range becomes the new masked ‖K_i‖ range over the contact
+    region, computed here from the model directly."""
+    from selenium.webdriver.common.keys import Keys
+
+    url, _ = server
+    _open(browser, url)
+    lo0 = float(browser.find_element("id", "cmin").get_attribute("data-value"))
+    hi0 = float(browser.find_element("id", "cmax").get_attribute("data-value"))
+    browser.find_element("id", "radius").send_keys(Keys.END)
+    for _ in range(200):
+        if browser.find_element("id", "radius").get_attribute("data-applied"):
+            break
+        time.sleep(0.05)
+    r = float(browser.find_element("id", "radius").get_attribute("data-applied"))
+    m = session.model
+    assert r == pytest.approx(session.radius_range[1], rel=1e-9)
+    K = m.stiffness("linear", r).K_vertex[m.contact[m.core]]
+    norms = np.linalg.norm(K, ord=2, axis=(1, 2))
+    lo = float(browser.find_element("id", "cmin").get_attribute("data-value"))
+    hi = float(browser.find_element("id", "cmax").get_attribute("data-value"))
+    assert (lo, hi) != (lo0, hi0)
+    assert lo == pytest.approx(norms.min(), rel=1e-12) and hi == pytest.approx(norms.max(), rel=1e-12)
+    # leave the module's session as the other tests expect it
+    session.respond("POST", "/api/radius", json.dumps({"radius": 2.0 * m.mean_edge_length}).encode())
+
+
+def _outward(model, p):
+    """The area-weighted normal at the vertex nearest p (outward for a closed, consistently oriented surface)."""
+    P, T = model.points, model.triangles
+    i = int(np.argmin(np.linalg.norm(P - np.asarray(p), axis=1)))
+    n = np.zeros(3)
+    for t in T[(T == i).any(axis=1)]:
+        n += np.cross(P[t[1]] - P[t[0]], P[t[2]] - P[t[0]])
+    return n / np.linalg.norm(n)
+
+
+# ---------------------------------------------------------------------------------- hostile input
+_json_values = st.recursive(st.none() | st.booleans() | st.floats(allow_nan=True) | st.integers() | st.text(max_size=8),
+                            lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.text(max_size=6), kids, max_size=4),
+                            max_leaves=20)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(method=st.sampled_from(["GET", "POST", "PUT", "DELETE", "HEAD", "X"]),
+       path=st.sampled_from(["/", "/api/probe", "/api/radius", "/api/model", "/api/health", "/../etc/passwd",
+                             "/api/probe?x=1", "/static/../../setup.py"]) | st.text(max_size=30).map(lambda s: "/" + s),
+       body=st.binary(max_size=200) | _json_values.map(lambda v: json.dumps(v).encode())
+       | st.fixed_dictionaries({"probes": _json_values, "deform": _json_values}).map(lambda v: json.dumps(v).encode())
+       | st.fixed_dictionaries({"radius": _json_values}).map(lambda v: json.dumps(v).encode()))
+def test_no_message_breaks_the_server(session, method, path, body):
+    """Random and malformed requests: a 2xx or a 4xx with one line of JSON, never a 500 (our bug), and
+    the session still answers afterwards."""
+    status, ctype, payload = session.respond(method, path, body)
+    assert status < 500, payload
+    if status >= 400:
+        err = json.loads(payload)["error"]
+        assert err and "\n" not in err
+    assert session.respond("GET", "/api/health")[0] == 200
+
+
+def test_the_socket_survives_garbage(server):
+    """Raw bytes on the socket: a broken request line, a missing or huge or lying Content-Length, a
+    client that stops mid-body, 1 MB of junk; afterwards the server still answers."""
+    _, port = server
+
+    def send(data, read=True):
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+            try:
+                s.sendall(data)
+            except OSError:  # the server hung up on junk before reading it all: what it should do
+                pass
+            if not read:
+                return b""
+            try:
+                s.shutdown(socket.SHUT_WR)
+            except OSError:  # already closed by the server
+                pass
+            try:
+                return s.recv(65536)
+            except OSError:
+                return b""
+
+    answer = send(b"\x00\xff garbage \r\n\r\n")
+    assert json.loads(answer.split(b"\r\n\r\n", 1)[-1])["error"].startswith("400 ")  # HTTP/0.9: no headers
+    assert b" 411 " in send(b"POST /api/probe HTTP/1.1\r\nHost: x\r\n\r\n{}")
+    assert b" 413 " in send(b"POST /api/probe HTTP/1.1\r\nContent-Length: 99999999\r\n\r\n")
+    send(b"POST /api/probe HTTP/1.1\r\nContent-Length: 100\r\n\r\n{\"probes\"", read=False)
+    send(os.urandom(1 << 20))
+    assert b" 400 " in send(b"POST /api/probe HTTP/1.1\r\nContent-Length: 12\r\n\r\n{\"probes\":1}")
+    import urllib.request
+    assert json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=5)) == {"ok": True}
+
+
+def test_probe_and_radius_messages_are_checked(session):
+    bad = [({"probes": [[0, 0]]}, "probes must be a list of 2"), ({"probes": [[0, 0, "a"], None]}, "3 numbers"),
+           ({"probes": [[0, 0, 1e999], None]}, "finite"), ({"probes": [None, None], "deform": 1}, "deform"),
+           ({"radius": -1}, "radius must lie in"), ({"radius": "big"}, "finite number")]
+    for msg, match in bad:
+        path = "/api/radius" if "radius" in msg else "/api/probe"
+        status, _, payload = session.respond("POST", path, json.dumps(msg).encode())
+        assert status == 400 and match in json.loads(payload)["error"], (msg, payload)
+
+
+# ---------------------------------------------------------------------------------- the command
+def _pmask(*args):
+    return [sys.executable, "-m", "pmask.pipeline", *args]
+
+
+def test_port_in_use_is_one_line(kidney_small):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run(_pmask("view", str(kidney_small), "--port", str(port)), capture_output=True, text=True,
+                           timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and f"port {port}" in r.stderr and "--port" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_a_corrupt_artifact_is_refused_before_the_server_starts(kidney_small, tmp_path):
+    bad = tmp_path / "bad.h5"
+    data = bytearray(kidney_small.read_bytes())
+    data[len(data) // 2:len(data) // 2 + 64] = bytes(64)
+    bad.write_bytes(bytes(data))
+    r = subprocess.run(_pmask("view", str(bad), "--port", "0"), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "listening" not in r.stdout
+    assert r.stderr.strip().count("\n") == 0 and "bad.h5" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ctrl_c_stops_cleanly_and_it_listens_on_localhost_only(kidney_small):
+    p = subprocess.Popen(_pmask("view", str(kidney_small), "--port", "0"), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        lines = [p.stdout.readline() for _ in range(3)]
+        assert "127.0.0.1 only" in lines[1] and "--host" in lines[1], lines
+        url = lines[2].split()[1]
+        port = int(url.rstrip("/").rsplit(":", 1)[1])
+        import urllib.request
+        assert json.load(urllib.request.urlopen(url + "api/health", timeout=5)) == {"ok": True}
+        with pytest.raises(OSError):  # not on the machine's other addresses
+            other = _other_address()
+            if other is None:
+                raise OSError("no other address to try")
+            socket.create_connection((other, port), timeout=2).close()
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=30)
+    finally:
+        p.kill()
+    assert p.returncode == 0, err
+    assert "stopped" in out and "Traceback" not in err
+
+
+def _other_address():
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("10.255.255.255", 1))
+            a = s.getsockname()[0]
+        return None if a.startswith("127.") else a
+    except OSError:
+        return None
