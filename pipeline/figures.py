@@ -6,6 +6,17 @@ from pathlib import Path
 import numpy as np
 
 
+def _save(fig, out) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
 def figure6(model, out: Path, radius_factor: float = 2.0, numbers: dict | None = None) -> Path:
     """Three maps side by side, seen from +z and from −z, written as one PNG."""
     import matplotlib
@@ -48,11 +59,7 @@ def figure6(model, out: Path, radius_factor: float = 2.0, numbers: dict | None =
         fig.suptitle(f"{Path(model.path).name}: rank correlation with a: single {s['rank_correlation_with_area']:.2f}, "
                      f"masked {m['rank_correlation_with_area']:.2f};  roughness: single {s['roughness']:.3f}, "
                      f"masked {m['roughness']:.3f}  (grey: fixed hilum)", fontsize=10)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    out = _save(fig, out)
     return out
 
 
@@ -143,11 +150,7 @@ def figure1(models, out: Path) -> tuple[Path, list[float]]:
     fig.suptitle("Figure 1: a unit vertex force on three refinements of one body: the point load's displacement "
                  f"grows with refinement\n(same exaggeration {scale:.3g}x; colour |u| up to the coarsest load's)",
                  fontsize=10)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    out = _save(fig, out)
     return out, peaks
 
 
@@ -172,11 +175,7 @@ def figure4(model, radius: float, out: Path) -> tuple[Path, dict]:
         _deformed_panel(ax, model, us[name], scale, v, titles[name], vmax)
     fig.suptitle(f"Figure 4: pulling deformations on a once-refined mesh ({len(model.points)} vertices), "
                  f"same force, same exaggeration {scale:.3g}x", fontsize=10)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    out = _save(fig, out)
     return out, peaks
 
 

@@ -12,7 +12,7 @@ from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact
 from pmask.runtime.device import Device
 from pmask.runtime.geometry import mean_edge_length
 from pmask.runtime.masks import check_radius, pressure_masks
-from pmask.runtime.stiffness import Stiffness, check_positive_definite, vertex_stiffness
+from pmask.runtime.stiffness import Stiffness, StiffnessError, check_positive_definite, vertex_stiffness
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,20 @@ class Model:
             log.info("%d of %d masks reach no neighbour at r = %g (single-vertex stiffness there)",
                      m.single_vertex, len(m.centres), m.radius)
         K = vertex_stiffness(self.Xi, m)
-        check_positive_definite(K, self.contact[m.centres])
+        try:
+            check_positive_definite(K, self.contact[m.centres])
+        except StiffnessError:
+            if mask == "single":
+                raise
+            # the point-force blocks Ξ_ii / a_i of an elastic body are positive definite: if they are, the
+            # mask is to blame (spread over it, the traction can move the centre against the force on a
+            # coarse or small body), not the Green's functions
+            single = self.masks("single")
+            check_positive_definite(vertex_stiffness(self.Xi, single), self.contact[single.centres])
+            check_positive_definite(K, self.contact[m.centres], cause=(
+                f"the {mask} mask of radius {m.radius:.3g} (mean edge {self.mean_edge_length:.3g}) moves these "
+                "centres against the force it spreads, which a mask large for its body or mesh can do; use a "
+                "smaller mask radius"))
         band = self.masks(mask, radius, band=True) if not self.core.all() else None
         K_band = vertex_stiffness(self.Xi, band) if band is not None and len(band.centres) else None
         if K_band is not None:

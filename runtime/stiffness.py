@@ -80,17 +80,20 @@ def asymmetry(K: np.ndarray) -> np.ndarray:
     return np.linalg.norm(K - np.swapaxes(K, -1, -2), axis=(-2, -1)) / np.linalg.norm(K, axis=(-2, -1))
 
 
-def check_positive_definite(K: np.ndarray, surface_vertices: np.ndarray, what: str = "K_i") -> None:
+def check_positive_definite(K: np.ndarray, surface_vertices: np.ndarray, what: str = "K_i",
+                            cause: str | None = None) -> None:
     """Refuse stiffnesses whose symmetric part is not positive definite, naming the vertices: such a
-    contact would pull the tool into the body (a sign-flipped Ξ, whatever its checksums say)."""
+    contact would pull the tool into the body (a sign-flipped Ξ, whatever its checksums say).  ``cause``
+    replaces the default explanation (corrupt Green's functions)."""
     lam = np.linalg.eigvalsh(0.5 * (K + np.swapaxes(K, -1, -2)))[:, 0] if len(K) else np.zeros(0)
     bad = np.flatnonzero(~(lam > 0))
     if len(bad):
         names = ", ".join(str(int(v)) for v in surface_vertices[bad[:10]]) + (" ..." if len(bad) > 10 else "")
         raise StiffnessError(
             f"the rendered vertex stiffness {what} is not positive definite at {len(bad)} of {len(K)} surface vertices "
-            f"({names}; smallest eigenvalue {lam[bad].min():.3g} N/m): these Green's functions cannot come from an "
-            "elastic body held by its support; recompute the artifact (pmask precompute --force)")
+            f"({names}; smallest eigenvalue {lam[bad].min():.3g} N/m): "
+            + (cause or "these Green's functions cannot come from an elastic body held by its support; recompute the "
+                        "artifact (pmask precompute --force)"))
 
 
 def smoothstep(x):
