@@ -24,11 +24,16 @@ HALFSPACE_R = halfspace.LOAD_RADIUS
 HALFSPACE_DIVISIONS = (4, 8, 16)  # h = r / k at the load (P1)
 HALFSPACE_P2_DIVISIONS = (4, 8)  # P2 converges faster and costs ~6x the dofs per mesh
 KIDNEY_SMALL_SIZE = 0.009
+HALFSPACE_FAR = 120.0
+INCOMPRESSIBLE_NU = (0.3, 0.45, 0.49, 0.499)
 
 #: stored mesh name -> builder
 MESHES = {
     **{f"loop{k}": (lambda k=k: loop.build(k)) for k in range(4)},
     **{f"halfspace_h{k}": (lambda k=k: halfspace.build(h_load=HALFSPACE_R / k)) for k in HALFSPACE_DIVISIONS},
+    # the nearly-incompressible rows: the hemisphere 4x farther (R = 120 r) so that the far support's
+    # stiffening (+1..2 % at R = 30 r, not shrinking with h) stays below the element's own error
+    "halfspace_far_h4": lambda: halfspace.build(h_load=HALFSPACE_R / 4, far=HALFSPACE_FAR),
     "kidney": lambda: kidney.build(),
     "kidney_small": lambda: kidney.build(KIDNEY_SMALL_SIZE),
 }
@@ -52,11 +57,12 @@ def artifact_for(name: str, mesh_dir: Path, work: Path, nu: float | None = None,
     return out
 
 
-def figure5_table(mesh_dir: Path, work: Path):
+def figure5_table(mesh_dir: Path, work: Path, element: str = "P1"):
+    """The paper's Figure 5 on the Loop family with ``element`` (P1: ``figure5.csv``; P2: ``figure5_p2.csv``)."""
     from pmask.pipeline.truth import figure5_row
     from pmask.runtime import Model
 
-    models = [Model.load(artifact_for(f"loop{k}", mesh_dir, work)) for k in range(4)]
+    models = [Model.load(artifact_for(f"loop{k}", mesh_dir, work, element=element)) for k in range(4)]
     radius = models[0].mean_edge_length
     base = load_model_mesh(mesh_dir / "loop0.npz").info["base_vertex_position"]
     rows = []
@@ -70,6 +76,8 @@ def figure5_table(mesh_dir: Path, work: Path):
             "mask": f"linear cone, r = {radius:.6e} m (mean edge length of loop0)",
             "vertex": "base vertex 17 (ring 3, segment 0)", "units": "N/m (norm = largest singular value)",
             "material": f"E = {models[0].E:g} Pa, nu = {models[0].nu:g}"}
+    if element != "P1":
+        meta["element"] = f"{element} (the traction stays piecewise linear; Xi read at the corners)"
     return meta, rows
 
 
@@ -98,6 +106,30 @@ def halfspace_table(mesh_dir: Path, work: Path, elements=("P1", "P2")):
             "resolution": "h = r/4, r/8, r/16 (P1) and r/4, r/8 (P2) at the load, growing 0.2 per unit distance",
             "mask": "linear cone, uniform disk, Wendland C2, truncated Gaussian, single vertex; radius r",
             "units": "N/m; errors relative", "element": "P1 and P2 (column 'element')"}
+    return meta, rows
+
+
+def incompressible_table(mesh_dir: Path, work: Path):
+    """P2 (the P2-P0 volumetric rule) on the far half-space at h = r/4 for ν up to 0.499, against
+    Boussinesq/Cerruti (the soft-tissue issue: k_n and k_t within 3 % at ν = 0.45 and 0.49)."""
+    from pmask.pipeline.truth import analytic_centre_stiffness, centre_stiffness
+    from pmask.runtime import Model
+
+    rows = []
+    for nu in INCOMPRESSIBLE_NU:
+        m = Model.load(artifact_for("halfspace_far_h4", mesh_dir, work, nu=nu, element="P2"))
+        for kind in ("linear", "disk", "wendland", "gaussian"):
+            c = centre_stiffness(m, kind, HALFSPACE_R)
+            kn_a, kt_a = analytic_centre_stiffness(kind, m.E, m.nu, HALFSPACE_R)
+            rows.append({"element": "P2", "mesh": "halfspace_far_h4", "h_over_r": 0.25, "nu": nu, "mask": kind,
+                         "kn_N_per_m": c["kn"], "kt_N_per_m": c["kt"], "kn_analytic": kn_a, "kt_analytic": kt_a,
+                         "kn_error": c["kn"] / kn_a - 1, "kt_error": c["kt"] / kt_a - 1,
+                         "volume_vertices": len(m.volume()[0])})
+    meta = {"table": "nearly incompressible tissue: P2 centre stiffness on a half-space vs Boussinesq/Cerruti",
+            "model": f"hemisphere R = {HALFSPACE_FAR:g} r fixed on its curved surface, r = {HALFSPACE_R} m, E = 1e4 Pa",
+            "resolution": "h = r/4 at the load, growing 0.2 per unit distance",
+            "mask": "linear cone, uniform disk, Wendland C2, truncated Gaussian; radius r",
+            "units": "N/m; errors relative", "element": "P2 (volumetric term at the centroid: P2-P0)"}
     return meta, rows
 
 
@@ -136,10 +168,15 @@ def kidney_tables(mesh_dir: Path, work: Path):
 
 
 def compute_all(mesh_dir: Path, work: Path, elements=("P1", "P2")) -> dict:
-    """Every reference table; ``elements`` limits the half-space table's rows (the P2 rows are the slow ones)."""
+    """Every reference table; ``elements`` limits the half-space table's rows (the P2 rows are the slow ones;
+    without P2 the incompressible table is left out too)."""
     f6, kv = kidney_tables(mesh_dir, work)
-    return {"figure5": figure5_table(mesh_dir, work), "halfspace": halfspace_table(mesh_dir, work, elements),
-            "figure6": f6, "kidney_vertices": kv}
+    out = {"figure5": figure5_table(mesh_dir, work), "halfspace": halfspace_table(mesh_dir, work, elements),
+           "figure6": f6, "kidney_vertices": kv}
+    if "P2" in elements:
+        out["incompressible"] = incompressible_table(mesh_dir, work)
+        out["figure5_p2"] = figure5_table(mesh_dir, work, "P2")
+    return out
 
 
 def format_table(meta: dict, rows: list[dict]) -> str:

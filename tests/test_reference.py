@@ -107,3 +107,43 @@ def test_figure6_masks_remove_mesh_artefacts():
     assert float(masked["rank_correlation_with_area"]) < float(single["rank_correlation_with_area"])
     assert float(single["rank_correlation_with_area"]) > 0.5  # single-vertex stiffness follows vertex area
     assert float(masked["normal_stiffness_roughness"]) < float(single["normal_stiffness_roughness"])
+
+
+@pytest.mark.slow
+def test_recomputed_incompressible_rows_match_stored(tmp_path):
+    from pmask.pipeline.reference import incompressible_table
+
+    _, rows = incompressible_table(REFERENCE_DIR / "meshes", tmp_path)
+    check_against_stored("incompressible", rows)
+
+
+def test_p2_does_not_lock_up_to_nu_0499():
+    """Nearly incompressible tissue on the far half-space (R = 120 r) at h = r/4 with P2: the cone's and
+    the disk's k_n and k_t within 3 % of Boussinesq/Cerruti at ν = 0.45, 0.49 and 0.499 (the soft-tissue
+    issue's bound; stored values 0.2-1.8 %), and the cone's k_n error moves by less than one point from
+    ν = 0.3 to 0.499 (P1 on the nearer model: +10 % to +321 % over the same range)."""
+    rows = table("incompressible")
+    for r in rows:
+        if r["mask"] in ("linear", "disk") and float(r["nu"]) >= 0.45:
+            assert abs(float(r["kn_error"])) <= 0.03 and abs(float(r["kt_error"])) <= 0.03, r
+    cone = {float(r["nu"]): float(r["kn_error"]) for r in rows if r["mask"] == "linear"}
+    assert abs(cone[0.499] - cone[0.3]) < 0.01
+
+
+@pytest.mark.slow
+def test_recomputed_figure5_p2_matches_stored(tmp_path):
+    from pmask.pipeline.reference import figure5_table
+
+    _, rows = figure5_table(REFERENCE_DIR / "meshes", tmp_path, "P2")
+    check_against_stored("figure5_p2", rows)
+
+
+def test_figure5_with_p2_converges_where_p1_moved_8_percent():
+    """The soft-tissue issue's Figure 5 targets with P2: the masked stiffness changes ≤ 3 % between the two
+    finest levels (stored −1.5 %; P1 −7.6 %), and the single-vertex stiffness falls by ≥ 1.8 from 514 to
+    2,050 vertices (stored 1.86).  From 130 to 514 it falls by 1.77, short of the issue's 1.8 (README)."""
+    rows = table("figure5_p2")
+    single, masked = col(rows, "single_norm_N_per_m"), col(rows, "masked_norm_N_per_m")
+    assert abs(masked[3] / masked[2] - 1) <= 0.03
+    assert single[2] / single[3] >= 1.8
+    assert np.all(single[:-1] / single[1:] >= 1.5)
