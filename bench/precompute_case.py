@@ -1,6 +1,6 @@
 """One precompute measured in its own process (so that its peak memory is its own).
 
-    python bench/precompute_case.py SIZE OUT.h5 [--baseline] [--float32]
+    python bench/precompute_case.py SIZE OUT.h5 [--baseline] [--float32] [--p2]
 
 Prints one JSON line: per-stage times, counts, peak RSS, the dense floor
 (LAPACK potrf + potri of a dense SPD matrix of size 3 n_p: the least work of any
@@ -82,10 +82,11 @@ def main() -> None:
     size, out = float(sys.argv[1]), Path(sys.argv[2])
     dtype = "float32" if "--float32" in sys.argv else "float64"
     t0 = time.perf_counter()
-    s = run(Spec(model="kidney", params={"size": size}, dtype=dtype), out, force=True)
+    element = "P2" if "--p2" in sys.argv else "P1"
+    s = run(Spec(model="kidney", params={"size": size}, dtype=dtype, element=element), out, force=True)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # GiB
-    res = {"size": size, "wall_s": wall, "peak_rss_gib": peak, **{k: s[k] for k in (
+    res = {"size": size, "element": element, "wall_s": wall, "peak_rss_gib": peak, **{k: s[k] for k in (
         "timings", "volume_vertices", "tets", "surface_vertices", "free", "fixed", "contact", "size_bytes", "dofs",
         "backend", "factor_stats")}}
     res["dense_floor_s"] = dense_floor(3 * s["contact"])

@@ -124,6 +124,8 @@ def main() -> None:
         arts[r["free"]] = work / f"kidney_{size}.h5"
     print("pip-only CHOLMOD (cvxopt) at the default size ...", flush=True)
     res["cvxopt_default"] = precompute(0.005, work / "kidney_cvxopt.h5", backend="cvxopt")
+    print("P2 at the default size and at ~3,900 free vertices ...", flush=True)
+    res["p2"] = [precompute(size, work / f"kidney_p2_{size}.h5", "--p2") for size in (0.005, 0.003)]
     print("float32 ...", flush=True)
     r32 = precompute(0.005, work / "kidney_f32.h5", "--float32")
     res["float32"] = float32_effect(work / "kidney_0.005.h5", work / "kidney_f32.h5", r32)
@@ -261,6 +263,21 @@ def markdown(res: dict) -> str:
               f"cvxopt's CHOLMOD with a single-threaded BLAS in an AMD order, the selected inversion in numpy and "
               f"SciPy's BLAS): factor {t['factor']:.2f} s, greens {t['greens']:.2f} s, total {sum(t.values()):.2f} s. "
               f"Rows above: CHOLMOD backend `{res['precompute'][0].get('backend')}`."]
+    if res.get("p2"):
+        p1 = {r["free"]: r for r in res["precompute"]}
+        L += ["", "**P2** (quadratic tetrahedra, the P2–P0 volumetric rule; one run each, same selected inversion "
+                  "with one dgemm per supernode), beside the P1 row of the same mesh:", "",
+              "| free vertices | element dofs | factor | greens | GF stage | total | P1 total | P2 / P1 total | "
+              "dense floor | GF / dense floor | fill floor | peak RSS GiB |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in res["p2"]:
+            t = r["timings"]
+            gf = t["factor"] + t["greens"]
+            q = p1.get(r["free"])
+            p1_total = sum(q["timings"].values()) if q else float("nan")
+            L.append(f"| {r['free']} | {r['dofs']} | {t['factor']:.2f} | {t['greens']:.2f} | {gf:.2f} | "
+                     f"{sum(t.values()):.2f} | {p1_total:.2f} | {sum(t.values()) / p1_total:.1f}x | "
+                     f"{r['dense_floor_s']:.2f} | {gf / r['dense_floor_s']:.2f} | {r['fill_floor_s']:.2f} | "
+                     f"{r['peak_rss_gib']:.2f} |")
     s = res["scaling"]
     L += ["", f"Scaling: total time ∝ n_free^{s['time_vs_free_exponent']:.2f}, "
               f"∝ condensed dofs^{s['time_vs_condensed_dofs_exponent']:.2f}.", ""]
