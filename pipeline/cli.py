@@ -1,6 +1,6 @@
 """``pmask`` command line (also ``python -m pmask.pipeline``).
 
-Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``export-table``, ``reference``, ``figures``, ``view``.  An error the
+Subcommands: ``precompute``, ``models``, ``info``, ``export``, ``export-table``, ``reference``, ``figures``, ``view``, ``inspect``.  An error the
 user can fix (:class:`pmask.errors.PmaskError`) prints one line and exits with 2; anything else is a
 bug in pmask and shows its traceback with a request to report it.  ``--verbose`` shows the traceback
 of every error.
@@ -58,7 +58,10 @@ def add_precompute(sub) -> None:
     p.add_argument("--r-max", type=float, help="largest mask radius the runtime may use (input units)")
     p.add_argument("-E", "--youngs-modulus", dest="E", type=float, help="Young's modulus [Pa]")
     p.add_argument("--nu", type=float, help="Poisson's ratio, in (-1, 0.5)")
-    p.add_argument("--units", default="m", help="length unit of the input geometry: m, cm, mm, um (default m)")
+    p.add_argument("--units", default=None, help="length unit of the input geometry: m, cm, mm, um (default m; a file "
+                                                 "more than 2 m across is then refused as probably in mm)")
+    p.add_argument("--mesh-timeout", type=float, default=600.0,
+                   help="seconds gmsh may take to remesh a --surface before it is stopped (default 600)")
     p.add_argument("--size", type=float, help="mesh size parameter of the model (kidney: largest edge [m])")
     p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
                    help="further model parameter (repeatable), e.g. --param h_load=0.00125")
@@ -84,9 +87,10 @@ def cmd_precompute(args) -> int:
     if args.size is not None:
         params["size"] = args.size
     spec = Spec(model=label, params=params, surface=args.surface, volume=args.volume, fixed=args.fixed,
-                contact=args.contact, E=args.E, nu=args.nu, units=args.units, r_max=args.r_max,
+                contact=args.contact, E=args.E, nu=args.nu, r_max=args.r_max,
+                units=args.units.lower().replace("µ", "u") if args.units else None,
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
-                element=args.element, reactions=args.reactions)
+                element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
     if summary["up_to_date"]:
@@ -296,6 +300,29 @@ def cmd_view(args) -> int:
     return 0
 
 
+def add_inspect(sub) -> None:
+    p = sub.add_parser("inspect", help="shells, defects, bounding box and a suggested --edge-length of a surface file",
+                       description="Look at a triangle surface before precomputing it: its shells, defects, bounding "
+                                   "box (in the file's units) and the --edge-length for a number of surface vertices.")
+    p.add_argument("surface")
+    p.add_argument("--units", default=None, help="the file's length unit (only for the report's wording)")
+    p.add_argument("--vertices", type=int, nargs="*", default=[500, 2000, 5000],
+                   help="surface vertex counts to suggest an --edge-length for (default 500 2000 5000)")
+    p.set_defaults(func=cmd_inspect)
+
+
+def cmd_inspect(args) -> int:
+    require_extra("precompute")
+    from pmask.pipeline.inspect import inspect_surface, report
+
+    if not Path(args.surface).is_file():
+        raise InputError(f"{args.surface}: no such file")
+    if not args.vertices or min(args.vertices) < 4:
+        raise InputError("--vertices needs counts of at least 4")
+    print(report(inspect_surface(args.surface, args.units, tuple(args.vertices))))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pmask", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=version_line())
@@ -303,7 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (add_precompute, add_models, add_info, add_export, add_export_table, add_reference, add_figures,
-                add_view):
+                add_view, add_inspect):
         add(sub)
     return parser
 

@@ -51,7 +51,8 @@ class Spec:
     params : keyword arguments of the model builder.
     surface, volume : a user's geometry file (at most one), instead of a registered model.
     fixed, contact : region selectors (None: the model's defaults).
-    E, nu : material (None: the model's defaults).  units : length unit of the input geometry.
+    E, nu : material (None: the model's defaults).  units : length unit of the input geometry (None:
+        metres, and a user's file more than 2 m across is refused as probably in mm).
     r_max : largest mask radius the runtime may use, in the input's units (None: model default).
     edge_length : target edge length when remeshing a --surface, in the input's units.
     dtype : storage precision of Ξ, "float64" or "float32" (half the size; see README).
@@ -68,17 +69,18 @@ class Spec:
     contact: str | None = None
     E: float | None = None
     nu: float | None = None
-    units: str = "m"
+    units: str | None = None
     r_max: float | None = None
     edge_length: float | None = None
     dtype: str = "float64"
     element: str = "P1"
     reactions: bool | None = None
+    mesh_timeout: float = 600.0
 
     @property
     def scale(self) -> float:
         """Metres per input length unit."""
-        return UNITS[self.units]
+        return UNITS[self.units or "m"]
 
 
 @dataclass
@@ -154,6 +156,7 @@ def stage_keys(spec: Spec) -> dict:
     """The hashes of each stage's inputs: ``mesh`` (the geometry), ``factor`` (+ material, regions,
     element) and ``artifact`` (+ storage; the artifact's ``input_hash``)."""
     d = asdict(spec)
+    d["units"] = d["units"] or "m"  # not given = metres (the same artifact as --units m)
     for key in ("surface", "volume"):
         if d[key]:
             d[key] = {"sha256": file_digest(d[key])}
@@ -203,7 +206,7 @@ def validate(spec: Spec, out: Path) -> None:
     elements.get_element(spec.element)
     if spec.dtype not in ("float64", "float32"):
         raise InputError(f"dtype must be float64 or float32, got {spec.dtype!r}")
-    if spec.units not in UNITS:
+    if spec.units is not None and spec.units not in UNITS:
         raise InputError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
     for key in ("surface", "volume"):
         p = getattr(spec, key)
@@ -222,6 +225,8 @@ def validate(spec: Spec, out: Path) -> None:
                 raise InputError(f"model {spec.model}: parameter {k} must be a number, got {v!r}")
     if spec.surface and spec.edge_length is None:
         raise InputError("--surface needs --edge-length (target edge length in the file's units)")
+    if not (np.isfinite(spec.mesh_timeout) and spec.mesh_timeout > 0):
+        raise InputError(f"--mesh-timeout must be a number of seconds > 0, got {spec.mesh_timeout}")
     if spec.edge_length is not None and not (np.isfinite(spec.edge_length) and spec.edge_length > 0):
         raise InputError(f"--edge-length must be a finite length > 0, got {spec.edge_length}")
     if spec.r_max is not None and not (np.isfinite(spec.r_max) and spec.r_max > 0):
@@ -252,16 +257,35 @@ def mesh_stage(spec: Spec) -> ModelMesh:
     from pmask.precompute import meshing
 
     if spec.surface:
-        points, tets = meshing.remesh_surface(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
-                                              scale=spec.scale)
+        points, tets = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
+                                              scale=spec.scale, units_given=spec.units is not None,
+                                              timeout=spec.mesh_timeout)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", info={"source": Path(spec.surface).name})
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
         return load_model_mesh(spec.volume)
     if spec.volume:
         points, tets, groups = meshing.read_volume(Path(spec.volume), scale=spec.scale)
+        meshing.check_extent(points, spec.units is not None, spec.volume)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", groups=groups,
                          info={"source": Path(spec.volume).name})
     return get_model(spec.model)(**spec.params)
+
+
+#: a user's support outside this share of the surface area gets a warning (see _check_support_share)
+SUPPORT_SHARE = (0.02, 0.5)
+
+
+def _check_support_share(share: float, n_fixed: int, selector: str, units: str | None) -> None:
+    """Warn about supports that are probably not what was meant: most of the surface (a selector read in
+    the wrong units: ``z<-0.025`` on a mm file fixes half the body), or a sliver (59 vertices at a liver's
+    tip gave stiffness 0.02-0.57x Boussinesq: a body held by so little swings about it)."""
+    if share > SUPPORT_SHARE[1]:
+        log.warning("the support '%s' covers %.0f %% of the surface; selectors are read in the input's units (%s): "
+                    "is that the region you meant?", selector, 100 * share, units or "m")
+    elif share < SUPPORT_SHARE[0]:
+        log.warning("the support '%s' is only %.2f %% of the surface (%d vertices): a body held by so little "
+                    "is soft against anything but a local push; widen it unless that is what you model",
+                    selector, 100 * share, n_fixed)
 
 
 def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
@@ -287,6 +311,8 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
         r_max = mesh.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
     reg = regions.surface_regions(spoints, fixed_mask, contact_mask, r_max,
                                   fixed_selector=fixed_sel, contact_selector=contact_sel or "")
+    if spec.surface or (spec.volume and not spec.volume.endswith(".npz")):  # a user's geometry and selector
+        _check_support_share(float(areas[reg.fixed].sum() / areas.sum()), len(reg.fixed), fixed_sel, spec.units)
     return Surface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "")
 
 

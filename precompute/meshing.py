@@ -123,6 +123,7 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     bad = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
     if np.any(bad):
         raise MeshError(f"{name}: {int(bad.sum())} degenerate triangles (repeated vertices); clean the surface")
+    pts, tris = keep_main_shell(pts, tris, name)
     directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
     undirected, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
     if np.any(counts == 1):
@@ -142,7 +143,124 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     return pts, tris
 
 
-def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0):
+#: an organ read in metres is well under this across; a file this large without --units is probably in mm
+MAX_EXTENT_WITHOUT_UNITS = 2.0  # m
+
+
+def check_finite(points: np.ndarray, name) -> None:
+    """Refuse NaN/inf coordinates before gmsh sees them (one inf vertex made a run grow to 24 GB)."""
+    bad = ~np.all(np.isfinite(points), axis=1)
+    if np.any(bad):
+        raise MeshError(f"{name}: {int(bad.sum())} vertices have non-finite coordinates (NaN or inf; the first is "
+                        f"vertex {int(np.flatnonzero(bad)[0])}); remove or repair them")
+
+
+def check_extent(points: np.ndarray, units_given: bool, name) -> None:
+    """Without --units the file is read in metres; refuse a size no organ has (a mm file read as m)."""
+    extent = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    if not units_given and extent > MAX_EXTENT_WITHOUT_UNITS:
+        raise MeshError(f"{name}: read in metres the geometry is {extent:.3g} m across; if the file is in "
+                        f"millimetres pass --units mm (selectors, --edge-length and --r-max are then in mm too), "
+                        "or --units m if it really is that large")
+
+
+def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
+                   timeout: float = 600.0):
+    """:func:`remesh_surface` in a child process that is stopped after ``timeout`` seconds or on Ctrl-C.
+
+    gmsh's surface classification can run for tens of minutes on some segmentations and defers
+    Ctrl-C inside its C++ (and once printed "double free" on SIGTERM); a child process can always be
+    killed, and the parent stays responsive."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")  # no fork of a process with BLAS threads
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_remesh_child, args=(child, str(path), edge_length, scale, units_given), daemon=True)
+    proc.start()
+    child.close()
+    try:
+        if not parent.poll(timeout):
+            raise MeshError(f"{path}: gmsh did not finish remeshing within {timeout:g} s (it can stall "
+                            "classifying a surface with many sharp edges or a high genus); repair or simplify the "
+                            "surface, try another --edge-length, or allow longer with --mesh-timeout")
+        try:
+            kind, payload, warned = parent.recv()
+        except EOFError:
+            raise MeshError(f"{path}: gmsh crashed while remeshing this surface (exit code {proc.exitcode}); "
+                            "repair the surface (closed, manifold, not self-intersecting) or try another "
+                            "--edge-length") from None
+    finally:
+        if proc.is_alive():
+            proc.kill()
+        proc.join()
+        parent.close()
+    for message in warned:
+        log.warning("%s", message)
+    if kind == "error":
+        raise MeshError(payload)
+    if kind == "bug":
+        raise RuntimeError(f"remeshing failed inside pmask:\n{payload}")
+    return payload
+
+
+def _remesh_child(conn, path, edge_length, scale, units_given):
+    import signal
+    import traceback
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills us on Ctrl-C
+    warned = []  # this process's warnings, re-logged by the parent (the user's console is the parent's)
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: warned.append(record.getMessage())
+    log.addHandler(handler)
+    try:
+        result = ("ok", remesh_surface(Path(path), edge_length=edge_length, scale=scale, units_given=units_given))
+    except MeshError as exc:
+        result = ("error", str(exc))
+    except Exception:
+        result = ("bug", traceback.format_exc())
+    conn.send(result + (warned,))
+    conn.close()
+
+
+#: pieces of a surface apart from its largest shell, up to this share of its area, are debris (segmentation
+#: specks) and are dropped with a warning; more is a second body, refused
+DEBRIS_AREA_SHARE = 0.01
+
+
+def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
+    """The largest connected shell; debris (the rest, ≤ 1 % of the area) dropped with a warning, a second
+    body refused.  A segmented heart exported for 3D printing had 77 specks beside its main shell."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(pts)
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]]])
+    n_comp, label = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
+                                         directed=False)
+    if n_comp == 1:
+        return pts, tris
+    tri_label = label[tris[:, 0]]
+    p = pts[tris]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    per = np.bincount(tri_label, weights=area, minlength=n_comp)
+    main = int(np.argmax(per))
+    rest = per.sum() - per[main]
+    pieces = int(np.count_nonzero(np.bincount(tri_label, minlength=n_comp))) - 1
+    if rest > DEBRIS_AREA_SHARE * per.sum():
+        raise MeshError(f"{name}: the surface has {pieces + 1} separate shells and the smaller ones hold "
+                        f"{100 * rest / per.sum():.1f} % of the area: pmask models one body; export the organ "
+                        "you want on its own")
+    log.warning("%s: dropped %d debris piece(s) apart from the main shell (%.2f %% of the area)", name, pieces,
+                100 * rest / per.sum())
+    keep = tri_label == main
+    used = np.unique(tris[keep])
+    remap = np.full(n, -1)
+    remap[used] = np.arange(len(used))
+    return pts[used], remap[tris[keep]]
+
+
+def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
+                   units_given: bool = True):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
 
     Follows gmsh tutorial t13: classify the triangles into patches, build a
@@ -163,14 +281,40 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     except Exception as exc:  # meshio raises several types for unreadable files
         raise MeshError(f"{path}: cannot read this file as a triangle surface ({exc})") from exc
     blocks = [c.data for c in m.cells if c.type == "triangle"]
-    pts, tris = check_surface(np.asarray(m.points, float)[:, :3] * scale,
-                              np.concatenate(blocks) if blocks else None, str(path))
+    # quadrilaterals (OBJ, PLY exports) as two triangles each, instead of dropping them
+    blocks += [q[:, [0, 1, 2]] for q in (c.data for c in m.cells if c.type == "quad")]
+    blocks += [q[:, [0, 2, 3]] for q in (c.data for c in m.cells if c.type == "quad")]
+    if len(m.points) == 0 or not blocks:
+        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted({c.type for c in m.cells}) or 'none'}); "
+                        "give a closed triangle surface (STL, OBJ, PLY, ...)")
+    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
+    check_finite(raw, path)
+    check_extent(raw, units_given, path)
+    pts, tris = check_surface(raw, np.concatenate(blocks) if blocks else None, str(path))
+    try:
+        return _remesh(pts, tris, path, edge_length, angle_deg)
+    except MeshError as exc:
+        if angle_deg >= 180.0 or "parametriz" not in str(exc) and "Invalid boundary mesh" not in str(exc):
+            raise
+        # real organ surfaces have many edges sharper than 40°: classified as features, they cut the surface
+        # into patches gmsh cannot parametrise; without feature edges those surfaces remesh (measured on a
+        # lung, an XCAT liver and the bunny), at the price of rounding real creases, so this is the fallback
+        log.warning("%s: classifying at %g° gave patches gmsh cannot parametrise; retrying without feature edges",
+                    path, angle_deg)
+        return _remesh(pts, tris, path, edge_length, 180.0)
+
+
+def _remesh(pts, tris, path, edge_length, angle_deg):
     with gmsh_session("remesh") as gmsh:
         s = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, s, np.arange(1, len(pts) + 1), pts.ravel())
         gmsh.model.mesh.addElementsByType(s, 2, [], (tris + 1).ravel())
         gmsh.model.mesh.classifySurfaces(np.deg2rad(angle_deg), True, True, np.pi)
-        gmsh.model.mesh.createGeometry()
+        try:
+            gmsh.model.mesh.createGeometry()
+        except Exception as exc:  # gmsh raises a bare Exception ("Wrong topology of boundary mesh for parametrization")
+            raise MeshError(f"{path}: gmsh could not build a parametrisable geometry from this surface ({exc}); "
+                            "repair or smooth it, or try another --edge-length") from exc
         surfaces = [e[1] for e in gmsh.model.getEntities(2)]
         loop = gmsh.model.geo.addSurfaceLoop(surfaces)
         gmsh.model.geo.addVolume([loop])
@@ -207,6 +351,7 @@ def read_volume(path: Path, *, scale: float = 1.0):
                         f"{sorted({c.type for c in m.cells})}); --volume needs a linear tet mesh")
     tets = np.concatenate(blocks).astype(np.int64)
     points = np.asarray(m.points, float)[:, :3] * scale
+    check_finite(points, path)
     vol = signed_volumes(points, tets)
     degenerate = np.abs(vol) <= 1e-12 * np.abs(vol).max()
     if np.any(degenerate):

@@ -42,7 +42,7 @@ def sphere():
 
 @pytest.mark.parametrize("case,message", [
     ("open", "open"), ("nonmanifold", "not manifold"), ("inconsistent", "inconsistent"),
-    ("inverted", "inverted"), ("selfintersecting", "intersects itself"),
+    ("inverted", "inverted"), ("overlapping", "separate shells"),
 ])
 def test_bad_surfaces_are_refused_with_a_clear_message(tmp_path, capsys, sphere, case, message):
     pts, tris = sphere
@@ -62,7 +62,7 @@ def test_bad_surfaces_are_refused_with_a_clear_message(tmp_path, capsys, sphere,
         tris[5] = tris[5][::-1]
     elif case == "inverted":
         tris = tris[:, ::-1]
-    elif case == "selfintersecting":
+    elif case == "overlapping":  # two bodies through each other (gmsh said "intersects itself"; two shells now)
         pts = np.vstack([pts, pts + [15.0, 0, 0]])
         tris = np.vstack([tris, tris + len(sphere[0])])
     stl = write_stl(tmp_path / "bad.stl", pts, tris)
@@ -70,6 +70,96 @@ def test_bad_surfaces_are_refused_with_a_clear_message(tmp_path, capsys, sphere,
                              "--fixed", "z<-15", "-o", str(tmp_path / "bad.h5")])
     assert message in err and "bad.stl" in err
     assert not (tmp_path / "bad.h5").exists()
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # writing the inf vertex: meshio's normals overflow
+def test_non_finite_vertices_are_refused_before_gmsh(tmp_path, capsys, sphere):
+    """One inf vertex once made a run grow to 24 GB inside gmsh; now it is one line naming the vertex."""
+    pts, tris = sphere
+    pts = pts.copy()
+    pts[7] = [np.inf, 0.0, 0.0]
+    stl = write_stl(tmp_path / "inf.stl", pts, tris)
+    err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "8", "--units", "mm",
+                             "--fixed", "z<-15", "-o", str(tmp_path / "inf.h5")])
+    assert "1 vertices have non-finite coordinates" in err and "the first is vertex" in err  # the file's numbering
+
+
+def test_a_millimetre_file_without_units_is_refused_with_the_fix(tmp_path, capsys):
+    """Without --units a 40 mm organ exported in mm reads as a 40 m organ: refused, saying --units mm."""
+    s = trimesh.creation.icosphere(subdivisions=2, radius=20.0)  # numbers in mm
+    stl = write_stl(tmp_path / "organ.stl", s.vertices, s.faces)
+    err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "8", "--fixed", "z<-15",
+                             "-o", str(tmp_path / "organ.h5")])
+    assert "m across" in err and "--units mm" in err
+
+
+def test_a_remesh_that_does_not_finish_is_stopped_with_one_line(tmp_path, capsys, sphere):
+    """gmsh runs in a child process with a time limit (a genus-142 heart sat in classifySurfaces for 19
+    min): a limit shorter than the child's start-up stops it and says what to do."""
+    import multiprocessing
+
+    stl = write_stl(tmp_path / "s.stl", *sphere)
+    err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "8", "--units", "mm",
+                             "--fixed", "z<-15", "--mesh-timeout", "0.05", "-o", str(tmp_path / "s.h5")])
+    assert "did not finish remeshing within 0.05 s" in err and "--mesh-timeout" in err
+    assert not multiprocessing.active_children()
+
+
+def test_ctrl_c_during_a_remesh_stops_at_once(tmp_path):
+    """Ctrl-C while gmsh remeshes a fine surface: the command ends within seconds (gmsh used to defer it for
+    45 s and more) with the resume hint, and leaves no gmsh process behind."""
+    s = trimesh.creation.icosphere(subdivisions=6, radius=20.0)  # 82k triangles, remeshed finely
+    stl = write_stl(tmp_path / "big.stl", s.vertices, s.faces)
+    p = subprocess.Popen([sys.executable, "-m", "pmask.pipeline", "precompute", "--surface", stl, "--edge-length",
+                          "0.6", "--units", "mm", "--fixed", "z<-15", "-o", str(tmp_path / "big.h5")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(4.0)  # past start-up, inside the child's gmsh
+    assert p.poll() is None, p.communicate()
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=30)
+    assert time.monotonic() - t0 < 5.0
+    assert p.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    left = subprocess.run(["pgrep", "-f", "multiprocessing.spawn"], capture_output=True, text=True).stdout.split()
+    assert not [pid for pid in left if _parent(pid) == p.pid]
+
+
+def _parent(pid: str) -> int:
+    try:
+        return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
+def test_debris_is_dropped_and_a_second_body_refused(tmp_path, capsys, sphere, caplog):
+    """A segmentation export: the organ plus specks is remeshed without the specks (warned); two organs of
+    comparable size are one line asking for one."""
+    pts, tris = sphere
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    specks = [(np.asarray(speck.vertices) + [30.0 + 2 * k, 0, 0], np.asarray(speck.faces)) for k in range(3)]
+    P, T = [pts], [tris]
+    for v, f in specks:
+        T.append(f + sum(len(x) for x in P))
+        P.append(v)
+    stl = write_stl(tmp_path / "specks.stl", np.vstack(P), np.vstack(T))
+    out = tmp_path / "specks.h5"
+    assert main(["precompute", "--surface", stl, "--edge-length", "8", "--units", "mm", "--fixed", "z<-15",
+                 "-o", str(out)]) == 0
+    assert "dropped 3 debris piece(s)" in caplog.text
+    assert np.linalg.norm(Model.load(out).points, axis=1).max() < 0.021  # the specks at x = 30 mm are gone
+    two = write_stl(tmp_path / "two.stl", np.vstack([pts, pts + [60.0, 0, 0]]), np.vstack([tris, tris + len(pts)]))
+    err = cli_error(capsys, ["precompute", "--surface", two, "--edge-length", "8", "--units", "mm", "--fixed",
+                             "z<-15", "-o", str(tmp_path / "two.h5")])
+    assert "2 separate shells" in err and "one body" in err
+
+
+@pytest.mark.parametrize("fixed,expect", [("z<15", "covers 8"), ("z<-19.3", "is only 1.")])
+def test_a_support_that_is_probably_not_meant_is_warned_about(tmp_path, sphere, caplog, fixed, expect):
+    """Most of the surface (a selector in the wrong units) or a sliver: the run goes on, with a warning."""
+    stl = write_stl(tmp_path / "s.stl", *sphere)
+    assert main(["precompute", "--surface", stl, "--edge-length", "3", "--units", "mm", "--fixed", fixed,
+                 "-o", str(tmp_path / "s.h5")]) == 0
+    assert f"the support '{fixed}' {expect}" in caplog.text
 
 
 def test_volume_without_tetrahedra(tmp_path, capsys, sphere):
@@ -281,3 +371,23 @@ def test_a_mask_too_large_for_its_body_is_named_not_blamed_on_the_artifact(tmp_p
         model.stiffness("linear", 2.0 * model.mean_edge_length)
     K = model.stiffness("linear", 1.0 * model.mean_edge_length).K_full
     assert np.all(np.linalg.eigvalsh(0.5 * (K + np.swapaxes(K, 1, 2)))[:, 0] > 0)
+
+
+def test_inspect_reports_shells_defects_and_an_edge_length_that_works(tmp_path, capsys):
+    """pmask inspect names the debris shell and the hole of a damaged export; on a clean surface its
+    suggested --edge-length for 800 vertices gives 800 surface vertices within 35 % after gmsh's remesh
+    (the estimate assumes equilateral triangles; gmsh's sizes spread between 0.5 and 1 edge length)."""
+    s = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    bad = write_stl(tmp_path / "bad.stl", np.vstack([s.vertices, speck.vertices + [30.0, 0, 0]]),
+                    np.vstack([s.faces[1:], speck.faces + len(s.vertices)]))
+    assert main(["inspect", bad, "--units", "mm"]) == 0
+    out = capsys.readouterr().out
+    assert "shells: 2" in out and "3 boundary edges (holes)" in out and "debris" in out and "not ready" in out
+    good = write_stl(tmp_path / "good.stl", s.vertices, s.faces)
+    assert main(["inspect", good, "--units", "mm", "--vertices", "800"]) == 0
+    out = capsys.readouterr().out
+    assert "defects: none" in out and "ready for pmask precompute" in out
+    h = float(out.split("800 surface vertices: ")[1].split()[0])
+    summary = run(Spec(model="s", surface=good, edge_length=h, units="mm", fixed="z<-15"), tmp_path / "s.h5")
+    assert abs(summary["surface_vertices"] / 800 - 1) < 0.35, summary["surface_vertices"]
