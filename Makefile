@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 MODEL  ?= kidney
 ARGS   ?=
-EXTRAS ?= precompute,figures,test
+EXTRAS ?= precompute,figures,segmentation,repair,test
 PIP    := $(BIN)/pip install --quiet -c constraints.txt
 
 ## make view [MODEL=kidney]: the model in a browser (pmask view; Ctrl-C stops)

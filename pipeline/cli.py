@@ -19,7 +19,8 @@ from pmask.errors import InputError, PmaskError
 log = logging.getLogger("pmask")
 
 #: what each extra brings (pyproject.toml), checked before a command that needs it
-EXTRAS = {"precompute": ("scipy", "skfem", "gmsh", "meshio", "trimesh", "cvxopt", "tqdm"), "figures": ("matplotlib",)}
+EXTRAS = {"precompute": ("scipy", "skfem", "gmsh", "meshio", "trimesh", "cvxopt", "tqdm"), "figures": ("matplotlib",),
+          "segmentation": ("nibabel", "nrrd", "skimage"), "repair": ("pymeshfix",)}
 
 
 def require_extra(*extras: str) -> None:
@@ -51,6 +52,12 @@ def add_precompute(sub) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--surface", help="closed triangle surface (STL, OBJ, PLY, ...), remeshed by gmsh")
     src.add_argument("--volume", help="tetrahedral mesh (.msh, .vtu, ...)")
+    src.add_argument("--segmentation", help="label image (NIfTI .nii/.nii.gz or NRRD): the organ of --label becomes "
+                                            "the surface (needs the segmentation extra)")
+    p.add_argument("--label", type=int, help="with --segmentation: the organ's label value")
+    p.add_argument("--repair", action="store_true",
+                   help="repair the surface first (pymeshfix: largest shell, holes, non-manifold parts, "
+                        "self-intersections; the repair extra), with a report of what changed")
     p.add_argument("--edge-length", type=float, help="target edge length for --surface (input units)")
     p.add_argument("--fixed", help="support region selector: 'z<-0.9', 'box:x0,y0,z0,x1,y1,z1', "
                                    "'sphere:cx,cy,cz,r', 'group:NAME', unions with '|'")
@@ -80,9 +87,13 @@ def cmd_precompute(args) -> int:
     require_extra("precompute")
     from pmask.pipeline.stages import Spec, run
 
-    if args.model is None and not (args.surface or args.volume):
-        raise InputError("name a model (see 'pmask models') or give --surface FILE or --volume FILE")
-    label = args.model or Path(args.surface or args.volume).stem
+    if args.model is None and not (args.surface or args.volume or args.segmentation):
+        raise InputError("name a model (see 'pmask models') or give --surface, --volume or --segmentation FILE")
+    if args.segmentation:
+        require_extra("segmentation")
+    if args.repair:
+        require_extra("repair")
+    label = args.model or Path(args.surface or args.volume or args.segmentation).name.split(".")[0]
     params = dict(args.param)
     if args.size is not None:
         params["size"] = args.size
@@ -90,7 +101,8 @@ def cmd_precompute(args) -> int:
                 contact=args.contact, E=args.E, nu=args.nu, r_max=args.r_max,
                 units=args.units.lower().replace("µ", "u") if args.units else None,
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
-                element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout)
+                element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,
+                segmentation=args.segmentation, label=args.label, repair=args.repair)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
     if summary["up_to_date"]:
@@ -101,6 +113,14 @@ def cmd_precompute(args) -> int:
     print(f"  mesh: {summary['volume_vertices']} vertices, {summary['tets']} tets, {summary['dofs']} dofs condensed")
     print(f"  surface: {summary['surface_vertices']} vertices: {summary['free']} free (Λp), "
           f"{summary['fixed']} fixed (Λu), {summary['contact']} in Ξ")
+    if summary.get("remesh"):
+        g = summary["remesh"]
+        if g.get("repair"):
+            b, a = g["repair"]["before"], g["repair"]["after"]
+            print(f"  repair: {b['boundary_edges']} boundary and {b['non_manifold_edges']} non-manifold edges before; "
+                  f"{b['triangles']} -> {a['triangles']} triangles")
+        print(f"  remesh: surface moved by up to {1e3 * g['hausdorff_m']:.3g} mm (Hausdorff, sampled every "
+              f"{1e3 * g['sample_spacing_m']:.2g} mm), volume {100 * g['volume_change']:+.2f} %")
     print("  time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()) + f"; total {sum(t.values()):.2f}s"
           + (f" (resumed after: {', '.join(summary['resumed'])})" if summary["resumed"] else ""))
     return 0

@@ -76,6 +76,9 @@ class Spec:
     element: str = "P1"
     reactions: bool | None = None
     mesh_timeout: float = 600.0
+    segmentation: str | None = None
+    label: int | None = None
+    repair: bool = False
 
     @property
     def scale(self) -> float:
@@ -157,12 +160,15 @@ def stage_keys(spec: Spec) -> dict:
     element) and ``artifact`` (+ storage; the artifact's ``input_hash``)."""
     d = asdict(spec)
     d["units"] = d["units"] or "m"  # not given = metres (the same artifact as --units m)
-    for key in ("surface", "volume"):
+    for key in ("surface", "volume", "segmentation"):
         if d[key]:
             d[key] = {"sha256": file_digest(d[key])}
     versions = library_versions()
     code = code_digest()
-    mesh = _digest({k: d[k] for k in ("model", "params", "surface", "volume", "units", "edge_length")}
+    geometry = ("model", "params", "surface", "volume", "units", "edge_length") + (
+        ("segmentation", "label") if d["segmentation"] else ()) + (("repair",) if d["repair"] else ())
+    # (the optional keys only when used: earlier artifacts keep their keys)
+    mesh = _digest({k: d[k] for k in geometry}
                    | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
     factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")})
     artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION})
@@ -208,11 +214,19 @@ def validate(spec: Spec, out: Path) -> None:
         raise InputError(f"dtype must be float64 or float32, got {spec.dtype!r}")
     if spec.units is not None and spec.units not in UNITS:
         raise InputError(f"unknown length unit '{spec.units}'; use one of {', '.join(UNITS)}")
-    for key in ("surface", "volume"):
+    for key in ("surface", "volume", "segmentation"):
         p = getattr(spec, key)
         if p and not Path(p).is_file():
             raise InputError(f"--{key} {p}: no such file")
-    if not (spec.surface or spec.volume):
+    if sum(bool(x) for x in (spec.surface, spec.volume, spec.segmentation)) > 1:
+        raise InputError("give one of --surface, --volume and --segmentation")
+    if spec.segmentation and (spec.label is None or isinstance(spec.label, bool) or not isinstance(spec.label, int)):
+        raise InputError("--segmentation needs --label N (the label value of the organ in the image)")
+    if spec.repair and not (spec.surface or spec.segmentation):
+        raise InputError("--repair applies to --surface and --segmentation inputs")
+    if spec.segmentation and spec.edge_length is None:
+        raise InputError("--segmentation needs --edge-length (target edge length in the image's units)")
+    if not (spec.surface or spec.volume or spec.segmentation):
         allowed = model_parameters(spec.model)
         unknown = sorted(set(spec.params) - set(allowed))
         if unknown:
@@ -256,11 +270,28 @@ def mesh_stage(spec: Spec) -> ModelMesh:
     from pmask.pipeline.models import get_model
     from pmask.precompute import meshing
 
+    if spec.segmentation:
+        from pmask.precompute.segmentation import label_surface
+
+        pts, tris, report = label_surface(Path(spec.segmentation), spec.label, spec.units)
+        import meshio
+
+        ply = Path(tempfile.mkdtemp(prefix="pmask-label-")) / f"label{spec.label}.ply"  # the --surface route's input
+        meshio.write_points_cells(ply, pts, [("triangle", tris.astype(np.int32))])
+        try:
+            points, tets, change = meshing.remesh_bounded(ply, edge_length=spec.edge_length * spec.scale,
+                                                          scale=spec.scale, units_given=True,
+                                                          timeout=spec.mesh_timeout, repair=spec.repair)
+        finally:
+            shutil.rmtree(ply.parent, ignore_errors=True)
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
+                         info={"source": Path(spec.segmentation).name, "segmentation": report, "remesh": change})
     if spec.surface:
-        points, tets = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
-                                              scale=spec.scale, units_given=spec.units is not None,
-                                              timeout=spec.mesh_timeout)
-        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", info={"source": Path(spec.surface).name})
+        points, tets, change = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
+                                                      scale=spec.scale, units_given=spec.units is not None,
+                                                      timeout=spec.mesh_timeout, repair=spec.repair)
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
+                         info={"source": Path(spec.surface).name, "remesh": change})
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
         return load_model_mesh(spec.volume)
     if spec.volume:
@@ -460,6 +491,18 @@ class _Stages:
                 folder.rmdir()
 
 
+def _segmentation_units(spec: Spec) -> Spec:
+    """A label image's lengths are in its header's unit: --edge-length, selectors and --r-max follow it."""
+    if not spec.segmentation or spec.units is not None:
+        return spec
+    from dataclasses import replace
+
+    from pmask.precompute.segmentation import read_label_image
+
+    unit = read_label_image(Path(spec.segmentation))[2]
+    return replace(spec, units=unit) if unit in UNITS else spec
+
+
 def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -> dict:
     """Run the precompute for ``spec`` into ``out``; return a summary dict.
 
@@ -469,6 +512,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
 
     out = Path(out)
     validate(spec, out)
+    spec = _segmentation_units(spec)
     keys = stage_keys(spec)
     if out.exists() and not force and artifact_hash(out) == keys["artifact"]:
         log.debug("%s is up to date (input hash %s)", out, keys["artifact"][:12])
@@ -520,4 +564,5 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             "resumed": st.resumed, "volume_vertices": len(mesh.points), "tets": len(mesh.tets),
             "surface_vertices": len(surf.vertices), "free": len(reg.free), "fixed": len(reg.fixed),
             "contact": len(reg.contact), "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs"),
-            "backend": factor.stats.get("backend"), "element": spec.element, "factor_stats": factor.stats}
+            "backend": factor.stats.get("backend"), "element": spec.element, "factor_stats": factor.stats,
+            "remesh": mesh.info.get("remesh")}

@@ -14,7 +14,7 @@ import numpy as np
 
 from pmask.errors import InputError
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("pmask.precompute.meshing")  # also when run as the remesh worker (__main__)
 
 
 class MeshError(InputError):
@@ -29,6 +29,7 @@ def gmsh_session(name: str = "pmask"):
     if gmsh.isInitialized():
         gmsh.finalize()
     gmsh.initialize(interruptible=False, readConfigFiles=False)
+    _ignore_sigpipe()
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.Verbosity", 2)
@@ -41,6 +42,17 @@ def gmsh_session(name: str = "pmask"):
         yield gmsh
     finally:
         gmsh.finalize()
+
+
+def _ignore_sigpipe() -> None:
+    """gmsh's initialisation puts SIGPIPE back to its default action, which kills the process on a write to
+    a closed socket or pipe (Python ignores it and raises BrokenPipeError instead): a viewer whose browser
+    hung up after a precompute in the same process died silently (exit 141).  Restore Python's choice."""
+    import signal
+    import threading
+
+    if hasattr(signal, "SIGPIPE") and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
 
 def tets_from_gmsh(gmsh, with_tags: bool = False):
@@ -128,10 +140,10 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     undirected, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
     if np.any(counts == 1):
         raise MeshError(f"{name}: the surface is open ({int(np.sum(counts == 1))} boundary edges); "
-                        "close its holes (e.g. 'fill holes' in your segmentation or mesh tool)")
+                        "close its holes (e.g. 'fill holes' in your segmentation or mesh tool), or try --repair")
     if np.any(counts > 2):
         raise MeshError(f"{name}: the surface is not manifold ({int(np.sum(counts > 2))} edges shared by more "
-                        "than two triangles); separate the touching parts")
+                        "than two triangles); separate the touching parts, or try --repair")
     if len(np.unique(directed, axis=0)) != len(directed):
         raise MeshError(f"{name}: triangle orientation is inconsistent (some neighbours face opposite ways); "
                         "re-orient the triangles consistently (e.g. trimesh.repair.fix_winding)")
@@ -165,61 +177,107 @@ def check_extent(points: np.ndarray, units_given: bool, name) -> None:
 
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
-                   timeout: float = 600.0):
-    """:func:`remesh_surface` in a child process that is stopped after ``timeout`` seconds or on Ctrl-C.
+                   timeout: float = 600.0, repair: bool = False):
+    """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
+    after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
-    gmsh's surface classification can run for tens of minutes on some segmentations and defers
-    Ctrl-C inside its C++ (and once printed "double free" on SIGTERM); a child process can always be
-    killed, and the parent stays responsive."""
-    import multiprocessing as mp
+    gmsh's surface classification can run for tens of minutes on some segmentations and defers Ctrl-C
+    inside its C++ (and once printed "double free" on SIGTERM); a worker can always be killed, and the
+    parent stays responsive.  A fresh interpreter rather than multiprocessing: spawn re-runs the caller's
+    script in the child when it lacks a ``__main__`` guard, fork copies BLAS threads."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
 
-    ctx = mp.get_context("spawn")  # no fork of a process with BLAS threads
-    parent, child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_remesh_child, args=(child, str(path), edge_length, scale, units_given), daemon=True)
-    proc.start()
-    child.close()
-    try:
-        if not parent.poll(timeout):
+    job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
+           "repair": repair}
+    with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
+        out = Path(tmp) / "mesh.npz"
+        proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                start_new_session=True)  # the terminal's Ctrl-C reaches us, and we stop it
+        try:
+            stdout, stderr = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
             raise MeshError(f"{path}: gmsh did not finish remeshing within {timeout:g} s (it can stall "
                             "classifying a surface with many sharp edges or a high genus); repair or simplify the "
-                            "surface, try another --edge-length, or allow longer with --mesh-timeout")
+                            "surface, try another --edge-length, or allow longer with --mesh-timeout") from None
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+        lines = stdout.decode(errors="replace").strip().splitlines()
         try:
-            kind, payload, warned = parent.recv()
-        except EOFError:
-            raise MeshError(f"{path}: gmsh crashed while remeshing this surface (exit code {proc.exitcode}); "
-                            "repair the surface (closed, manifold, not self-intersecting) or try another "
-                            "--edge-length") from None
-    finally:
-        if proc.is_alive():
-            proc.kill()
-        proc.join()
-        parent.close()
-    for message in warned:
-        log.warning("%s", message)
-    if kind == "error":
-        raise MeshError(payload)
-    if kind == "bug":
-        raise RuntimeError(f"remeshing failed inside pmask:\n{payload}")
-    return payload
+            result = json.loads(lines[-1])
+        except (IndexError, ValueError):
+            raise MeshError(f"{path}: gmsh crashed while remeshing this surface (exit code {proc.returncode}); "
+                            "repair the surface (closed, manifold, not self-intersecting), try --repair or "
+                            "another --edge-length") from None
+        for message in result.get("warnings", []):
+            log.warning("%s", message)
+        if result["kind"] == "error":
+            raise MeshError(result["message"])
+        if result["kind"] == "bug":
+            raise RuntimeError(f"remeshing failed inside pmask:\n{result['message']}")
+        with np.load(out) as z:
+            return z["points"], z["tets"], result["report"]
 
 
-def _remesh_child(conn, path, edge_length, scale, units_given):
-    import signal
+def _worker(argv) -> int:
+    """``python -m pmask.precompute.meshing JOB OUT``: one remesh, arrays to OUT, one JSON line to stdout."""
+    import json
     import traceback
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides; it kills us on Ctrl-C
+    job, out = json.loads(argv[0]), argv[1]
     warned = []  # this process's warnings, re-logged by the parent (the user's console is the parent's)
     handler = logging.Handler(logging.WARNING)
     handler.emit = lambda record: warned.append(record.getMessage())
-    log.addHandler(handler)
+    logging.getLogger("pmask").addHandler(handler)
+    logging.getLogger("pmask").setLevel(logging.WARNING)
     try:
-        result = ("ok", remesh_surface(Path(path), edge_length=edge_length, scale=scale, units_given=units_given))
+        report: dict = {}
+        points, tets = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
+                                      units_given=job["units_given"], report=report, repair=job["repair"])
+        np.savez(out, points=points, tets=tets)
+        result = {"kind": "ok", "report": report}
     except MeshError as exc:
-        result = ("error", str(exc))
+        result = {"kind": "error", "message": str(exc)}
     except Exception:
-        result = ("bug", traceback.format_exc())
-    conn.send(result + (warned,))
-    conn.close()
+        result = {"kind": "bug", "message": traceback.format_exc()}
+    result["warnings"] = warned
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray, np.ndarray, dict]:
+    """``--repair``: pymeshfix (Attene's MeshFix) keeps the largest shell, removes non-manifold parts and
+    self-intersections, fills holes and orients the result outwards; returns it with what it changed."""
+    try:
+        import pymeshfix
+    except ImportError:
+        raise MeshError("--repair needs the repair extra (pymeshfix): pip install 'pmask[repair]'") from None
+    upts, inverse = np.unique(pts, axis=0, return_inverse=True)
+    t = inverse.ravel()[np.asarray(tris, np.int64)]
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
+    _, counts = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0,
+                          return_counts=True)
+    before = {"vertices": int(len(upts)), "triangles": int(len(t)), "boundary_edges": int(np.sum(counts == 1)),
+              "non_manifold_edges": int(np.sum(counts > 2))}
+    mf = pymeshfix.MeshFix(upts, t)
+    mf.repair()
+    out_p, out_t = np.asarray(mf.points, float), np.asarray(mf.faces, np.int64)
+    if len(out_t) == 0:
+        raise MeshError(f"{name}: --repair could not make a closed surface of this file (nothing was left); "
+                        "repair it in a mesh tool")
+    p = out_p[out_t]
+    if np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum() < 0:
+        out_t = out_t[:, ::-1]
+    fixed = {"before": before, "after": {"vertices": int(len(out_p)), "triangles": int(len(out_t))}}
+    log.warning("%s: --repair: %d boundary edges and %d non-manifold edges before; %d -> %d triangles (largest shell "
+                "kept, holes filled, self-intersections removed)", name, before["boundary_edges"],
+                before["non_manifold_edges"], before["triangles"], len(out_t))
+    return out_p, out_t, fixed
 
 
 #: pieces of a surface apart from its largest shell, up to this share of its area, are debris (segmentation
@@ -260,7 +318,7 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
 
 
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
-                   units_given: bool = True):
+                   units_given: bool = True, report: dict | None = None, repair: bool = False):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
 
     Follows gmsh tutorial t13: classify the triangles into patches, build a
@@ -290,9 +348,14 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
     check_finite(raw, path)
     check_extent(raw, units_given, path)
-    pts, tris = check_surface(raw, np.concatenate(blocks) if blocks else None, str(path))
+    tris = np.concatenate(blocks)
+    if repair:
+        raw, tris, fixed = repair_surface(raw, tris, path)
+        if report is not None:
+            report["repair"] = fixed
+    pts, tris = check_surface(raw, tris, str(path))
     try:
-        return _remesh(pts, tris, path, edge_length, angle_deg)
+        points, tets = _remesh(pts, tris, path, edge_length, angle_deg)
     except MeshError as exc:
         if angle_deg >= 180.0 or "parametriz" not in str(exc) and "Invalid boundary mesh" not in str(exc):
             raise
@@ -301,7 +364,68 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
         # lung, an XCAT liver and the bunny), at the price of rounding real creases, so this is the fallback
         log.warning("%s: classifying at %g° gave patches gmsh cannot parametrise; retrying without feature edges",
                     path, angle_deg)
-        return _remesh(pts, tris, path, edge_length, 180.0)
+        points, tets = _remesh(pts, tris, path, edge_length, 180.0)
+    change = geometry_change(pts, tris, points, tets, edge_length)
+    if report is not None:
+        report.update(change)
+    if abs(change["volume_change"]) > VOLUME_CHANGE_WARN or change["hausdorff_m"] > HAUSDORFF_WARN * edge_length:
+        log.warning("%s: the remesh moved the surface by up to %.3g mm and changed the volume by %+.1f %%; a smaller "
+                    "--edge-length keeps more of the geometry", path, 1e3 * change["hausdorff_m"],
+                    100 * change["volume_change"])
+    return points, tets
+
+
+def surface_distance(x: np.ndarray, p: np.ndarray, t: np.ndarray, candidates: int = 16) -> np.ndarray:
+    """Distance from each point of ``x`` to the triangle surface (p, t): the exact distance (trimesh's
+    vectorised closest point on a triangle) to each of the ``candidates`` triangles whose centroids are
+    nearest, the smallest of them."""
+    from scipy.spatial import cKDTree
+    from trimesh.triangles import closest_point
+
+    k = min(candidates, len(t))
+    _, idx = cKDTree(p[t].mean(axis=1)).query(x, k=k)
+    idx = idx.reshape(len(x), k)
+    out = np.empty(len(x))
+    for s0 in range(0, len(x), 20_000):  # bounded memory: 20,000 x k triangle-point pairs at a time
+        s1 = min(s0 + 20_000, len(x))
+        q = np.repeat(x[s0:s1], k, axis=0)
+        c = closest_point(p[t[idx[s0:s1].ravel()]], q)
+        out[s0:s1] = np.linalg.norm(c - q, axis=1).reshape(s1 - s0, k).min(axis=1)
+    return out
+
+
+#: the remesh is reported in every case and warned about beyond these (a coarse --edge-length cut an
+#: ellipsoid's poles by 7 % of its size and its volume by 10.6 %)
+VOLUME_CHANGE_WARN = 0.02
+HAUSDORFF_WARN = 0.5  # x the edge length
+
+
+def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0) -> dict:
+    """How far the remeshed boundary lies from the input surface: the symmetric Hausdorff distance, as the
+    largest exact point-to-surface distance over area-uniform samples of each surface (~edge/10 apart, so
+    it is short of the true one by at most about that spacing), and the relative change of the volume."""
+    from pmask.precompute.surface import boundary_surface
+
+    v, t_out = boundary_surface(points, tets)
+    p_out = points[v]
+    spacing = 0.1 * edge_length
+    rng = np.random.default_rng(seed)
+
+    def sample(p, t):
+        tri = p[t]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        n = int(min(200_000, max(1000, area.sum() / spacing ** 2)))
+        k = rng.choice(len(t), n, p=area / area.sum())
+        a, b = rng.random(n), rng.random(n)
+        flip = a + b > 1
+        a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+        return np.vstack([p, tri[k, 0] + a[:, None] * (tri[k, 1] - tri[k, 0]) + b[:, None] * (tri[k, 2] - tri[k, 0])])
+
+    d1 = surface_distance(sample(p_out, t_out), p_in, t_in).max()
+    d2 = surface_distance(sample(p_in, t_in), p_out, t_out).max()
+    vol_in = float(np.einsum("ij,ij->i", np.cross(p_in[t_in[:, 0]], p_in[t_in[:, 1]]), p_in[t_in[:, 2]]).sum() / 6.0)
+    vol_out = float(np.abs(signed_volumes(points, tets)).sum())
+    return {"hausdorff_m": float(max(d1, d2)), "volume_change": vol_out / vol_in - 1.0, "sample_spacing_m": spacing}
 
 
 def _remesh(pts, tris, path, edge_length, angle_deg):
@@ -327,7 +451,7 @@ def _remesh(pts, tris, path, edge_length, angle_deg):
         except Exception as exc:
             if "intersect" in str(exc):
                 raise MeshError(f"{path}: the surface intersects itself (gmsh: {exc}); repair it so that no "
-                                "triangles cross (e.g. remove overlapping parts)") from exc
+                                "triangles cross (e.g. remove overlapping parts), or try --repair") from exc
             raise MeshError(f"{path}: gmsh could not remesh this surface ({exc}); "
                             "check that it is closed and not self-intersecting") from exc
         return tets_from_gmsh(gmsh)
@@ -372,3 +496,9 @@ def read_volume(path: Path, *, scale: float = 1.0):
     points, tets, used = compact(points, tets)
     groups = {k: v[used] for k, v in groups.items()}
     return points, tets, groups
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(_worker(sys.argv[1:]))
