@@ -281,7 +281,8 @@ def mesh_stage(spec: Spec) -> ModelMesh:
         try:
             points, tets, change = meshing.remesh_bounded(ply, edge_length=spec.edge_length * spec.scale,
                                                           scale=spec.scale, units_given=True,
-                                                          timeout=spec.mesh_timeout, repair=spec.repair)
+                                                          timeout=spec.mesh_timeout, repair=spec.repair,
+                                                          xi_of_all=spec.contact is None)
         finally:
             shutil.rmtree(ply.parent, ignore_errors=True)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
@@ -289,7 +290,8 @@ def mesh_stage(spec: Spec) -> ModelMesh:
     if spec.surface:
         points, tets, change = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
                                                       scale=spec.scale, units_given=spec.units is not None,
-                                                      timeout=spec.mesh_timeout, repair=spec.repair)
+                                                      timeout=spec.mesh_timeout, repair=spec.repair,
+                                                      xi_of_all=spec.contact is None)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
                          info={"source": Path(spec.surface).name, "remesh": change})
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)

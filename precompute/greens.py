@@ -126,15 +126,26 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
 
 
 def available_memory() -> int | None:
-    """Bytes this process can still allocate without swapping (Linux: MemAvailable), None if unknown."""
+    """Bytes this process can still allocate without swapping (Linux: MemAvailable), None if unknown;
+    at most ``PMASK_MAX_MEMORY`` (bytes, or with a K/M/G suffix) where that is set, to keep a precompute
+    within a share of a shared machine."""
+    avail = None
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    avail = int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
-    return None
+    cap = os.environ.get("PMASK_MAX_MEMORY", "").strip().upper()
+    if cap:
+        try:
+            limit = int(float(cap[:-1]) * {"K": 2**10, "M": 2**20, "G": 2**30}[cap[-1]]) if cap[-1] in "KMG" else int(cap)
+        except (ValueError, KeyError):
+            from pmask.errors import InputError
+            raise InputError(f"PMASK_MAX_MEMORY must be bytes or a number with K, M or G, got {cap!r}") from None
+        avail = limit if avail is None else min(avail, limit)
+    return avail
 
 
 def cholmod_backend(prefer: str | None = None) -> str:

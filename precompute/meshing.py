@@ -177,7 +177,7 @@ def check_extent(points: np.ndarray, units_given: bool, name) -> None:
 
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
-                   timeout: float = 600.0, repair: bool = False):
+                   timeout: float = 600.0, repair: bool = False, xi_of_all: bool = False):
     """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
     after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
@@ -191,7 +191,7 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
     import tempfile
 
     job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
-           "repair": repair}
+           "repair": repair, "xi_of_all": xi_of_all}
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
@@ -238,7 +238,8 @@ def _worker(argv) -> int:
     try:
         report: dict = {}
         points, tets = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
-                                      units_given=job["units_given"], report=report, repair=job["repair"])
+                                      units_given=job["units_given"], report=report, repair=job["repair"],
+                                      xi_of_all=job["xi_of_all"])
         np.savez(out, points=points, tets=tets)
         result = {"kind": "ok", "report": report}
     except MeshError as exc:
@@ -317,8 +318,30 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     return pts[used], remap[tris[keep]]
 
 
+def check_size_before_meshing(pts, tris, edge_length: float, name) -> None:
+    """Refuse in seconds, before gmsh, an --edge-length whose dense Ξ over the whole surface cannot fit: a
+    closed triangulation of area A at edge h has about n = 2A / (√3 h²) vertices (``pmask inspect``'s
+    estimate, within 35 % after gmsh), and Ξ alone is (3n)² doubles.  The bound uses 0.65 n, so a
+    refusal is never the estimate's error; the full check (factor included) follows after meshing."""
+    from pmask.precompute.greens import available_memory
+
+    p = pts[tris]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+    n = 2.0 * area / (np.sqrt(3.0) * edge_length ** 2)
+    avail = available_memory()
+    need = 8.0 * (3.0 * 0.65 * n) ** 2
+    if avail is not None and need > avail:
+        n_max = np.sqrt(avail / 8.0) / 3.0 / 0.65
+        h_min = np.sqrt(2.0 * area / (np.sqrt(3.0) * n_max))
+        raise MeshError(f"{name}: at --edge-length {edge_length:.3g} m the surface gets about {n:,.0f} vertices, "
+                        f"whose dense Ξ alone would take ~{need / 2**30:.1f} GiB, more than the "
+                        f"{avail / 2**30:.1f} GiB available: use an edge length of at least {h_min:.3g} m (in "
+                        "metres; scale to your --units) or restrict Ξ with --contact")
+
+
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
-                   units_given: bool = True, report: dict | None = None, repair: bool = False):
+                   units_given: bool = True, report: dict | None = None, repair: bool = False,
+                   xi_of_all: bool = False):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
 
     Follows gmsh tutorial t13: classify the triangles into patches, build a
@@ -354,6 +377,8 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
         if report is not None:
             report["repair"] = fixed
     pts, tris = check_surface(raw, tris, str(path))
+    if xi_of_all:
+        check_size_before_meshing(pts, tris, edge_length, path)
     try:
         points, tets = _remesh(pts, tris, path, edge_length, angle_deg)
     except MeshError as exc:

@@ -437,3 +437,22 @@ def test_repair_makes_a_damaged_export_usable_and_says_what_it_changed(tmp_path,
         return np.abs(np.linalg.det(e)).sum() / 6.0
 
     assert volume(tmp_path / "fixed.h5") / volume(tmp_path / "good.h5") - 1 == pytest.approx(0.0, abs=0.03)
+
+
+def test_an_edge_length_too_fine_for_memory_is_refused_before_meshing(tmp_path, capsys, sphere):
+    """0.1 mm on a 40 mm sphere is ~1.7 M surface vertices (Ξ: ~200 TiB): refused in seconds with the
+    smallest edge length that could fit, not after minutes of meshing; PMASK_MAX_MEMORY caps what pmask
+    may use, and 1 GiB is enough to refuse 0.5 mm (~70,000 vertices, ~300 GiB of Ξ) as well."""
+    stl = write_stl(tmp_path / "s.stl", *sphere)
+    t0 = time.monotonic()
+    err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "0.1", "--units", "mm",
+                             "--fixed", "z<-15", "-o", str(tmp_path / "s.h5")])
+    assert time.monotonic() - t0 < 20.0
+    assert "dense Ξ alone would take" in err and "use an edge length of at least" in err
+    os.environ["PMASK_MAX_MEMORY"] = "1G"
+    try:
+        err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "0.5", "--units", "mm",
+                                 "--fixed", "z<-15", "-o", str(tmp_path / "s.h5")])
+    finally:
+        del os.environ["PMASK_MAX_MEMORY"]
+    assert "more than the 1.0 GiB available" in err
