@@ -456,3 +456,24 @@ def test_an_edge_length_too_fine_for_memory_is_refused_before_meshing(tmp_path, 
     finally:
         del os.environ["PMASK_MAX_MEMORY"]
     assert "more than the 1.0 GiB available" in err
+
+
+def test_volume_quality_measures_and_warnings(caplog):
+    """The radius ratio is 1 for a regular tetrahedron at any scale and tends to 0 for a flat one; the graded
+    half-space mesh (1.25 mm at the load, up to 60 mm far away) is warned about for its edge spread, the
+    kidney's even mesh is not."""
+    from pmask.meshes.common import load_model_mesh
+    from pmask.precompute.meshing import check_volume_quality, volume_quality
+
+    P = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    for scale in (1e-3, 1.0, 7.0):
+        assert volume_quality(scale * P, np.array([[0, 1, 2, 3]]))["worst_radius_ratio"] == pytest.approx(1.0, abs=1e-12)
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.3, 0.3, 1e-4]], float)
+    assert volume_quality(flat, np.array([[0, 1, 2, 3]]))["worst_radius_ratio"] < 1e-3
+    graded = load_model_mesh(ROOT / "tests" / "reference" / "meshes" / "halfspace_h8.npz")
+    q = check_volume_quality(graded.points, graded.tets, "halfspace")
+    assert q["edge_spread"] > 20 and "a poor volume mesh" in caplog.text
+    caplog.clear()
+    even = load_model_mesh(ROOT / "tests" / "reference" / "meshes" / "kidney.npz")
+    check_volume_quality(even.points, even.tets, "kidney")
+    assert "a poor volume mesh" not in caplog.text
