@@ -191,7 +191,7 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
     import tempfile
 
     job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
-           "repair": repair, "xi_of_all": xi_of_all}
+           "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout}
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
@@ -227,9 +227,12 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
 def _worker(argv) -> int:
     """``python -m pmask.precompute.meshing JOB OUT``: one remesh, arrays to OUT, one JSON line to stdout."""
     import json
+    import signal
     import traceback
 
     job, out = json.loads(argv[0]), argv[1]
+    if hasattr(signal, "SIGALRM"):  # if the parent is killed outright, do not outlive its time limit
+        signal.alarm(int(job.get("timeout", 600)) + 30)
     warned = []  # this process's warnings, re-logged by the parent (the user's console is the parent's)
     handler = logging.Handler(logging.WARNING)
     handler.emit = lambda record: warned.append(record.getMessage())

@@ -144,7 +144,7 @@ class ViewerSession:
     def probe(self, probes: list, deform: bool) -> dict:
         """Set the probes (None: lifted) and return the servo thread's latest contacts."""
         with self.lock:
-            c = self.contacts
+            c, stiffness = self.contacts, self.stiffness  # one radius for the whole answer
             c.set_probes([self.park if p is None else p for p in probes])
             forces, statuses = c.read()
             states = c.states
@@ -159,7 +159,7 @@ class ViewerSession:
             if st.tri >= 0 and probes[k] is not None:
                 b = np.asarray(st.b, float)
                 entry["proxy"] = (b @ P[T[st.tri]]).tolist()
-                K = (b @ self.stiffness.table[st.tri]).reshape(3, 3)
+                K = (b @ stiffness.table[st.tri]).reshape(3, 3)
                 entry["k_norm"] = float(np.linalg.norm(K, 2))
             out.append(entry)
         reply = {"contacts": out, "servo": {"engine": c.engine, "rate": self.rate, "ticks": int(stats["ticks"]),
@@ -206,7 +206,10 @@ class ViewerSession:
             if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r):
                 raise BadRequest("radius must be a finite number (model units)")
             with self.lock:
-                self._build(float(r))
+                try:
+                    self._build(float(r))
+                except PmaskError as exc:  # e.g. a mask too large for the body: the old radius stays
+                    raise BadRequest(str(exc)) from None
             return _json(200, {"radius": self.radius, "masked": self.fields["masked"].tolist()})
         if path in FILES or path.startswith("/api/"):
             return _json(405, {"error": f"{method[:20]!r} is not allowed on {path[:200]!r}"})
