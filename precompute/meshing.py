@@ -144,6 +144,12 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     if np.any(counts > 2):
         raise MeshError(f"{name}: the surface is not manifold ({int(np.sum(counts > 2))} edges shared by more "
                         "than two triangles); separate the touching parts, or try --repair")
+    pinched = pinched_vertices(tris)
+    if len(pinched):
+        x = pts[pinched[0]]
+        raise MeshError(f"{name}: {len(pinched)} vertices join parts of the surface that share no edge (shells "
+                        f"touching at a point), e.g. at ({x[0]:.4g}, {x[1]:.4g}, {x[2]:.4g}); separate the parts, "
+                        "or try --repair")
     if len(np.unique(directed, axis=0)) != len(directed):
         raise MeshError(f"{name}: triangle orientation is inconsistent (some neighbours face opposite ways); "
                         "re-orient the triangles consistently (e.g. trimesh.repair.fix_winding)")
@@ -282,6 +288,41 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray,
                 "kept, holes filled, self-intersections removed)", name, before["boundary_edges"],
                 before["non_manifold_edges"], before["triangles"], len(out_t))
     return out_p, out_t, fixed
+
+
+def pinched_vertices(tris: np.ndarray) -> np.ndarray:
+    """Vertices whose triangles form more than one fan (a non-manifold vertex: two shells touching at a
+    point, which edge counts cannot see).  The corners of a vertex are joined across the edges its
+    triangles share; more than one group of corners is a pinch."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n_t = len(tris)
+    corner = lambda t, k: 3 * t + k  # noqa: E731
+    rows = []
+    for k in range(3):  # edge (k, k+1) of each triangle: (triangle, its two corners, the edge's key)
+        a, b = tris[:, k].astype(np.int64), tris[:, (k + 1) % 3].astype(np.int64)
+        key = np.minimum(a, b) * (int(tris.max()) + 1) + np.maximum(a, b)
+        rows.append(np.stack([np.arange(n_t), np.full(n_t, k), np.full(n_t, (k + 1) % 3), key], axis=1))
+    e = np.concatenate(rows)
+    e = e[np.argsort(e[:, 3], kind="stable")]
+    same = e[1:, 3] == e[:-1, 3]  # consecutive rows on the same edge: join their corners
+    t1, t2 = e[:-1][same], e[1:][same]
+    # match corners by vertex: the corner of t2 that holds the same vertex as t1's corner
+    src, dst = [], []
+    for c1 in (1, 2):
+        v1 = tris[t1[:, 0], t1[:, c1]]
+        for c2 in (1, 2):
+            m = tris[t2[:, 0], t2[:, c2]] == v1
+            src.append(corner(t1[m, 0], t1[m, c1]))
+            dst.append(corner(t2[m, 0], t2[m, c2]))
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    g = coo_matrix((np.ones(len(src)), (src, dst)), shape=(3 * n_t, 3 * n_t))
+    _, label = connected_components(g, directed=False)
+    vertex = tris.ravel()
+    pairs = np.unique(np.stack([vertex, label], axis=1), axis=0)
+    fans = np.bincount(pairs[:, 0], minlength=int(vertex.max()) + 1)
+    return np.flatnonzero(fans > 1)
 
 
 #: pieces of a surface apart from its largest shell, up to this share of its area, are debris (segmentation
