@@ -120,6 +120,35 @@ def volume_inside_surface(points: np.ndarray, triangles: np.ndarray, *, size_fac
     return vol_points, tets
 
 
+def edge_defects(tris: np.ndarray) -> dict:
+    """Counts of the edges that keep a triangulation from bounding a solid: boundary edges (in one
+    triangle: holes), non-manifold edges (in more than two) and inconsistently oriented edges (the same
+    directed edge in two triangles)."""
+    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    _, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    return {"boundary_edges": int(np.sum(counts == 1)), "non_manifold_edges": int(np.sum(counts > 2)),
+            "inconsistent_edges": int(np.sum(dcounts > 1))}
+
+
+def shells(pts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The connected pieces of a triangulation: each triangle's shell, and each shell's area and enclosed
+    (signed) volume."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(pts)
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]]])
+    n_comp, label = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
+                                         directed=False)
+    tri_label = label[tris[:, 0]]
+    p = pts[tris]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    vol = np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]) / 6.0
+    return (tri_label, np.bincount(tri_label, weights=area, minlength=n_comp),
+            np.bincount(tri_label, weights=vol, minlength=n_comp))
+
+
 def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surface") -> tuple[np.ndarray, np.ndarray]:
     """Refuse a triangle surface that cannot bound a solid; return it with duplicate vertices merged.
 
@@ -136,13 +165,12 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     if np.any(bad):
         raise MeshError(f"{name}: {int(bad.sum())} degenerate triangles (repeated vertices); clean the surface")
     pts, tris = keep_main_shell(pts, tris, name)
-    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    undirected, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
-    if np.any(counts == 1):
-        raise MeshError(f"{name}: the surface is open ({int(np.sum(counts == 1))} boundary edges); "
+    defects = edge_defects(tris)
+    if defects["boundary_edges"]:
+        raise MeshError(f"{name}: the surface is open ({defects['boundary_edges']} boundary edges); "
                         "close its holes (e.g. 'fill holes' in your segmentation or mesh tool), or try --repair")
-    if np.any(counts > 2):
-        raise MeshError(f"{name}: the surface is not manifold ({int(np.sum(counts > 2))} edges shared by more "
+    if defects["non_manifold_edges"]:
+        raise MeshError(f"{name}: the surface is not manifold ({defects['non_manifold_edges']} edges shared by more "
                         "than two triangles); separate the touching parts, or try --repair")
     pinched = pinched_vertices(tris)
     if len(pinched):
@@ -150,7 +178,7 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
         raise MeshError(f"{name}: {len(pinched)} vertices join parts of the surface that share no edge (shells "
                         f"touching at a point), e.g. at ({x[0]:.4g}, {x[1]:.4g}, {x[2]:.4g}); separate the parts, "
                         "or try --repair")
-    if len(np.unique(directed, axis=0)) != len(directed):
+    if defects["inconsistent_edges"]:
         raise MeshError(f"{name}: triangle orientation is inconsistent (some neighbours face opposite ways); "
                         "re-orient the triangles consistently (e.g. trimesh.repair.fix_winding)")
     p = pts[tris]
@@ -204,7 +232,7 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 start_new_session=True)  # the terminal's Ctrl-C reaches us, and we stop it
         try:
-            stdout, stderr = proc.communicate(timeout=timeout)
+            _, stderr = proc.communicate(timeout=timeout)  # gmsh's own chatter stays out of the console
         except subprocess.TimeoutExpired:
             raise MeshError(f"{path}: gmsh did not finish remeshing within {timeout:g} s (it can stall "
                             "classifying a surface with many sharp edges or a high genus); repair or simplify the "
@@ -213,11 +241,12 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
             if proc.poll() is None:
                 proc.kill()
                 proc.communicate()
-        lines = stdout.decode(errors="replace").strip().splitlines()
         try:
-            result = json.loads(lines[-1])
-        except (IndexError, ValueError):
-            raise MeshError(f"{path}: gmsh crashed while remeshing this surface (exit code {proc.returncode}); "
+            result = json.loads(out.with_suffix(".json").read_text())
+        except (OSError, ValueError):
+            last = (stderr or b"").decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
+            raise MeshError(f"{path}: gmsh crashed while remeshing this surface (exit code {proc.returncode}: "
+                            f"{last[0][:200]}); "
                             "repair the surface (closed, manifold, not self-intersecting), try --repair or "
                             "another --edge-length") from None
         for message in result.get("warnings", []):
@@ -231,7 +260,8 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
 
 
 def _worker(argv) -> int:
-    """``python -m pmask.precompute.meshing JOB OUT``: one remesh, arrays to OUT, one JSON line to stdout."""
+    """``python -m pmask.precompute.meshing JOB OUT``: one remesh, arrays to OUT (.npz) and the outcome
+    (ok / error / bug, the report, the warnings) to OUT with the suffix .json."""
     import json
     import signal
     import traceback
@@ -256,7 +286,7 @@ def _worker(argv) -> int:
     except Exception:
         result = {"kind": "bug", "message": traceback.format_exc()}
     result["warnings"] = warned
-    print(json.dumps(result), flush=True)
+    Path(out).with_suffix(".json").write_text(json.dumps(result))
     return 0
 
 
@@ -270,10 +300,9 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray,
     upts, inverse = np.unique(pts, axis=0, return_inverse=True)
     t = inverse.ravel()[np.asarray(tris, np.int64)]
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
-    _, counts = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0,
-                          return_counts=True)
-    before = {"vertices": int(len(upts)), "triangles": int(len(t)), "boundary_edges": int(np.sum(counts == 1)),
-              "non_manifold_edges": int(np.sum(counts > 2))}
+    d = edge_defects(t)
+    before = {"vertices": int(len(upts)), "triangles": int(len(t)), "boundary_edges": d["boundary_edges"],
+              "non_manifold_edges": d["non_manifold_edges"]}
     mf = pymeshfix.MeshFix(upts, t)
     mf.repair()
     out_p, out_t = np.asarray(mf.points, float), np.asarray(mf.faces, np.int64)
@@ -333,22 +362,12 @@ DEBRIS_AREA_SHARE = 0.01
 def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     """The largest connected shell; debris (the rest, ≤ 1 % of the area) dropped with a warning, a second
     body refused.  A segmented heart exported for 3D printing had 77 specks beside its main shell."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = len(pts)
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]]])
-    n_comp, label = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
-                                         directed=False)
-    if n_comp == 1:
+    tri_label, per, _ = shells(pts, tris)
+    if len(per) == 1:
         return pts, tris
-    tri_label = label[tris[:, 0]]
-    p = pts[tris]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    per = np.bincount(tri_label, weights=area, minlength=n_comp)
     main = int(np.argmax(per))
     rest = per.sum() - per[main]
-    pieces = int(np.count_nonzero(np.bincount(tri_label, minlength=n_comp))) - 1
+    pieces = int(np.count_nonzero(np.bincount(tri_label, minlength=len(per)))) - 1
     if rest > DEBRIS_AREA_SHARE * per.sum():
         raise MeshError(f"{name}: the surface has {pieces + 1} separate shells and the smaller ones hold "
                         f"{100 * rest / per.sum():.1f} % of the area: pmask models one body; export the organ "
@@ -357,7 +376,7 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
                 100 * rest / per.sum())
     keep = tri_label == main
     used = np.unique(tris[keep])
-    remap = np.full(n, -1)
+    remap = np.full(len(pts), -1)
     remap[used] = np.arange(len(used))
     return pts[used], remap[tris[keep]]
 
