@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import numpy as np
 
-from pmask.precompute.meshing import MeshError
+from pmask.precompute.meshing import MeshError, edge_defects, pinched_vertices, shells
 
 
 def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -> dict:
@@ -19,8 +19,6 @@ def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -
     import warnings
 
     import meshio
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
     try:
         with warnings.catch_warnings():
@@ -43,25 +41,11 @@ def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -
     degenerate = (T[:, 0] == T[:, 1]) | (T[:, 1] == T[:, 2]) | (T[:, 0] == T[:, 2])
     out["degenerate_triangles"] = int(degenerate.sum())
     T = T[~degenerate]
-    directed = np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]])
-    _, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
-    out["boundary_edges"] = int(np.sum(counts == 1))
-    out["non_manifold_edges"] = int(np.sum(counts > 2))
-    _, dcounts = np.unique(directed, axis=0, return_counts=True)
-    out["inconsistent_edges"] = int(np.sum(dcounts > 1))
-    n = len(pts)
-    e = np.concatenate([T[:, [0, 1]], T[:, [1, 2]]])
-    n_comp, label = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
-                                         directed=False)
+    out.update(edge_defects(T))
+    out["pinched_vertices"] = int(len(pinched_vertices(T))) if len(T) else 0
     ok = np.all(np.isfinite(pts[T]), axis=(1, 2))
-    p = pts[T[ok]]
-    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    vol = np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]) / 6.0
-    lab = label[T[ok][:, 0]]
-    shell_area = np.bincount(lab, weights=area, minlength=n_comp)
-    shell_vol = np.bincount(lab, weights=vol, minlength=n_comp)
-    shell_tris = np.bincount(lab, minlength=n_comp)
+    tri_label, shell_area, shell_vol = shells(np.nan_to_num(pts), T[ok])
+    shell_tris = np.bincount(tri_label, minlength=len(shell_area))
     order = np.argsort(-shell_area)
     total = float(shell_area.sum())
     out["shells"] = [{"triangles": int(shell_tris[k]), "area_share": float(shell_area[k] / total),
@@ -71,7 +55,7 @@ def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -
     out["bounding_box"] = [lo.tolist(), hi.tolist()]
     out["extent"] = float(np.linalg.norm(hi - lo))
     out["units"] = units or "m (not given)"
-    main_area = float(shell_area[order[0]])
+    main_area = float(shell_area[order[0]])  # the largest shell's
     out["edge_length_for"] = {int(t): math.sqrt(2.0 * main_area / (math.sqrt(3.0) * t)) for t in targets}
     return out
 
@@ -91,7 +75,8 @@ def report(r: dict) -> str:
         + (", ..." if len(shells) > 5 else "") + ")"))
     defects = {"non-finite vertices": r["non_finite_vertices"], "degenerate triangles": r["degenerate_triangles"],
                "boundary edges (holes)": r["boundary_edges"], "non-manifold edges": r["non_manifold_edges"],
-               "inconsistently oriented edges": r["inconsistent_edges"]}
+               "inconsistently oriented edges": r["inconsistent_edges"],
+               "vertices where shells touch": r["pinched_vertices"]}
     found = {k: v for k, v in defects.items() if v}
     if shells and shells[0]["volume"] < 0 and not r["boundary_edges"]:
         found["largest shell oriented inwards"] = 1
