@@ -132,6 +132,28 @@ def kidney_default(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def model(kidney_default):
+    """The default kidney loaded once (test modules about the small kidney override this fixture)."""
+    from pmask.runtime import Model
+
+    return Model.load(kidney_default)
+
+
+@pytest.fixture(scope="session")
+def stiff(model):
+    """The cone mask at 2 mean edge lengths, the runtime's default radius."""
+    return model.stiffness("linear", 2 * model.mean_edge_length)
+
+
+@pytest.fixture(scope="session")
+def surface(stiff):
+    """The haptic surface built once (normals, gradients, grid), shared by the haptics and servo tests."""
+    from pmask.runtime.haptics import Surface
+
+    return Surface(stiff)
+
+
+@pytest.fixture(scope="session")
 def kidney_top(tmp_path_factory) -> Path:
     """The default kidney with a contact region (the upper half, z > 0): Ξ only there, widened by r_max."""
     return build(tmp_path_factory, "kidney_top", Spec(model="kidney", contact="z>0"))

@@ -18,24 +18,6 @@ FRICTION = {"friction": 0.4, "dynamic_friction": 0.3}  # a typical instrument on
 
 
 @pytest.fixture(scope="module")
-def model(kidney_default):
-    return Model.load(kidney_default)
-
-
-@pytest.fixture(scope="module")
-def stiff(model):
-    return model.stiffness("linear", 2 * model.mean_edge_length)
-
-
-@pytest.fixture(scope="module")
-def surface(stiff):
-    """The haptic surface built once (normals, gradients, grid), for the many short contacts of the fuzz tests."""
-    from pmask.runtime.haptics import Surface
-
-    return Surface(stiff)
-
-
-@pytest.fixture(scope="module")
 def the_tour():
     return tour()
 

@@ -33,21 +33,6 @@ FORCE_TOL = 1e-12  # N: the issue's bound (the engines agree to the bit; see the
 
 
 @pytest.fixture(scope="module")
-def model(kidney_default):
-    return Model.load(kidney_default)
-
-
-@pytest.fixture(scope="module")
-def stiff(model):
-    return model.stiffness("linear", 2 * model.mean_edge_length)
-
-
-@pytest.fixture(scope="module")
-def surface(stiff):
-    return Surface(stiff)
-
-
-@pytest.fixture(scope="module")
 def table_path(surface, tmp_path_factory):
     surface.coupling()
     return write_table(tmp_path_factory.mktemp("tables") / "kidney.tbl", surface, {"mask": "linear"})
