@@ -126,6 +126,12 @@ def main() -> None:
     res["cvxopt_default"] = precompute(0.005, work / "kidney_cvxopt.h5", backend="cvxopt")
     print("P2 at the default size and at ~3,900 free vertices ...", flush=True)
     res["p2"] = [precompute(size, work / f"kidney_p2_{size}.h5", "--p2") for size in (0.005, 0.003)]
+    print("remesh of a 327,680-triangle surface ...", flush=True)
+    res["remesh_300k"] = remesh_bench(work)
+    print("repair routes over the corpus ...", flush=True)
+    import repair_compare
+
+    res["repair_routes"] = repair_compare.run()
     print("float32 ...", flush=True)
     r32 = precompute(0.005, work / "kidney_f32.h5", "--float32")
     res["float32"] = float32_effect(work / "kidney_0.005.h5", work / "kidney_f32.h5", r32)
@@ -160,6 +166,38 @@ def main() -> None:
     (HERE / "results.md").write_text(markdown(res))
     include_in_readme(markdown(res))
     print((HERE / "results.md").read_text())
+
+
+REMESH_SNIPPET = """
+import json, sys, time
+from pathlib import Path
+t0 = time.perf_counter()
+import meshio
+m = meshio.read(sys.argv[1])
+t1 = time.perf_counter()
+from pmask.precompute.meshing import remesh_bounded
+points, tets, change = remesh_bounded(Path(sys.argv[1]), edge_length=0.002, scale=1e-3, timeout=600)
+t2 = time.perf_counter()
+print(json.dumps({"read_s": t1 - t0, "remesh_s": t2 - t1, "triangles_in": int(len(m.cells[0].data)),
+                  "volume_vertices": int(len(points)), "tets": int(len(tets)), "hausdorff_mm": 1e3 * change["hausdorff_m"],
+                  "volume_change": change["volume_change"]}))
+"""
+
+
+def remesh_bench(work: Path, runs: int = 2) -> dict:
+    """The real-inputs issue's target: a 327,680-triangle sphere (20 mm, the corpus's largest case) remeshed
+    to 2 mm in a fresh process, the way `pmask precompute --surface` does it (checks, the bounded gmsh
+    worker, the Hausdorff distance); reading the STL alone beside it as the noise reference."""
+    import meshio
+
+    from pmask.pipeline.corpus import corpus
+
+    v, f = corpus()["over 300,000 triangles"]
+    stl = work / "sphere327k.stl"
+    meshio.write_points_cells(stl, v, [("triangle", f)])
+    out = [json.loads(sh([sys.executable, "-c", REMESH_SNIPPET, str(stl)], cwd=ROOT).strip().splitlines()[-1])
+           for _ in range(runs)]
+    return {"runs": out, "remesh_s": [r["remesh_s"] for r in out], "read_s": [r["read_s"] for r in out]}
 
 
 def include_in_readme(table: str) -> None:
@@ -278,6 +316,18 @@ def markdown(res: dict) -> str:
                      f"{sum(t.values()):.2f} | {p1_total:.2f} | {sum(t.values()) / p1_total:.1f}x | "
                      f"{r['dense_floor_s']:.2f} | {gf / r['dense_floor_s']:.2f} | {r['fill_floor_s']:.2f} | "
                      f"{r['peak_rss_gib']:.2f} |")
+    if res.get("remesh_300k"):
+        r = res["remesh_300k"]
+        x = r["runs"][0]
+        L += ["", f"**Remesh of a {x['triangles_in']:,}-triangle surface** (a 20 mm sphere to 2 mm edges, in a fresh "
+                  f"process as `--surface` runs it; the real-inputs issue's target ≤ 60 s): "
+                  + ", ".join(f"{t:.1f}" for t in r["remesh_s"]) + " s; reading the STL alone (noise reference) "
+                  + ", ".join(f"{t:.2f}" for t in r["read_s"]) + f" s; {x['volume_vertices']:,} volume vertices, "
+                  f"Hausdorff {x['hausdorff_mm']:.3f} mm, volume {100 * x['volume_change']:+.2f} %."]
+    if res.get("repair_routes"):
+        import repair_compare
+
+        L += ["", repair_compare.markdown(res["repair_routes"])]
     s = res["scaling"]
     L += ["", f"Scaling: total time ∝ n_free^{s['time_vs_free_exponent']:.2f}, "
               f"∝ condensed dofs^{s['time_vs_condensed_dofs_exponent']:.2f}.", ""]

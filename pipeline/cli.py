@@ -55,9 +55,11 @@ def add_precompute(sub) -> None:
     src.add_argument("--segmentation", help="label image (NIfTI .nii/.nii.gz or NRRD): the organ of --label becomes "
                                             "the surface (needs the segmentation extra)")
     p.add_argument("--label", type=int, help="with --segmentation: the organ's label value")
-    p.add_argument("--repair", action="store_true",
-                   help="repair the surface first (pymeshfix: largest shell, holes, non-manifold parts, "
-                        "self-intersections; the repair extra), with a report of what changed")
+    p.add_argument("--repair", nargs="?", const="meshfix", choices=("meshfix", "voxel"), default=None,
+                   help="repair the surface first, with a report of what changed: meshfix (the default; pymeshfix: "
+                        "largest shell, holes, non-manifold parts, self-intersections; the repair extra) or voxel "
+                        "(rebuilt from the solid it encloses at a third of --edge-length; mends what meshfix cannot, "
+                        "rounds features below a voxel; the segmentation extra)")
     p.add_argument("--edge-length", type=float, help="target edge length for --surface (input units)")
     p.add_argument("--fixed", help="support region selector: 'z<-0.9', 'box:x0,y0,z0,x1,y1,z1', "
                                    "'sphere:cx,cy,cz,r', 'group:NAME', unions with '|'")
@@ -69,6 +71,9 @@ def add_precompute(sub) -> None:
                                                  "more than 2 m across is then refused as probably in mm)")
     p.add_argument("--mesh-timeout", type=float, default=600.0,
                    help="seconds gmsh may take to remesh a --surface before it is stopped (default 600)")
+    p.add_argument("--solve-timeout", type=float, default=3600.0,
+                   help="seconds allowed to the factorisation and Green's functions together (default 3600); "
+                        "Ctrl-C and this budget stop them within a supernode")
     p.add_argument("--size", type=float, help="mesh size parameter of the model (kidney: largest edge [m])")
     p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
                    help="further model parameter (repeatable), e.g. --param h_load=0.00125")
@@ -92,7 +97,7 @@ def cmd_precompute(args) -> int:
     if args.segmentation:
         require_extra("segmentation")
     if args.repair:
-        require_extra("repair")
+        require_extra("repair" if args.repair == "meshfix" else "segmentation")
     label = args.model or Path(args.surface or args.volume or args.segmentation).name.split(".")[0]
     params = dict(args.param)
     if args.size is not None:
@@ -102,6 +107,7 @@ def cmd_precompute(args) -> int:
                 units=args.units.lower().replace("µ", "u") if args.units else None,
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
                 element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,
+                solve_timeout=args.solve_timeout,
                 segmentation=args.segmentation, label=args.label, repair=args.repair)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
@@ -117,8 +123,12 @@ def cmd_precompute(args) -> int:
         g = summary["remesh"]
         if g.get("repair"):
             b, a = g["repair"]["before"], g["repair"]["after"]
-            print(f"  repair: {b['boundary_edges']} boundary and {b['non_manifold_edges']} non-manifold edges before; "
-                  f"{b['triangles']} -> {a['triangles']} triangles")
+            if g["repair"].get("route") == "voxel":
+                print(f"  repair: rebuilt from {1e3 * g['repair']['voxel']:.3g} mm voxels, {g['repair']['solids']} "
+                      f"separate solid(s), the largest kept; {b['triangles']} -> {a['triangles']} triangles")
+            else:
+                print(f"  repair: {b['boundary_edges']} boundary and {b['non_manifold_edges']} non-manifold edges "
+                      f"before; {b['triangles']} -> {a['triangles']} triangles")
         print(f"  remesh: surface moved by up to {1e3 * g['hausdorff_m']:.3g} mm (Hausdorff, sampled every "
               f"{1e3 * g['sample_spacing_m']:.2g} mm), volume {100 * g['volume_change']:+.2f} %")
     print("  time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()) + f"; total {sum(t.values()):.2f}s"

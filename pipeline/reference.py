@@ -72,7 +72,7 @@ def figure5_table(mesh_dir: Path, work: Path, element: str = "P1"):
                      "single_norm_N_per_m": r["single"], "masked_norm_N_per_m": r["masked"],
                      "mask_vertices": r["mask_size"]})
     meta = {"table": "paper Figure 5: vertex stiffness vs Loop level", "model": "loop0..loop3 ellipsoid "
-            "80 x 40 x 40 mm, fixed cap x >= 12 mm (0.3 a)", "resolution": "34/130/514/2050 surface vertices",
+            "80 x 40 x 40 mm, fixed cap x >= 12 mm (0.3 a), held by area (the mesh fitted to its rim)", "resolution": "34/130/514/2050 surface vertices",
             "mask": f"linear cone, r = {radius:.6e} m (mean edge length of loop0)",
             "vertex": "base vertex 17 (ring 3, segment 0)", "units": "N/m (norm = largest singular value)",
             "material": f"E = {models[0].E:g} Pa, nu = {models[0].nu:g}"}

@@ -59,6 +59,8 @@ class Spec:
     element : a name from :data:`pmask.precompute.elements.ELEMENTS`.
     reactions : store the support reactions; None: when they cost no more than Ξ (see
         :func:`pmask.precompute.greens.factorise`).
+    mesh_timeout, solve_timeout : seconds allowed to the gmsh worker, and to the factorisation and
+        Green's functions together (native route: Ctrl-C and the budget stop them between supernodes).
     """
 
     model: str
@@ -76,9 +78,10 @@ class Spec:
     element: str = "P1"
     reactions: bool | None = None
     mesh_timeout: float = 600.0
+    solve_timeout: float = 3600.0
     segmentation: str | None = None
     label: int | None = None
-    repair: bool = False
+    repair: str | None = None
 
     @property
     def scale(self) -> float:
@@ -92,7 +95,8 @@ class Surface:
 
     vertices : volume indices of the surface vertices (sorted); triangles : into ``vertices``,
     counter-clockwise from outside; areas : a_i = ∫ φ_i dΓ; regions : free/fixed/contact/core sets
-    (surface indices); r_max : largest mask radius [m]; fixed_selector, contact_selector : as given.
+    (surface indices); r_max : largest mask radius [m]; fixed_selector, contact_selector : as given;
+    held : bool over ``triangles``, the facets the support holds (all three corners fixed).
     """
 
     vertices: np.ndarray
@@ -102,6 +106,11 @@ class Surface:
     r_max: float
     fixed_selector: str
     contact_selector: str
+    held: np.ndarray
+
+    def held_facets(self) -> np.ndarray:
+        """The held facets as volume vertex indices (k, 3)."""
+        return self.vertices[self.triangles[self.held]]
 
 
 # ------------------------------------------------------------------------------- hashing
@@ -222,6 +231,8 @@ def validate(spec: Spec, out: Path) -> None:
         raise InputError("give one of --surface, --volume and --segmentation")
     if spec.segmentation and (spec.label is None or isinstance(spec.label, bool) or not isinstance(spec.label, int)):
         raise InputError("--segmentation needs --label N (the label value of the organ in the image)")
+    if spec.repair not in (None, False, True, "meshfix", "voxel"):
+        raise InputError(f"--repair {spec.repair}: use meshfix or voxel")
     if spec.repair and not (spec.surface or spec.segmentation):
         raise InputError("--repair applies to --surface and --segmentation inputs")
     if spec.segmentation and spec.edge_length is None:
@@ -239,8 +250,9 @@ def validate(spec: Spec, out: Path) -> None:
                 raise InputError(f"model {spec.model}: parameter {k} must be a number, got {v!r}")
     if spec.surface and spec.edge_length is None:
         raise InputError("--surface needs --edge-length (target edge length in the file's units)")
-    if not (np.isfinite(spec.mesh_timeout) and spec.mesh_timeout > 0):
-        raise InputError(f"--mesh-timeout must be a number of seconds > 0, got {spec.mesh_timeout}")
+    for flag, value in (("--mesh-timeout", spec.mesh_timeout), ("--solve-timeout", spec.solve_timeout)):
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f"{flag} must be a number of seconds > 0, got {value}")
     if spec.edge_length is not None and not (np.isfinite(spec.edge_length) and spec.edge_length > 0):
         raise InputError(f"--edge-length must be a finite length > 0, got {spec.edge_length}")
     if spec.r_max is not None and not (np.isfinite(spec.r_max) and spec.r_max > 0):
@@ -304,6 +316,25 @@ def mesh_stage(spec: Spec) -> ModelMesh:
     return get_model(spec.model)(**spec.params)
 
 
+def support_stage(spec: Spec, mesh: ModelMesh) -> ModelMesh:
+    """Stage 1b: fit the mesh to a geometric support selector (:func:`pmask.precompute.supports.conform`),
+    so the fixed area is the selected part of the surface on every mesh, not whatever whole triangles
+    the vertices happen to give.  Physical groups (``group:``) are whole facets already."""
+    from dataclasses import replace
+
+    from pmask.precompute import supports
+
+    selector = spec.fixed or mesh.fixed
+    if not selector or not supports.conformable(selector):
+        return mesh
+    points, rim, report = supports.conform(mesh.points, mesh.tets, selector, spec.scale)
+    if report["unresolved"]:
+        log.info("support '%s': %d of %d crossing edges could not be fitted without flattening a tetrahedron; "
+                 "they keep vertex membership", selector, report["unresolved"], report["crossing_edges"])
+    return replace(mesh, points=points, groups={**mesh.groups, supports.RIM: rim},
+                   info={**mesh.info, "support_fit": report})
+
+
 #: a user's support outside this share of the surface area gets a warning (see _check_support_share)
 SUPPORT_SHARE = (0.02, 0.5)
 
@@ -323,8 +354,8 @@ def _check_support_share(share: float, n_fixed: int, selector: str, units: str |
 
 def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
     """Stage 2: the boundary surface, its vertex areas, and the fixed, free and contact regions."""
-    from pmask.precompute import regions, selectors, surface
-    from pmask.runtime.geometry import mean_edge_length, vertex_areas
+    from pmask.precompute import regions, selectors, supports, surface
+    from pmask.runtime.geometry import mean_edge_length, triangle_areas, vertex_areas
 
     vertices, triangles = surface.boundary_surface(mesh.points, mesh.tets)
     spoints = mesh.points[vertices]
@@ -334,6 +365,11 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
         raise regions.RegionError("no fixed region given: use --fixed SELECTOR (e.g. 'z<-0.9' or 'group:NAME')")
     contact_sel = spec.contact if spec.contact is not None else mesh.contact
     fixed_mask = selectors.select(fixed_sel, mesh.points / spec.scale, mesh.groups)[vertices]
+    if supports.conformable(fixed_sel):  # held by area: the vertices of the facets inside the support
+        fixed_mask |= mesh.groups.get(supports.RIM, np.zeros(len(mesh.points), bool))[vertices]
+        held = supports.fixed_facets(fixed_mask, triangles)
+        fixed_mask = np.zeros(len(vertices), bool)
+        fixed_mask[triangles[held]] = True
     contact_mask = (selectors.select(contact_sel, mesh.points / spec.scale, mesh.groups)[vertices]
                     if contact_sel else None)
     if spec.r_max is not None:
@@ -344,9 +380,14 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
         r_max = mesh.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
     reg = regions.surface_regions(spoints, fixed_mask, contact_mask, r_max,
                                   fixed_selector=fixed_sel, contact_selector=contact_sel or "")
-    if spec.surface or (spec.volume and not spec.volume.endswith(".npz")):  # a user's geometry and selector
-        _check_support_share(float(areas[reg.fixed].sum() / areas.sum()), len(reg.fixed), fixed_sel, spec.units)
-    return Surface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "")
+    held = supports.fixed_facets(np.isin(np.arange(len(vertices)), reg.fixed), triangles)
+    facet_areas = triangle_areas(spoints, triangles)
+    held_area = float(facet_areas[held].sum())
+    log.info("support '%s': %d vertices, %d facets, %.6g m² (%.2f %% of the surface)", fixed_sel, len(reg.fixed),
+             int(held.sum()), held_area, 100 * held_area / facet_areas.sum())
+    if spec.surface or spec.segmentation or (spec.volume and not spec.volume.endswith(".npz")):  # a user's selector
+        _check_support_share(held_area / float(facet_areas.sum()), len(reg.fixed), fixed_sel, spec.units)
+    return Surface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "", held)
 
 
 @functools.lru_cache(maxsize=16)
@@ -397,7 +438,7 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
     K = element.stiffness(d, E, nu)
     contact = surf.vertices[surf.regions.contact]
     B, scale = element.load(d, surf.vertices[surf.triangles], contact, surf.areas[surf.regions.contact])
-    dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed]))
+    dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed], surf.held_facets()))
     t_assemble = time.perf_counter() - t0
     t0 = time.perf_counter()
     factor = greens.factorise(K, dirichlet, elements.observed_dofs(contact), B, scale=scale,
@@ -415,7 +456,7 @@ def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor):
         return Xi, None
     element = elements.get_element(spec.element)
     d = element.discretise(mesh.points, mesh.tets) if element.name != "P1" else None
-    return Xi, element.lump_reactions(d, surf.vertices[surf.regions.fixed], R)
+    return Xi, element.lump_reactions(d, surf.vertices[surf.regions.fixed], surf.held_facets(), R)
 
 
 def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, reactions, *, keys, factor_stats,
@@ -488,6 +529,11 @@ class _Stages:
             for p in self.work.glob("*"):
                 if p.name.startswith("."):
                     p.unlink(missing_ok=True)
+            kept = sorted(self.work.glob("*.npz")) if self.work.exists() else []
+            if kept:
+                log.warning("kept the finished stages (%s) in %s, %s: the next run with the same geometry reuses "
+                            "them; delete the folder to free the space", ", ".join(p.name.split("-")[0] for p in kept),
+                            self.work, _bytes(sum(p.stat().st_size for p in kept)))
         for folder in (self.work, self.work.parent):  # when empty
             with contextlib.suppress(OSError):
                 folder.rmdir()
@@ -510,7 +556,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
 
     ``progress`` shows a bar over the stages on stderr (the CLI turns it on for a terminal).
     """
-    from pmask.precompute import elements, greens
+    from pmask.precompute import elements, greens, native
 
     out = Path(out)
     validate(spec, out)
@@ -525,6 +571,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         if stale not in (st.checkpoint("mesh"), st.checkpoint("factor")):
             stale.unlink(missing_ok=True)
     ok = False
+    solve = contextlib.ExitStack()
     try:
         with st.timed("mesh", f"{spec.model}: regions"):
             ck = st.checkpoint("mesh")
@@ -534,11 +581,13 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             else:
                 mesh = mesh_stage(spec)
                 save_model_mesh(ck, mesh)
+            mesh = support_stage(spec, mesh)
         _checkpoint_reached("mesh")
         with st.timed("regions", f"{spec.model}: assemble + factorise"):
             surf = surface_stage(spec, mesh)
             element = elements.get_element(spec.element)
             check_memory(element, len(mesh.points), len(surf.regions.contact))
+        solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
         if ck.exists():
             t0 = time.perf_counter()
@@ -560,6 +609,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
                         timings=st.timings, resumed=st.resumed)
         ok = True
     finally:
+        solve.close()
         st.close(ok)
     reg = surf.regions
     return {"up_to_date": False, "artifact": str(out), "input_hash": keys["artifact"], "timings": st.timings,

@@ -52,7 +52,11 @@ void dgemm_(const char *transa, const char *transb, const int *m, const int *n, 
 
 /* bumped whenever a signature below changes; precompute/native.py refuses a library built from
  * another version (a stale build in the venv) instead of calling it with the wrong arguments */
-int pmask_abi_version(void) { return 4; }
+int pmask_abi_version(void) { return 5; }
+
+/* Set by the caller's other thread (Ctrl-C, a time budget): the supernode loops stop at the next
+ * supernode and return -4.  CHOLMOD's factorisation cannot be stopped inside. */
+volatile int32_t pmask_cancel = 0;
 
 typedef struct {
     cholmod_common c;
@@ -66,7 +70,7 @@ static void *prefault(void *arg)
 {
     prefault_job *job = arg;
     size_t step = (size_t)sysconf(_SC_PAGESIZE) / sizeof(double), k;
-    for (k = job->n; k >= step; k -= step)
+    for (k = job->n; k >= step && !pmask_cancel; k -= step)
         __atomic_fetch_add((int64_t *)(job->x + k - step), (int64_t)0, __ATOMIC_RELAXED);
     return NULL;
 }
@@ -250,7 +254,8 @@ unordered:
  * (computed column-major as its transpose diag(scale) A^-1, both triangles).
  * times: setup, forward solve (trsm + gemm + scatter), syrk, mirror + permutation; the flops of
  * the dense kernels; the doubles of W; the wait for the prefault helper after the solve.
- * Returns 0; -2 for a bad want list; -3 if the factor is not postordered; -1 out of memory. */
+ * Returns 0; -2 for a bad want list; -3 if the factor is not postordered; -1 out of memory; -4 if
+ * pmask_cancel was set. */
 int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi, const int64_t *px, const int64_t *Ls,
                  const double *Lx, const int64_t *Perm, int64_t nw, const int64_t *want, const double *scale,
                  double *D, double *times)
@@ -336,7 +341,7 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
 
         /* forward solve W = L^-1 P E, supernode by supernode (children before parents) */
         t0 = now();
-        for (s = 0; s < nsuper; s++) {
+        for (s = 0; s < nsuper && !pmask_cancel; s++) {
             int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
             int64_t m = cnt[super[s + 1]] - lo[s];
             int im = (int)m, inc = (int)nc, inr = (int)nr, ild = (int)nrow;
@@ -366,6 +371,10 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
             pthread_join(helper, NULL);
         started = 0;
     }
+    if (pmask_cancel) {
+        status = -4;
+        goto done;
+    }
     times[6] = now() - t0 - t_solve;   /* waiting for the helper */
 
     /* (A^-1)_EE[lo:hi, lo:hi] += W_s^T W_s  (lower triangle), one rank-nc_s update per supernode */
@@ -373,6 +382,10 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
     for (s = 0; s < nsuper; s++) {
         int64_t nc = super[s + 1] - super[s], m = cnt[super[s + 1]] - lo[s];
         int im = (int)m, inc = (int)nc, inw = (int)nw;
+        if (pmask_cancel) {
+            status = -4;
+            goto done;
+        }
         if (m == 0)
             continue;
         dsyrk_("L", "N", &im, &inc, &one, W + woff[s], &im, &one, D + lo[s] + lo[s] * nw, &inw, 1, 1);
@@ -389,6 +402,10 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
         int64_t i0, j0;
         for (j0 = 0; j0 < nw; j0 += T) {
             int64_t j1 = j0 + T < nw ? j0 + T : nw;
+            if (pmask_cancel) {
+                status = -4;
+                goto done;
+            }
             for (i0 = j0; i0 < nw; i0 += T) {
                 int64_t i1 = i0 + T < nw ? i0 + T : nw;
                 for (j = j0; j < j1; j++)
@@ -410,6 +427,12 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
         }
         for (j = 0; j < nw; j++) {
             int64_t cur = j;
+            if (pmask_cancel) {
+                free(moved);
+                free(first);
+                status = -4;
+                goto done;
+            }
             if (moved[j])
                 continue;
             memcpy(first, D + j * nw, sizeof(double) * nw);
@@ -632,6 +655,10 @@ int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t
     for (s = 0; s < nsuper; s++) {
         int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
         int64_t mE = cntE[super[s + 1]] - loE[s], mB = setlen[s];
+        if (pmask_cancel) {
+            status = -4;
+            goto done;
+        }
         const int64_t *set = sets + setoff[s];
         const double *Lss = Lx + px[s];
         int inc = (int)nc, inr = (int)nr, ild = (int)nrow;
@@ -717,6 +744,11 @@ int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t
         }
         for (i = 0; i < nE; i++) {
             int64_t cur = i;
+            if (pmask_cancel) {
+                free(moved);
+                status = -4;
+                goto done;
+            }
             if (moved[i])
                 continue;
             memcpy(rowtmp, X + i * k, sizeof(double) * k);

@@ -65,8 +65,10 @@ class Element:
     def stiffness(self, d: Discretisation, E: float, nu: float) -> sp.csr_matrix:
         raise NotImplementedError
 
-    def dirichlet_nodes(self, d: Discretisation, fixed: np.ndarray) -> np.ndarray:
-        """Nodes held by the support: the fixed vertices (and, P2, the edges between two of them)."""
+    def dirichlet_nodes(self, d: Discretisation, fixed: np.ndarray, facets: np.ndarray) -> np.ndarray:
+        """Nodes held by the support: the fixed vertices (and, P2, the edge nodes of the fixed
+        ``facets``, (k, 3) volume vertex indices: the support is held facet by facet, so an edge through
+        the body between two fixed vertices keeps its midside node free)."""
         return np.asarray(fixed, np.int64)
 
     def load(self, d: Discretisation, triangles: np.ndarray, contact: np.ndarray, areas: np.ndarray):
@@ -74,7 +76,7 @@ class Element:
         (3 n_nodes x 3 n_c), or (None, scale) when B is the contact dofs' unit columns times scale."""
         raise NotImplementedError
 
-    def lump_reactions(self, d: Discretisation, fixed: np.ndarray, R: np.ndarray) -> np.ndarray:
+    def lump_reactions(self, d: Discretisation, fixed: np.ndarray, facets: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Reactions on the Dirichlet dofs -> reactions per fixed vertex (3 n_fixed x k)."""
         return R
 
@@ -165,24 +167,24 @@ class P2(Element):
         K.sum_duplicates()
         return K
 
-    def dirichlet_nodes(self, d, fixed):
-        is_fixed = np.zeros(len(d.points), bool)
-        is_fixed[fixed] = True
-        fixed_edges = np.flatnonzero(is_fixed[d.edges[:, 0]] & is_fixed[d.edges[:, 1]])
-        return np.concatenate([np.asarray(fixed, np.int64), len(d.points) + fixed_edges])
+    def dirichlet_nodes(self, d, fixed, facets):
+        e = np.sort(np.concatenate([facets[:, [0, 1]], facets[:, [1, 2]], facets[:, [2, 0]]]), axis=1)
+        n = len(d.points)
+        fixed_edges = np.flatnonzero(np.isin(d.edges[:, 0] * n + d.edges[:, 1], e[:, 0] * n + e[:, 1]))
+        return np.concatenate([np.asarray(fixed, np.int64), n + fixed_edges])
 
     def load(self, d, triangles, contact, areas):
         B = surface_load_matrix(d.points, triangles, d.edges)
         return sp.kron(B[:, contact], sp.identity(3), format="csr"), None
 
-    def lump_reactions(self, d, fixed, R):
+    def lump_reactions(self, d, fixed, facets, R):
         """Each fixed edge node's reaction split half and half onto its end vertices (same total force
         and moment: the midpoint is their average)."""
         nv = len(fixed)
         out = R[:3 * nv].copy()
         pos = np.full(len(d.points), -1)
         pos[fixed] = np.arange(nv)
-        held_edges = self.dirichlet_nodes(d, fixed)[nv:] - len(d.points)
+        held_edges = self.dirichlet_nodes(d, fixed, facets)[nv:] - len(d.points)
         for q, e in enumerate(held_edges):
             r = R[3 * (nv + q):3 * (nv + q) + 3]
             for v in d.edges[e]:

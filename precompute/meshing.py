@@ -211,7 +211,7 @@ def check_extent(points: np.ndarray, units_given: bool, name) -> None:
 
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
-                   timeout: float = 600.0, repair: bool = False, xi_of_all: bool = False):
+                   timeout: float = 600.0, repair: str | None = None, xi_of_all: bool = False):
     """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
     after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
@@ -290,8 +290,17 @@ def _worker(argv) -> int:
     return 0
 
 
+#: --repair meshfix warns when it drops more than this share of the input's area
+REPAIR_AREA_WARN = 0.05
+
+
+def _area(p: np.ndarray, t: np.ndarray) -> float:
+    q = p[t]
+    return float(0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1).sum())
+
+
 def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray, np.ndarray, dict]:
-    """``--repair``: pymeshfix (Attene's MeshFix) keeps the largest shell, removes non-manifold parts and
+    """``--repair`` / ``--repair meshfix``: pymeshfix (Attene's MeshFix) keeps the largest shell, removes non-manifold parts and
     self-intersections, fills holes and orients the result outwards; returns it with what it changed."""
     try:
         import pymeshfix
@@ -312,7 +321,13 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray,
     p = out_p[out_t]
     if np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum() < 0:
         out_t = out_t[:, ::-1]
-    fixed = {"before": before, "after": {"vertices": int(len(out_p)), "triangles": int(len(out_t))}}
+    area_before, area_after = _area(upts, t), _area(out_p, out_t)
+    fixed = {"before": before | {"area": area_before},
+             "after": {"vertices": int(len(out_p)), "triangles": int(len(out_t)), "area": area_after}}
+    if area_after < (1 - REPAIR_AREA_WARN) * area_before:
+        log.warning("%s: --repair meshfix kept %.0f %% of the surface area: it drops all but the largest shell, and "
+                    "shells that run into each other lose the smaller one; --repair voxel keeps their union",
+                    name, 100 * area_after / area_before)
     log.warning("%s: --repair: %d boundary edges and %d non-manifold edges before; %d -> %d triangles (largest shell "
                 "kept, holes filled, self-intersections removed)", name, before["boundary_edges"],
                 before["non_manifold_edges"], before["triangles"], len(out_t))
@@ -403,7 +418,7 @@ def check_size_before_meshing(pts, tris, edge_length: float, name) -> None:
 
 
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
-                   units_given: bool = True, report: dict | None = None, repair: bool = False,
+                   units_given: bool = True, report: dict | None = None, repair: str | None = None,
                    xi_of_all: bool = False):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
 
@@ -435,8 +450,13 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     check_finite(raw, path)
     check_extent(raw, units_given, path)
     tris = np.concatenate(blocks)
-    if repair:
-        raw, tris, fixed = repair_surface(raw, tris, path)
+    if repair:  # "meshfix" (True: the same) or "voxel"
+        if repair == "voxel":
+            from pmask.precompute.voxel import voxel_repair
+
+            raw, tris, fixed = voxel_repair(raw, tris, edge_length, path)
+        else:
+            raw, tris, fixed = repair_surface(raw, tris, path)
         if report is not None:
             report["repair"] = fixed
     pts, tris = check_surface(raw, tris, str(path))
@@ -628,4 +648,9 @@ def check_volume_quality(points, tets, name) -> dict:
 if __name__ == "__main__":
     import sys
 
-    sys.exit(_worker(sys.argv[1:]))
+    # run the importable module's worker, not this __main__ copy's: otherwise a MeshError raised by a module
+    # that imports pmask.precompute.meshing (the voxel repair, label images) is another class than the one
+    # caught here, and a user's mistake would be reported as our bug
+    from pmask.precompute import meshing
+
+    sys.exit(meshing._worker(sys.argv[1:]))

@@ -8,12 +8,17 @@ whether it was.  Without it
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import importlib.util
+import threading
+import time
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
+from pmask.errors import ResourceError
 
 from pmask.precompute.selinv import FACTOR_ARRAYS  # the supernodal layout, in pmask_factor_arrays' order
 
@@ -33,7 +38,7 @@ def _library_path() -> Path | None:
 LIBRARY = _library_path()
 
 #: must equal pmask_abi_version() in _selected_inverse.c
-ABI_VERSION = 4
+ABI_VERSION = 5
 
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
@@ -98,6 +103,61 @@ def _view(address: int, dtype, count: int, owner) -> np.ndarray:
     return np.frombuffer(buf, dtype=dtype, count=count)
 
 
+#: (deadline on time.monotonic(), seconds, the flag that sets it) of the running stage, or None
+_deadline: tuple | None = None
+#: native calls still running after Ctrl-C or a budget, with their arguments (the C code may still write
+#: into them, so they must outlive the call): (done event, args, keep).  The next call waits for them:
+#: two of our BLAS-heavy calls at once gave wrong numbers with the threaded OpenBLAS.
+_pending: list = []
+#: how often the waiting thread looks at Ctrl-C and the clock [s]
+POLL_S = 0.05
+
+
+@contextlib.contextmanager
+def budget(seconds: float | None, flag: str = "--solve-timeout"):
+    """Native calls inside stop with :class:`ResourceError` once ``seconds`` have passed (None: no limit)."""
+    global _deadline
+    previous = _deadline
+    _deadline = (time.monotonic() + seconds, seconds, flag) if seconds else None
+    try:
+        yield
+    finally:
+        _deadline = previous
+
+
+def _run(fn, *args, keep=()):
+    """``fn(*args)`` (a ctypes function: it releases the GIL) in a helper thread, so that Ctrl-C and the
+    :func:`budget` stop it within about a supernode: the selected inversion's loops read ``pmask_cancel``
+    between supernodes and return -4.  CHOLMOD's factorisation cannot be stopped inside; it is left to
+    finish in the background with its arguments (and ``keep``: buffers passed as addresses) kept alive."""
+    flag = ctypes.c_int32.in_dll(_lib(), "pmask_cancel")
+    while _pending:  # a cancelled call ends within a supernode; an abandoned factorisation when it is done
+        _pending[0][0].wait()
+        _pending.pop(0)
+    flag.value = 0
+    result, done = {}, threading.Event()
+
+    def target():
+        try:
+            result["status"] = fn(*args)
+        finally:
+            done.set()
+
+    threading.Thread(target=target, name="pmask-native", daemon=True).start()
+    try:  # (an Event, not Thread.join: a join that Ctrl-C interrupted returned at once when asked again)
+        while not done.wait(POLL_S):
+            if _deadline is not None and time.monotonic() > _deadline[0]:
+                raise ResourceError(f"the factorisation and Green's functions did not finish within {_deadline[1]:g} s "
+                                    f"({_deadline[2]}); coarsen the mesh, restrict --contact, or allow longer")
+    except BaseException:  # Ctrl-C or the budget: stop the C loops, then go
+        flag.value = 1
+        _pending.append((done, args, keep))
+        if done.wait(1.0):
+            _pending.pop()
+        raise
+    return result["status"]
+
+
 def factor(A):
     """CHOLMOD's supernodal Cholesky P A Pᵀ = L Lᵀ of the lower-triangular CSC ``A`` (METIS nested
     dissection, AMD if METIS fails; supernodes postordered).
@@ -112,7 +172,7 @@ def factor(A):
     indices = np.ascontiguousarray(A.indices, dtype=np.int64)
     data = np.ascontiguousarray(A.data, dtype=np.float64)
     handle, times = _p(), np.zeros(5)
-    status = lib.pmask_factor(n, indptr, indices, data, ctypes.byref(handle), times)
+    status = _run(lib.pmask_factor, n, indptr, indices, data, ctypes.byref(handle), times, keep=(handle,))
     if status > 0:
         raise ArithmeticError(status - 1)
     if status < 0:
@@ -145,8 +205,8 @@ def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray):
         raise ValueError(f"{len(scale)} scale factors for {nw} wanted dofs")
     D = np.zeros((nw, nw))
     times = np.zeros(7)
-    status = lib.pmask_selinv(n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
-                              nw, want, scale, D.ctypes.data, times)
+    status = _run(lib.pmask_selinv, n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
+                  nw, want, scale, D.ctypes.data, times, keep=(D, arr))
     if status == -2:
         raise ValueError("wanted dofs must be distinct indices of the factorised matrix")
     if status == -3:
@@ -176,10 +236,10 @@ def selected_columns(L: dict, rows: np.ndarray, B):
     k = B.shape[1]
     X = np.zeros((len(rows), k))
     times = np.zeros(6)
-    status = lib.pmask_selcols(n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
-                               len(rows), rows, k, np.ascontiguousarray(B.indptr, np.int64),
-                               np.ascontiguousarray(B.indices, np.int64), np.ascontiguousarray(B.data, np.float64),
-                               X.ctypes.data, times)
+    Bp, Bi, Bx = (np.ascontiguousarray(B.indptr, np.int64), np.ascontiguousarray(B.indices, np.int64),
+                  np.ascontiguousarray(B.data, np.float64))
+    status = _run(lib.pmask_selcols, n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
+                  len(rows), rows, k, Bp, Bi, Bx, X.ctypes.data, times, keep=(X, arr, Bp, Bi, Bx))
     if status == -2:
         raise ValueError("wanted dofs must be distinct indices of the factorised matrix, and B's rows in range")
     if status == -3:

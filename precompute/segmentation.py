@@ -59,11 +59,30 @@ def read_label_image(path: Path):
     raise MeshError(f"{path}: a label image must be NIfTI (.nii, .nii.gz) or NRRD (.nrrd, .nhdr)")
 
 
-def label_surface(path: Path, label: int, units: str | None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The closed surface of ``label`` (points in the image's length unit, triangles) and a report."""
+def mask_surface(mask: np.ndarray, affine: np.ndarray, *, field: np.ndarray | None = None, level: float = 0.5):
+    """Marching cubes (scikit-image) on the padded boolean ``mask`` at level 1/2 (or on ``field`` at
+    ``level``, values increasing inwards), placed by the 4x4 voxel-to-world ``affine`` and turned
+    outwards, then Taubin-smoothed.  Returns the trimesh surface and the volume before smoothing.
+    (The label images' route and the voxel repair share it.)"""
     import trimesh
     from skimage.measure import marching_cubes
 
+    volume = np.pad(mask, 1).astype(np.float32) if field is None else np.pad(field, 1, constant_values=field.min())
+    if not volume.max() > level:
+        raise MeshError("no part of the solid is thicker than a voxel")
+    verts, faces, _, _ = marching_cubes(volume.astype(np.float32), level=level)
+    verts -= 1.0  # back to the image's voxel indices
+    world = verts @ affine[:3, :3].T + affine[:3, 3]
+    mesh = trimesh.Trimesh(world, faces, process=True)
+    if mesh.volume < 0:  # a mirroring voxel-to-world matrix turned the triangles inwards
+        mesh.invert()
+    raw_volume = float(mesh.volume)
+    trimesh.smoothing.filter_taubin(mesh, iterations=SMOOTHING_PASSES)
+    return mesh, raw_volume
+
+
+def label_surface(path: Path, label: int, units: str | None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The closed surface of ``label`` (points in the image's length unit, triangles) and a report."""
     data, affine, header_unit = read_label_image(path)
     if data.ndim != 3:
         raise MeshError(f"{path}: a 3-D label image is needed, this one has shape {data.shape}")
@@ -77,16 +96,8 @@ def label_surface(path: Path, label: int, units: str | None) -> tuple[np.ndarray
         present = np.unique(np.asarray(data))
         shown = ", ".join(str(v) for v in present[:20]) + (" ..." if len(present) > 20 else "")
         raise MeshError(f"{path}: no voxel has label {label}; the labels present are {shown}")
-    padded = np.pad(mask, 1).astype(np.float32)
-    verts, faces, _, _ = marching_cubes(padded, level=0.5)
-    verts -= 1.0  # back to the image's voxel indices
-    world = verts @ affine[:3, :3].T + affine[:3, 3]
-    mesh = trimesh.Trimesh(world, faces, process=True)
-    if mesh.volume < 0:  # a mirroring voxel-to-world matrix turned the triangles inwards
-        mesh.invert()
+    mesh, raw_volume = mask_surface(mask, affine)
     voxel_volume = float(mask.sum() * abs(np.linalg.det(affine[:3, :3])))
-    raw_volume = float(mesh.volume)
-    trimesh.smoothing.filter_taubin(mesh, iterations=SMOOTHING_PASSES)
     change = float(mesh.volume) / raw_volume - 1.0
     report = {"label": int(label), "voxels": int(mask.sum()), "voxel_volume": voxel_volume,
               "marching_cubes_volume": raw_volume, "smoothed_volume": float(mesh.volume),

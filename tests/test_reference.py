@@ -139,11 +139,21 @@ def test_recomputed_figure5_p2_matches_stored(tmp_path):
 
 
 def test_figure5_with_p2_converges_where_p1_moved_8_percent():
-    """The soft-tissue issue's Figure 5 targets with P2: the masked stiffness changes ≤ 3 % between the two
-    finest levels (stored −1.5 %; P1 −7.6 %), and the single-vertex stiffness falls by ≥ 1.8 from 514 to
-    2,050 vertices (stored 1.86).  From 130 to 514 it falls by 1.77, short of the issue's 1.8 (README)."""
+    """The soft-tissue issue's Figure 5 targets with P2 (supports held by area): the masked stiffness
+    changes ≤ 3 % between the two finest levels (stored −1.4 %; P1 −7.5 %), and the single-vertex stiffness
+    falls by ≥ 1.8 from 514 to 2,050 vertices (stored 1.87).
+
+    The coarser ratios (1.50, 1.78) fall short of 1.8, and that is the body, not the element: a point
+    load's compliance is 1/k = α/h + β, a local part growing as the edges shrink plus the body's own
+    bending, which does not.  Halving h multiplies k by (2x + 1)/(x + 1), x = α/(hβ), which reaches 1.8
+    only from x = 4.  Fitted to levels 1 and 2, the law predicts level 3 within 1 % (the rest: the local
+    part's O(h) correction), so the ratios are what the geometry gives."""
     rows = table("figure5_p2")
-    single, masked = col(rows, "single_norm_N_per_m"), col(rows, "masked_norm_N_per_m")
+    single, masked, h = col(rows, "single_norm_N_per_m"), col(rows, "masked_norm_N_per_m"), col(rows, "mean_edge_m")
     assert abs(masked[3] / masked[2] - 1) <= 0.03
     assert single[2] / single[3] >= 1.8
-    assert np.all(single[:-1] / single[1:] >= 1.5)
+    alpha, beta = np.linalg.solve(np.c_[1 / h[1:3], np.ones(2)], 1 / single[1:3])
+    assert abs((alpha / h[3] + beta) * single[3] - 1) < 0.01
+    x = alpha / (h * beta)
+    ratio = single[:-1] / single[1:]
+    assert np.all((ratio >= 1.8) == (x[:-1] >= 4)), (ratio, x)

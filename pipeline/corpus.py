@@ -1,0 +1,66 @@
+"""A corpus of damaged and awkward surfaces as segmentation exports carry them, made here (no downloads):
+the real-inputs issue's test (tests/test_corpus.py) and `make bench`'s comparison of the repair routes
+(bench/repair_compare.py) run over it.  Lengths in mm."""
+from __future__ import annotations
+
+import numpy as np
+
+
+#: the overlapping case's second sphere: radius and centre distance from the 20 mm sphere's centre (mm)
+OVERLAP = (12.0, 22.0)
+
+
+def union_volume(R: float = 20.0, r: float = OVERLAP[0], d: float = OVERLAP[1]) -> float:
+    """Volume of the union of two overlapping balls (radii R, r, centres d apart): both minus the lens."""
+    lens = np.pi * (R + r - d) ** 2 * (d * d + 2 * d * r - 3 * r * r + 2 * d * R + 6 * r * R - 3 * R * R) / (12 * d)
+    return 4 / 3 * np.pi * (R**3 + r**3) - lens
+
+
+def sphere(r=20.0, sub=3, at=(0.0, 0.0, 0.0)):
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=sub, radius=r)
+    return np.asarray(s.vertices) + at, np.asarray(s.faces)
+
+
+def join(*parts):
+    P, T, n = [], [], 0
+    for v, f in parts:
+        P.append(v)
+        T.append(f + n)
+        n += len(v)
+    return np.vstack(P), np.vstack(T)
+
+
+def corpus() -> dict:
+    """Case name -> (vertices, triangles)."""
+    import trimesh
+
+    v, f = sphere()
+    cases = {}
+    cases["several shells"] = join(sphere(), sphere(at=(50.0, 0, 0)), sphere(at=(0, 50.0, 0)))
+    a, b = sphere(), sphere(r=10.0, sub=2)
+    b = (b[0] + a[0][a[1][0][0]] - b[0][b[1][0][0]] + [0, 0, 0.0], b[1])
+    P, T = join(a, b)
+    n = len(a[0])
+    edge, point = T.copy(), T.copy()
+    edge[edge == b[1][0][0] + n], edge[edge == b[1][0][1] + n] = a[1][0][0], a[1][0][1]  # one shared edge
+    point[point == b[1][0][0] + n] = a[1][0][0]  # one shared vertex
+    cases["touching shells"] = (P, edge)
+    cases["touching at a point"] = (P, point)
+    cases["holes"] = (v, np.delete(f, [0, 7, 40, 41], axis=0))
+    flipped = f.copy()
+    patch = np.flatnonzero(v[f].mean(axis=1)[:, 2] > 15.0)
+    flipped[patch] = flipped[patch][:, ::-1]
+    cases["flipped patch"] = (v, flipped)
+    poked = v.copy()
+    poked[0] = -1.6 * poked[0]
+    cases["self-intersection"] = (poked, f)
+    plate = trimesh.creation.box(extents=(40.0, 40.0, 0.4))
+    cases["thin feature"] = (np.asarray(plate.vertices), np.asarray(plate.faces))
+    # two organs' surfaces exported together and running into each other: the body is their union
+    cases["overlapping shells"] = join(sphere(), sphere(r=OVERLAP[0], at=(OVERLAP[1], 0, 0)))
+    cases["debris"] = join(sphere(), sphere(r=0.4, sub=1, at=(30.0, 0, 0)), sphere(r=0.4, sub=1, at=(0, 30.0, 0)))
+    big = trimesh.creation.icosphere(subdivisions=7, radius=20.0)  # 327,680 triangles
+    cases["over 300,000 triangles"] = (np.asarray(big.vertices), np.asarray(big.faces))
+    return cases
