@@ -524,7 +524,7 @@ def test_solve_timeout_is_one_line(tmp_path, capsys, value, expect):
 
     if value != "0" and not native.available():
         pytest.skip("the budget stops the native route's calls")
-    code = main(["precompute", "kidney", "--size", "0.0085", "--solve-timeout", value, "-o", str(tmp_path / "k.h5")])
+    code = main(["precompute", "kidney", "--solve-timeout", value, "-o", str(tmp_path / "k.h5")])
     err = capsys.readouterr().err
     assert code == 2 and expect in err and "Traceback" not in err, err
     assert not (tmp_path / "k.h5").exists()
