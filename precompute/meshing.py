@@ -396,25 +396,39 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     return pts[used], remap[tris[keep]]
 
 
-def check_size_before_meshing(pts, tris, edge_length: float, name) -> None:
-    """Refuse in seconds, before gmsh, an --edge-length whose dense Ξ over the whole surface cannot fit: a
-    closed triangulation of area A at edge h has about n = 2A / (√3 h²) vertices (``pmask inspect``'s
-    estimate, within 35 % after gmsh), and Ξ alone is (3n)² doubles.  The bound uses 0.65 n, so a
-    refusal is never the estimate's error; the full check (factor included) follows after meshing."""
+def check_size_before_meshing(pts, tris, edge_length: float, name, xi_of_all: bool = True) -> None:
+    """Refuse in seconds, before gmsh, an --edge-length whose Green's functions cannot fit in memory.
+
+    A closed triangulation of area A at edge h has about n = 2A / (√3 h²) surface vertices (``pmask
+    inspect``'s estimate, within 35 % after gmsh), and Ξ over all of them is (3n)² doubles; the volume
+    it encloses, V, gets at least V / h³ vertices (gmsh, measured: 1,384 at h = 3 mm in a 20 mm sphere,
+    where V / h³ = 1,241), whose sparse factor follows P1's fitted rule (:class:`~pmask.precompute.
+    elements.Element.memory_estimate`; P2's is larger).  The bound uses 0.65 n and these lower
+    bounds, so a refusal is never the estimate's error; the full check follows after meshing.
+    With ``--contact`` (``xi_of_all`` false) only the factor counts."""
+    from pmask.precompute.elements import P1
     from pmask.precompute.greens import available_memory
 
     p = pts[tris]
     area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+    volume = abs(np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum()) / 6.0
     n = 2.0 * area / (np.sqrt(3.0) * edge_length ** 2)
+    n_volume = volume / edge_length ** 3
     avail = available_memory()
-    need = 8.0 * (3.0 * 0.65 * n) ** 2
-    if avail is not None and need > avail:
+    need = P1().memory_estimate(n_volume, 0.65 * n if xi_of_all else 0)
+    if avail is None or need["total"] <= avail:
+        return
+    if xi_of_all and need["Xi"] > avail:
         n_max = np.sqrt(avail / 8.0) / 3.0 / 0.65
         h_min = np.sqrt(2.0 * area / (np.sqrt(3.0) * n_max))
         raise MeshError(f"{name}: at --edge-length {edge_length:.3g} m the surface gets about {n:,.0f} vertices, "
-                        f"whose dense Ξ alone would take ~{need / 2**30:.1f} GiB, more than the "
+                        f"whose dense Ξ alone would take ~{need['Xi'] / 2**30:.1f} GiB, more than the "
                         f"{avail / 2**30:.1f} GiB available: use an edge length of at least {h_min:.3g} m (in "
                         "metres; scale to your --units) or restrict Ξ with --contact")
+    raise MeshError(f"{name}: at --edge-length {edge_length:.3g} m the solid gets at least {n_volume:,.0f} volume "
+                    f"vertices, whose sparse factor{' and Ξ' if xi_of_all else ''} would take ~"
+                    f"{need['total'] / 2**30:.1f} GiB, more than the {avail / 2**30:.1f} GiB available: use a larger "
+                    "--edge-length (the factor grows like h^-4)")
 
 
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
@@ -460,8 +474,7 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
         if report is not None:
             report["repair"] = fixed
     pts, tris = check_surface(raw, tris, str(path))
-    if xi_of_all:
-        check_size_before_meshing(pts, tris, edge_length, path)
+    check_size_before_meshing(pts, tris, edge_length, path, xi_of_all)
     try:
         points, tets = _remesh(pts, tris, path, edge_length, angle_deg)
     except MeshError as exc:

@@ -528,3 +528,14 @@ def test_solve_timeout_is_one_line(tmp_path, capsys, value, expect):
     err = capsys.readouterr().err
     assert code == 2 and expect in err and "Traceback" not in err, err
     assert not (tmp_path / "k.h5").exists()
+
+
+def test_a_factor_too_large_for_memory_is_refused_before_meshing_with_contact(tmp_path, capsys, sphere):
+    """With --contact, Ξ is small, but 0.2 mm in a 40 mm sphere is at least 4 M volume vertices, whose
+    sparse factor alone needs terabytes: refused before gmsh (in seconds), naming the factor."""
+    stl = write_stl(tmp_path / "s.stl", *sphere)
+    t0 = time.monotonic()
+    err = cli_error(capsys, ["precompute", "--surface", stl, "--edge-length", "0.2", "--units", "mm",
+                             "--fixed", "z<-15", "--contact", "sphere:0,0,20,2", "-o", str(tmp_path / "s.h5")])
+    assert time.monotonic() - t0 < 20.0
+    assert "sparse factor would take" in err and "larger --edge-length" in err
