@@ -32,8 +32,9 @@ CLOSE_VOXELS = 2
 OFFSET_VOXELS = 1.5
 #: voxels per target edge length
 VOXELS_PER_EDGE = 3
-#: the grid may hold at most this many voxels (bool, plus scipy's int32 labels: ~5 bytes each)
-MAX_VOXELS = 400_000_000
+#: the grid may hold at most this many voxels (masks, labels, two float32 distance fields and the padded
+#: copy marching cubes takes: ~20 bytes each, 4 GB at this bound)
+MAX_VOXELS = 200_000_000
 
 
 def voxel_repair(pts: np.ndarray, tris: np.ndarray, edge_length: float, name) -> tuple[np.ndarray, np.ndarray, dict]:
