@@ -7,13 +7,13 @@ voxel, so their vertices mark every voxel they cross).  A morphological closing 
 seals holes narrower than about ``2 CLOSE_VOXELS`` voxels, merges touching and intersecting shells into
 one solid and ignores orientation altogether; the largest connected solid is kept (debris goes).
 
-The voxels' own boundary would misplace the surface by up to a voxel, differently per direction (the
-shell of a diagonal plane is thicker than an axis-aligned one's).  So the surface is taken where the
+The voxels' own boundary would misplace the surface, by 0.6 voxel outwards on average and 0.4-0.85 by
+direction (measured on spheres: the shell of a diagonal plane is thicker than an axis-aligned one's).  So the surface is taken where the
 exact distance to the input's triangles (KD-tree over the split triangles' vertices) is
 :data:`OFFSET_VOXELS` outside the solid, by marching cubes and Taubin smoothing as for label images
 (:func:`pmask.precompute.segmentation.mask_surface`), and moved back along its normals by the same
-distance: on spheres of 12-60 voxels radius the result lies within 0.04 voxel of the sphere (volume
-within 0.6 %; ``tests/test_corpus.py``).  The price is resolution: features thinner than about three
+distance: on spheres of 12-60 voxels radius the result lies within 0.07 voxel of the sphere (volume
+within 0.6 %; ``tests/test_repair.py``).  The price is resolution: features thinner than about three
 voxels vanish or come out thicker, and creases are rounded over a voxel or two.
 """
 from __future__ import annotations
