@@ -476,16 +476,17 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     pts, tris = check_surface(raw, tris, str(path))
     check_size_before_meshing(pts, tris, edge_length, path, xi_of_all)
     try:
-        points, tets = _remesh(pts, tris, path, edge_length, angle_deg)
+        points, tets = _remesh_with_fallback(pts, tris, path, edge_length, angle_deg)
     except MeshError as exc:
-        if angle_deg >= 180.0 or "parametriz" not in str(exc) and "Invalid boundary mesh" not in str(exc):
+        if repair != "voxel":
             raise
-        # real organ surfaces have many edges sharper than 40°: classified as features, they cut the surface
-        # into patches gmsh cannot parametrise; without feature edges those surfaces remesh (measured on a
-        # lung, an XCAT liver and the bunny), at the price of rounding real creases, so this is the fallback
-        log.warning("%s: classifying at %g° gave patches gmsh cannot parametrise; retrying without feature edges",
-                    path, angle_deg)
-        points, tets = _remesh(pts, tris, path, edge_length, 180.0)
+        # the voxel route's surface folds where the body is thinner than about three voxels (the bunny's ears
+        # at 2.5 mm edges): say so, instead of the generic advice to try --repair
+        from pmask.precompute.voxel import VOXELS_PER_EDGE
+
+        raise MeshError(f"{str(exc).split('; ')[0]}; after --repair voxel this means parts thinner than about three "
+                        f"voxels ({3e3 * edge_length / VOXELS_PER_EDGE:.3g} mm) folded: try --repair meshfix "
+                        "or a smaller --edge-length") from None
     change = geometry_change(pts, tris, points, tets, edge_length)
     if report is not None:
         report.update(change)
@@ -494,6 +495,20 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
                     "--edge-length keeps more of the geometry", path, 1e3 * change["hausdorff_m"],
                     100 * change["volume_change"])
     return points, tets
+
+
+def _remesh_with_fallback(pts, tris, path, edge_length, angle_deg):
+    try:
+        return _remesh(pts, tris, path, edge_length, angle_deg)
+    except MeshError as exc:
+        if angle_deg >= 180.0 or "parametriz" not in str(exc) and "Invalid boundary mesh" not in str(exc):
+            raise
+        # real organ surfaces have many edges sharper than 40°: classified as features, they cut the surface
+        # into patches gmsh cannot parametrise; without feature edges those surfaces remesh (measured on a
+        # lung, an XCAT liver and the bunny), at the price of rounding real creases, so this is the fallback
+        log.warning("%s: classifying at %g° gave patches gmsh cannot parametrise; retrying without feature edges",
+                    path, angle_deg)
+        return _remesh(pts, tris, path, edge_length, 180.0)
 
 
 def surface_distance(x: np.ndarray, p: np.ndarray, t: np.ndarray, candidates: int = 16) -> np.ndarray:
