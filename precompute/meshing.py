@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
+from pmask.runtime.geometry import triangle_areas
 
 log = logging.getLogger("pmask.precompute.meshing")  # also when run as the remesh worker (__main__)
 
@@ -91,6 +92,12 @@ def signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volume of each tetrahedron (positive for right-handed vertex order)."""
     p = points[tets]
     return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
+
+
+def enclosed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Signed volume enclosed by a closed triangle surface (divergence theorem; positive when outward)."""
+    p = points[triangles]
+    return float(np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum() / 6.0)
 
 
 def volume_inside_surface(points: np.ndarray, triangles: np.ndarray, *, size_factor: float = 1.0):
@@ -181,8 +188,7 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     if defects["inconsistent_edges"]:
         raise MeshError(f"{name}: triangle orientation is inconsistent (some neighbours face opposite ways); "
                         "re-orient the triangles consistently (e.g. trimesh.repair.fix_winding)")
-    p = pts[tris]
-    volume = np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum() / 6.0
+    volume = enclosed_volume(pts, tris)
     if volume < 0:
         raise MeshError(f"{name}: the surface is inverted (normals point inwards, volume {volume:.3g}); "
                         "flip the triangle orientation")
@@ -294,11 +300,6 @@ def _worker(argv) -> int:
 REPAIR_AREA_WARN = 0.05
 
 
-def _area(p: np.ndarray, t: np.ndarray) -> float:
-    q = p[t]
-    return float(0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1).sum())
-
-
 def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray, np.ndarray, dict]:
     """``--repair`` / ``--repair meshfix``: pymeshfix (Attene's MeshFix) keeps the largest shell, removes non-manifold parts and
     self-intersections, fills holes and orients the result outwards; returns it with what it changed."""
@@ -318,10 +319,10 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray,
     if len(out_t) == 0:
         raise MeshError(f"{name}: --repair could not make a closed surface of this file (nothing was left); "
                         "repair it in a mesh tool")
-    p = out_p[out_t]
-    if np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum() < 0:
+    if enclosed_volume(out_p, out_t) < 0:
         out_t = out_t[:, ::-1]
-    area_before, area_after = _area(upts, t), _area(out_p, out_t)
+    area_before = float(triangle_areas(upts, t).sum())
+    area_after = float(triangle_areas(out_p, out_t).sum())
     fixed = {"before": before | {"area": area_before},
              "after": {"vertices": int(len(out_p)), "triangles": int(len(out_t)), "area": area_after}}
     if area_after < (1 - REPAIR_AREA_WARN) * area_before:
@@ -409,9 +410,8 @@ def check_size_before_meshing(pts, tris, edge_length: float, name, xi_of_all: bo
     from pmask.precompute.elements import P1
     from pmask.precompute.greens import available_memory
 
-    p = pts[tris]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
-    volume = abs(np.einsum("ij,ij->i", np.cross(p[:, 0], p[:, 1]), p[:, 2]).sum()) / 6.0
+    area = float(triangle_areas(pts, tris).sum())
+    volume = abs(enclosed_volume(pts, tris))
     n = 2.0 * area / (np.sqrt(3.0) * edge_length ** 2)
     n_volume = volume / edge_length ** 3
     avail = available_memory()
@@ -559,7 +559,7 @@ def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0)
 
     d1 = surface_distance(sample(p_out, t_out), p_in, t_in).max()
     d2 = surface_distance(sample(p_in, t_in), p_out, t_out).max()
-    vol_in = float(np.einsum("ij,ij->i", np.cross(p_in[t_in[:, 0]], p_in[t_in[:, 1]]), p_in[t_in[:, 2]]).sum() / 6.0)
+    vol_in = enclosed_volume(p_in, t_in)
     vol_out = float(np.abs(signed_volumes(points, tets)).sum())
     return {"hausdorff_m": float(max(d1, d2)), "volume_change": vol_out / vol_in - 1.0, "sample_spacing_m": spacing}
 

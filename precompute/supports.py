@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pmask.precompute import selectors
+from pmask.precompute.meshing import signed_volumes
 from pmask.runtime.geometry import edges
 
 #: a move is refused when a tetrahedron around the vertex would keep less than this share of its volume
@@ -52,11 +53,6 @@ def crossings(selector: str, points: np.ndarray, a: np.ndarray, b: np.ndarray) -
         inside = selectors.select(selector, pa + mid[:, None] * d)
         lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
     return 0.5 * (lo + hi)
-
-
-def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    p = points[tets]
-    return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
 
 
 def fixed_facets(fixed: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -93,7 +89,7 @@ def conform(points: np.ndarray, tets: np.ndarray, selector: str, scale: float = 
     n_pts = len(points)
     incidence = sp.csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
                               shape=(n_pts, len(tets)))
-    vol0 = _signed_volumes(points, tets)
+    vol0 = signed_volumes(points, tets)
     on_rim = np.zeros(len(vertices), bool)
     for k in np.argsort(np.minimum(t, 1 - t), kind="stable"):
         if on_rim[a[k]] or on_rim[b[k]]:  # an end already lies on the boundary: the edge no longer crosses it
@@ -104,7 +100,7 @@ def conform(points: np.ndarray, tets: np.ndarray, selector: str, scale: float = 
             around = incidence.indices[incidence.indptr[gv]:incidence.indptr[gv + 1]]
             old = new[gv].copy()
             new[gv] = target
-            if np.all(_signed_volumes(new, tets[around]) >= KEEP_VOLUME * vol0[around]):
+            if np.all(signed_volumes(new, tets[around]) >= KEEP_VOLUME * vol0[around]):
                 on_rim[v] = True
                 report["moved"] += 1
                 report["largest_move_per_edge"] = max(report["largest_move_per_edge"], float(frac))
@@ -114,5 +110,5 @@ def conform(points: np.ndarray, tets: np.ndarray, selector: str, scale: float = 
             report["unresolved"] += 1
     rim[vertices[on_rim]] = True
     # the moves cut the chords of curved rims: the enclosed volume changes by their sag (stored with the remesh's)
-    report["volume_change"] = float(_signed_volumes(new, tets).sum() / vol0.sum() - 1.0)
+    report["volume_change"] = float(signed_volumes(new, tets).sum() / vol0.sum() - 1.0)
     return new, rim, report
