@@ -78,6 +78,18 @@ def add_precompute(sub) -> None:
     p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
                    help="further model parameter (repeatable), e.g. --param h_load=0.00125")
     p.add_argument("--float32", action="store_true", help="store Ξ in single precision (half the size)")
+    p.add_argument("--compress", nargs="?", type=float, const=1e-4, default=None, metavar="TOL",
+                   help="store Ξ compressed: the near field (pairs within --r-max) exact, the far field in low-rank "
+                        "blocks within TOL relative per block (default 1e-4), computed in tiles on Dask without the "
+                        "dense Ξ (for organs whose Ξ does not fit one machine)")
+    p.add_argument("--solver", choices=("factor", "amg"), default="factor",
+                   help="with --compress: solve the tiles with the sparse factor (default) or, where it does not fit, "
+                        "with AMG-preconditioned CG (pyamg; near field exact to ~1e-8 instead of round-off)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="with --compress: run the tiles on this Dask scheduler "
+                                                          "(default: a LocalCluster on this machine)")
+    p.add_argument("--workers", type=int, help="with --compress: local worker processes (default: one per core)")
+    p.add_argument("--worker-memory", metavar="BYTES",
+                   help="with --compress: each local worker's memory limit, e.g. 4G (default: dask's share)")
     p.add_argument("--element", choices=("P1", "P2"), default="P1",
                    help="tetrahedra: P1 (linear; locks for nearly incompressible tissue) or P2 (quadratic, with the "
                         "volumetric term at the centroid: accurate in bending and up to nu = 0.499)")
@@ -108,7 +120,8 @@ def cmd_precompute(args) -> int:
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
                 element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,
                 solve_timeout=args.solve_timeout,
-                segmentation=args.segmentation, label=args.label, repair=args.repair)
+                segmentation=args.segmentation, label=args.label, repair=args.repair, compress=args.compress,
+                solver=args.solver, scheduler=args.scheduler, workers=args.workers, worker_memory=args.worker_memory)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
     if summary["up_to_date"]:
@@ -131,6 +144,12 @@ def cmd_precompute(args) -> int:
                       f"before; {b['triangles']} -> {a['triangles']} triangles")
         print(f"  remesh: surface moved by up to {1e3 * g['hausdorff_m']:.3g} mm (Hausdorff, sampled every "
               f"{1e3 * g['sample_spacing_m']:.2g} mm), volume {100 * g['volume_change']:+.2f} %")
+    c = (summary.get("factor_stats") or {}).get("compress")
+    if c:
+        print(f"  compressed Ξ: {c['ratio']:.1f}x smaller than dense ({c['stored_bytes'] / 2**20:.1f} of "
+              f"{c['dense_bytes'] / 2**20:.1f} MiB), {c['dense_blocks']} dense + {c['lowrank_blocks']} low-rank blocks "
+              f"(rank <= {c['max_rank']}), {c['tiles']} tiles on {c.get('workers', 0)} Dask workers"
+              + (f", {c['tiles_reused']} reused" if c["tiles_reused"] else ""))
     print("  time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()) + f"; total {sum(t.values()):.2f}s"
           + (f" (resumed after: {', '.join(summary['resumed'])})" if summary["resumed"] else ""))
     return 0
@@ -169,7 +188,10 @@ def cmd_info(args) -> int:
         "free": len(d["surface/free"]), "fixed": len(d["surface/fixed"]), "contact": len(d["surface/contact"]),
         "volume_vertices": len(d["volume/points"]), "tets": len(d["volume/tets"]),
         "material": a["material"], "units": a["units"], "r_max": float(a["r_max"]),
-        "Xi": f"{d['greens/Xi'].shape} {d['greens/Xi'].dtype}", "input_hash": a["input_hash"],
+        "Xi": (f"{d['greens/Xi'].shape} {d['greens/Xi'].dtype}" if "greens/Xi" in d else
+               f"compressed, tolerance {a['tolerance']:g}: {len(d['greens/hmatrix/dense_index'])} dense and "
+               f"{len(d['greens/hmatrix/lowrank_index'])} low-rank blocks, {d['greens/hmatrix/dense'].dtype}"),
+        "input_hash": a["input_hash"],
         "libraries": a["provenance"].get("libraries"), "timings": a["timings"],
     }
     if args.json:

@@ -61,6 +61,11 @@ class Spec:
         :func:`pmask.precompute.greens.factorise`).
     mesh_timeout, solve_timeout : seconds allowed to the gmsh worker, and to the factorisation and
         Green's functions together (native route: Ctrl-C and the budget stop them between supernodes).
+    compress : store Ξ compressed, far-field blocks within this relative tolerance (None: dense;
+        :mod:`pmask.precompute.compress`); scheduler : a Dask scheduler's address for its tiles (None: a
+        LocalCluster); workers : local worker processes (None: one per core); worker_memory : each local
+        worker's memory limit ('4G'; None: dask's share of the machine).  solver : 'factor' (the sparse
+        Cholesky factor) or 'amg' (with --compress: no factor, :mod:`pmask.precompute.amg`).
     """
 
     model: str
@@ -82,6 +87,11 @@ class Spec:
     segmentation: str | None = None
     label: int | None = None
     repair: str | None = None
+    compress: float | None = None
+    solver: str = "factor"
+    scheduler: str | None = None
+    workers: int | None = None
+    worker_memory: str | None = None
 
     @property
     def scale(self) -> float:
@@ -179,8 +189,10 @@ def stage_keys(spec: Spec) -> dict:
     # (the optional keys only when used: earlier artifacts keep their keys)
     mesh = _digest({k: d[k] for k in geometry}
                    | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
-    factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")})
-    artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION})
+    factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")}
+                     | ({"solver": d["solver"]} if d["solver"] != "factor" else {}))
+    artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION}
+                       | ({"compress": d["compress"]} if d["compress"] else {}))
     return {"mesh": mesh, "factor": factor, "artifact": artifact}
 
 
@@ -235,6 +247,21 @@ def validate(spec: Spec, out: Path) -> None:
         raise InputError(f"--repair {spec.repair}: use meshfix or voxel")
     if spec.repair and not (spec.surface or spec.segmentation):
         raise InputError("--repair applies to --surface and --segmentation inputs")
+    if spec.compress is not None:
+        from pmask.precompute import compress
+
+        compress.check_tolerance(spec.compress)
+        if spec.worker_memory is not None:
+            compress.parse_memory(spec.worker_memory)
+        if spec.workers is not None and (isinstance(spec.workers, bool) or not isinstance(spec.workers, int)
+                                         or spec.workers < 1):
+            raise InputError(f"--workers must be a whole number >= 1, got {spec.workers!r}")
+        if spec.scheduler:  # reachable now, not after an hour of meshing and factorising
+            compress.connect(spec.scheduler, None, None).close()
+    elif spec.scheduler or spec.workers or spec.worker_memory or spec.solver != "factor":
+        raise InputError("--scheduler, --workers, --worker-memory and --solver apply to --compress (the tiled route)")
+    if spec.solver not in ("factor", "amg"):
+        raise InputError(f"--solver {spec.solver}: use factor or amg")
     if spec.segmentation and spec.edge_length is None:
         raise InputError("--segmentation needs --edge-length (target edge length in the image's units)")
     if not (spec.surface or spec.volume or spec.segmentation):
@@ -374,7 +401,7 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
                     if contact_sel else None)
     if spec.r_max is not None:
         r_max = spec.r_max * spec.scale
-    elif contact_mask is None:
+    elif contact_mask is None and not spec.compress:
         r_max = float(np.linalg.norm(spoints.max(axis=0) - spoints.min(axis=0)))  # every free vertex is in Ξ
     else:
         r_max = mesh.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
@@ -408,12 +435,28 @@ def material(spec: Spec, mesh: ModelMesh) -> tuple[float, float]:
     return float(E), float(nu)
 
 
-def check_memory(element, n_volume_vertices: int, n_contact: int) -> dict:
+def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | None = None) -> dict:
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
-    memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``)."""
+    memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
+    route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker a
+    copy of it and one tile (:func:`pmask.precompute.compress.tile_bytes`)."""
     from pmask.precompute import greens
 
     need = element.memory_estimate(n_volume_vertices, n_contact)
+    if spec is not None and spec.compress:
+        from pmask.precompute import compress
+
+        local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
+        if spec.solver == "amg":  # K_FF (~81 stored entries per dof row, 12 bytes each) and its hierarchy
+            need["factor"] = 4 * 12.0 * 81 * 3 * n_volume_vertices * element.dofs_per_vertex
+        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact)
+        avail = greens.available_memory()
+        if avail is not None and need["total"] > avail:
+            raise ResourceError(
+                f"the sparse factor (~{_bytes(need['factor'])}) and {local} local Dask workers, each with a copy and "
+                f"one tile, need ~{_bytes(need['total'])}, more than the {_bytes(avail)} this machine has "
+                "available: use fewer workers (--workers), a cluster (--scheduler) or a coarser mesh")
+        return need
     if greens.cholmod_backend() != "native":
         need["total"] += 0.9 * need["Xi"]  # the pip-only route permutes a copy
     avail = greens.available_memory()
@@ -441,15 +484,37 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
     dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed], surf.held_facets()))
     t_assemble = time.perf_counter() - t0
     t0 = time.perf_counter()
+    if spec.solver == "amg":  # no factor: the tiles solve with AMG-preconditioned CG (pmask.precompute.amg)
+        from pmask.precompute import amg
+
+        nodes = d.points if d.edges is None else np.vstack([d.points, d.points[d.edges].mean(axis=1)])
+        system = amg.amg_system(K, dirichlet, elements.observed_dofs(contact), nodes, B, scale=scale)
+        system.stats["element"] = element.name
+        return system, {"assemble": t_assemble, "factor": time.perf_counter() - t0}
     factor = greens.factorise(K, dirichlet, elements.observed_dofs(contact), B, scale=scale,
                               graph_elements=d.connectivity, reactions=spec.reactions)
     factor.stats["element"] = element.name
     return factor, {"assemble": t_assemble, "factor": time.perf_counter() - t0}
 
 
-def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor):
-    """Stage 4: Ξ and the support reactions per fixed vertex from the factor."""
+def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor, *, work: Path | None = None, key: str = ""):
+    """Stage 4: Ξ and the support reactions per fixed vertex from the factor.  With ``spec.compress``: Ξ's
+    compressed arrays (tiles on Dask, their store in ``work``), no reactions."""
     from pmask.precompute import elements, greens
+
+    if spec.compress:
+        from pmask.precompute import compress
+
+        if surf.r_max >= float(np.linalg.norm(np.ptp(mesh.points, axis=0))):
+            log.warning("r_max %.3g m spans the body: every pair of vertices is near field and nothing is compressed; "
+                        "give --r-max, the largest probe tip radius", surf.r_max)
+        limit = compress.parse_memory(spec.worker_memory) if spec.worker_memory else None
+        arrays, stats = compress.compressed_greens(
+            factor, mesh.points[surf.vertices[surf.regions.contact]], surf.r_max, tol=spec.compress,
+            store=Path(work) / f"tiles-{key[:16]}.h5", key=key, scheduler=spec.scheduler, workers=spec.workers,
+            memory_limit=limit, dtype=np.dtype(spec.dtype))
+        factor.stats["compress"] = stats
+        return arrays, None
 
     Xi, R = greens.greens_functions(factor)
     if R is None:
@@ -467,6 +532,7 @@ def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, react
     E, nu = material(spec, mesh)
     meta = {
         "model": spec.model, "input_hash": keys["artifact"], "E": E, "nu": nu, "r_max": surf.r_max,
+        "tolerance": spec.compress,
         "fixed_selector": surf.fixed_selector, "contact_selector": surf.contact_selector, "element": spec.element,
         "parameters": {**asdict(spec), "model_info": mesh.info},
         "provenance": {"libraries": library_versions(), "code_sha256": code_digest(), "stage_keys": keys,
@@ -529,7 +595,7 @@ class _Stages:
             for p in self.work.glob("*"):
                 if p.name.startswith("."):
                     p.unlink(missing_ok=True)
-            kept = sorted(self.work.glob("*.npz")) if self.work.exists() else []
+            kept = sorted([*self.work.glob("*.npz"), *self.work.glob("tiles-*.h5")]) if self.work.exists() else []
             if kept:
                 log.warning("kept the finished stages (%s) in %s, %s: the next run with the same geometry reuses "
                             "them; delete the folder to free the space", ", ".join(p.name.split("-")[0] for p in kept),
@@ -567,8 +633,8 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         return {"up_to_date": True, "artifact": str(out), "input_hash": keys["artifact"]}
     st = _Stages(spec, out, keys, progress)
     st.work.mkdir(parents=True, exist_ok=True)
-    for stale in st.work.glob("*.npz"):  # checkpoints of other inputs: not reusable by this run
-        if stale not in (st.checkpoint("mesh"), st.checkpoint("factor")):
+    for stale in [*st.work.glob("*.npz"), *st.work.glob("tiles-*.h5")]:  # other inputs': not reusable by this run
+        if stale not in (st.checkpoint("mesh"), st.checkpoint("factor"), st.work / f"tiles-{keys['artifact'][:16]}.h5"):
             stale.unlink(missing_ok=True)
     ok = False
     solve = contextlib.ExitStack()
@@ -586,7 +652,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         with st.timed("regions", f"{spec.model}: assemble + factorise"):
             surf = surface_stage(spec, mesh)
             element = elements.get_element(spec.element)
-            check_memory(element, len(mesh.points), len(surf.regions.contact))
+            check_memory(element, len(mesh.points), len(surf.regions.contact), spec)
         solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
         if ck.exists():
@@ -599,11 +665,12 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         else:
             factor, t = factor_stage(spec, mesh, surf)
             st.timings.update(t)
-            with st.timed("checkpoint", f"{spec.model}: Green's functions"):
-                atomic_write(ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)), suffix=".npz")
+            if spec.solver == "factor":  # (AMG: nothing worth keeping; the tile store is the checkpoint)
+                with st.timed("checkpoint", f"{spec.model}: Green's functions"):
+                    atomic_write(ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)), suffix=".npz")
         _checkpoint_reached("factor")
         with st.timed("greens", f"{spec.model}: write"):
-            Xi, reactions = greens_stage(spec, mesh, surf, factor)
+            Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])
         with st.timed("write"):
             write_stage(spec, out, mesh, surf, Xi, reactions, keys=keys, factor_stats=factor.stats,
                         timings=st.timings, resumed=st.resumed)

@@ -14,7 +14,7 @@ from pmask.runtime.files import atomic_write
 def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, triangles, areas, regions,
                    Xi, reactions, dtype=np.float64) -> None:
     """Write one artifact atomically; ``meta`` holds model, input_hash, E, nu, r_max, parameters,
-    provenance and timings.  ``dtype`` float32 halves Ξ's size (measured effect: see README)."""
+    provenance and timings (and ``tolerance`` when ``Xi`` is the compressed form's dict of arrays).  ``dtype`` float32 halves Ξ's size (measured effect: see README)."""
     small = {
         "surface/points": np.asarray(volume_points[surface_vertices], float),
         "surface/triangles": np.asarray(triangles, np.int64),
@@ -42,7 +42,13 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         "provenance": json.dumps(meta["provenance"], sort_keys=True, default=str),
         "timings": json.dumps(meta["timings"], sort_keys=True),
     }
-    big = {"greens/Xi": (Xi, dtype), "volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
+    big = {"volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
+    if isinstance(Xi, dict):  # compressed (pmask.precompute.compress): its arrays, values in ``dtype``
+        attrs.update({"greens_form": "hmatrix", "tolerance": float(meta["tolerance"])})
+        for k, arr in Xi.items():
+            big[f"greens/hmatrix/{k}"] = (arr, dtype if arr.dtype.kind == "f" else np.int64)
+    else:
+        big["greens/Xi"] = (Xi, dtype)
     if reactions is not None:
         big["greens/reactions"] = (reactions, dtype)
     digests = {name: array_digest(arr) for name, arr in small.items()}

@@ -19,6 +19,11 @@ Layout (format 1.x)::
     /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
+Format 1.2 adds Ξ in compressed form (``pmask precompute --compress``): the root attributes
+``greens_form = "hmatrix"`` and ``tolerance``, and the group ``/greens/hmatrix`` in place of
+``/greens/Xi`` (layout: :mod:`pmask.runtime.compressed`).  Dense files are unchanged; a 1.1 reader
+refuses a compressed file as missing ``/greens/Xi``.
+
 Checks.  ``sha256_covers`` (JSON) lists what the SHA-256 digests cover: the root attributes by name,
 and every dataset with its own SHA-256 over its stored bytes (C order, stored dtype).
 ``metadata_sha256`` is the SHA-256 of those attributes and of the ``sha256_covers`` list itself, so
@@ -42,7 +47,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.1.0"
+FORMAT_VERSION = "1.2.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -52,8 +57,10 @@ DEFINITION = (
 )
 SURFACE = ("surface/points", "surface/triangles", "surface/vertex_areas", "surface/free", "surface/fixed",
            "surface/contact", "surface/contact_core", "surface/volume_index")
-#: what the runtime reads: the surface and Ξ
+#: what the runtime reads: the surface and Ξ (for a compressed artifact, ``greens_form = "hmatrix"``, the
+#: reader reads :data:`HMATRIX` in Ξ's place)
 RUNTIME = SURFACE + ("greens/Xi",)
+HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V"))
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
 JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings", "sha256_covers")
@@ -146,6 +153,8 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS, verify: bool =
                 raise ArtifactError(f"{path}: format version {version} is not supported by this reader "
                                     f"({FORMAT_VERSION}); recompute it with this version of pmask")
             legacy = "sha256_covers" not in attrs
+            if attrs.get("greens_form") == "hmatrix" and "greens/Xi" in datasets:  # Ξ in compressed form
+                datasets = [d for d in datasets if d != "greens/Xi"] + list(HMATRIX)
             wanted = list(datasets) + ([d for d in LEGACY_SMALL if d not in datasets] if legacy and verify else [])
             missing = [d for d in wanted if d not in f and d not in REACTIONS]
             if missing:
@@ -203,6 +212,12 @@ def _check_shapes(path, d) -> None:
         if d["greens/Xi"].shape != (3 * nc, 3 * nc):
             problems.append(f"Xi has shape {d['greens/Xi'].shape}, expected {(3 * nc, 3 * nc)}")
         elif not np.all(np.isfinite(d["greens/Xi"])):
+            problems.append("Xi holds NaN or inf")
+    if d.get("greens/hmatrix/perm") is not None and nc is not None:
+        perm = d["greens/hmatrix/perm"]
+        if len(perm) != nc or not np.array_equal(np.sort(perm), np.arange(nc)):
+            problems.append("the compressed Green's functions' vertex order is not a permutation of the contact vertices")
+        elif not all(np.all(np.isfinite(d[f"greens/hmatrix/{k}"])) for k in ("dense", "U", "V")):
             problems.append("Xi holds NaN or inf")
     if d.get("greens/reactions") is not None and nu is not None and nc is not None:
         if d["greens/reactions"].shape != (3 * nu, 3 * nc):

@@ -216,6 +216,8 @@ class Surface:
 
     def deformation_of(self, loads) -> np.ndarray:
         """The surface's displacement (n_s, 3) for point loads (eq. 16; :func:`zeta_deformation`)."""
+        if getattr(self.stiffness, "compressed", False):  # no ζ table: Ξ's blocks of the loaded columns
+            return self.stiffness.deformation_of(loads)
         Zt, row = self.coupling()
         return zeta_deformation(Zt, row, self.T, loads)
 

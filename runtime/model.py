@@ -9,6 +9,7 @@ import numpy as np
 
 from pmask.errors import InputError
 from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact
+from pmask.runtime.compressed import CompressedXi
 from pmask.runtime.device import Device
 from pmask.runtime.geometry import mean_edge_length
 from pmask.runtime.masks import check_radius, pressure_masks
@@ -22,7 +23,8 @@ class Model:
 
     Attributes (surface indices unless said otherwise): ``points``, ``triangles``,
     ``vertex_areas``, ``free`` (Λp), ``fixed`` (Λu), ``contact`` (rows/columns of Ξ),
-    ``core`` (bool over contact: touchable), ``Xi`` (3 n_c, 3 n_c), ``E``, ``nu``, ``r_max``,
+    ``core`` (bool over contact: touchable), ``Xi`` (3 n_c, 3 n_c; an array, or a
+    :class:`pmask.runtime.compressed.CompressedXi` for a compressed artifact), ``E``, ``nu``, ``r_max``,
     ``attrs`` (all artifact attributes).  The volume mesh and the support reactions are read only
     when asked for (:meth:`volume`, :meth:`reactions`).
     """
@@ -38,7 +40,10 @@ class Model:
         self.fixed = data["surface/fixed"]
         self.contact = data["surface/contact"]
         self.core = data["surface/contact_core"]
-        self.Xi = data["greens/Xi"]  # float64, or float32 if stored so (K_i are summed in float64)
+        if a.get("greens_form") == "hmatrix":  # near field exact, far field low-rank (pmask.runtime.compressed)
+            self.Xi = CompressedXi.from_datasets(data, float(a["tolerance"]))
+        else:
+            self.Xi = data["greens/Xi"]  # float64, or float32 if stored so (K_i are summed in float64)
         self.E = float(a["material"]["E"])
         self.nu = float(a["material"]["nu"])
         self.r_max = float(a["r_max"])

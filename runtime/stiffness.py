@@ -37,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from pmask.errors import InputError, PmaskError
+from pmask.runtime.compressed import CompressedXi, xi_blocks
 from pmask.runtime.geometry import one_rings
 from pmask.runtime.masks import Masks
 
@@ -56,13 +57,12 @@ class StiffnessError(PmaskError, ValueError):
 
 
 def masked_flexibility(Xi: np.ndarray, masks: Masks) -> np.ndarray:
-    r"""(n, 3, 3) blocks :math:`\sum_j \rho^i_j \Xi_{ij}`, one per mask centre i."""
-    n = Xi.shape[1] // 3
-    X4 = Xi.reshape(Xi.shape[0] // 3, 3, n, 3)
+    r"""(n, 3, 3) blocks :math:`\sum_j \rho^i_j \Xi_{ij}`, one per mask centre i (Ξ dense or compressed: a
+    mask's pairs lie within r ≤ r_max, in the compressed form's exact near field)."""
     rows = masks.centres
     counts = np.diff(masks.indptr)
     i = np.repeat(rows, counts)
-    blocks = X4[i, :, masks.indices, :] * masks.values[:, None, None]  # (pairs, 3, 3)
+    blocks = xi_blocks(Xi, i, masks.indices) * masks.values[:, None, None]  # (pairs, 3, 3)
     out = np.zeros((len(rows), 3, 3))
     nz = counts > 0
     out[nz] = np.add.reduceat(blocks, masks.indptr[:-1][nz], axis=0)
@@ -279,8 +279,18 @@ class Stiffness(SurfaceStiffness):
         if k < 0:
             return np.zeros((self.model.Xi.shape[0], 3))  # fixed vertex: rigid, no deformation
         cols, w = self.masks.row(k)
+        if self.compressed:
+            x = np.zeros((self.model.Xi.shape[0] // 3, 3, 3))
+            x[cols] = w[:, None, None] * np.eye(3)
+            return self.model.Xi.matvec(x.reshape(-1, 3))
         X = self.model.Xi.reshape(self.model.Xi.shape[0], -1, 3)[:, cols, :]  # (3n_c, |M|, 3)
         return np.einsum("rmc,m->rc", X, w)
+
+    @property
+    def compressed(self) -> bool:
+        """Whether Ξ is in compressed form (:mod:`pmask.runtime.compressed`): no ζ table then (it is as
+        large as Ξ); deformation and coupling read Ξ's blocks instead."""
+        return isinstance(self.model.Xi, CompressedXi)
 
     def zeta_table(self) -> np.ndarray:
         r"""Zt (3 n_c, 3 n_c) with rows 3m..3m+2 = ζ_mᵀ for every core contact vertex m (zero rows
@@ -289,6 +299,12 @@ class Stiffness(SurfaceStiffness):
         the transpose of Ξ in blocks of mask centres: Zt_m = Σ_j ρ^m_j Ξ[:, j]ᵀ."""
         if self._zeta_table is not None:
             return self._zeta_table
+        if self.compressed:
+            n3 = self.model.Xi.shape[0]
+            raise InputError(f"{self.model.path}: its Green's functions are compressed, and a ζ table of its "
+                             f"{n3 // 3} contact vertices would be a dense {n3} x {n3} array ({n3 * n3 * 8 / 2**30:.1f} "
+                             "GiB); couple contacts with Stiffness.coupled_forces and deform with deformation_of, "
+                             "or precompute without --compress")
         Xi = self.model.Xi
         n3 = Xi.shape[0]
         Zt = np.zeros((n3, n3))
@@ -323,12 +339,39 @@ class Stiffness(SurfaceStiffness):
 
     def deformation_of(self, loads) -> np.ndarray:
         """Displacement (n_s, 3) for several point loads ``[(triangle, barycentrics, force), ...]`` (eq. 16
-        summed); see :func:`zeta_deformation`."""
-        return zeta_deformation(self.zeta_table(), self._contact_row, self.triangles, loads)
+        summed); see :func:`zeta_deformation` (compressed Ξ: one product Ξ x with x the loads spread by their
+        masks, which touches only the blocks of the loaded columns)."""
+        if not self.compressed:
+            return zeta_deformation(self.zeta_table(), self._contact_row, self.triangles, loads)
+        x = np.zeros((len(self.model.contact), 3))
+        for t, b, f in loads:
+            for vertex, phi in zip(self.triangles[t], b):
+                k = self._row_of_surface[vertex]
+                if phi != 0.0 and k >= 0:
+                    cols, w = self.masks.row(k)
+                    x[cols] += (phi * w)[:, None] * np.asarray(f, float)
+        v_contact = self.model.Xi.matvec(x.ravel()).reshape(-1, 3)
+        v = np.zeros((len(self._contact_row), 3))
+        has = self._contact_row >= 0
+        v[has] = v_contact[self._contact_row[has]]
+        return v
 
     def compliance_between(self, t_l, b_l, t_k, b_k) -> np.ndarray:
         r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k
         (:func:`zeta_compliance`)."""
+        if self.compressed:  # Σ_i Σ_m φ_i φ_m Σ_j ρ^m_j Ξ_ij, from Ξ's blocks
+            C = np.zeros((3, 3))
+            for m, pm in zip(self.triangles[t_k], b_k):
+                k = self._row_of_surface[m]
+                if pm == 0.0 or k < 0:
+                    continue
+                cols, w = self.masks.row(k)
+                for i, pi in zip(self.triangles[t_l], b_l):
+                    ri = self._contact_row[i]
+                    if pi == 0.0 or ri < 0:
+                        continue
+                    C += pi * pm * np.einsum("j,jrc->rc", w, xi_blocks(self.model.Xi, np.full(len(cols), ri), cols))
+            return C
         C = zeta_compliance(self.zeta_table(), self._contact_row, self.triangles, t_l, b_l, t_k, b_k)
         return np.array(C).reshape(3, 3)
 

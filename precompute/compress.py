@@ -1,0 +1,433 @@
+r"""Ξ in compressed form, computed tile by tile from the sparse factor on a Dask cluster.
+
+The form (near field exact, far field in low-rank blocks over a cluster tree) and its reader are in
+:mod:`pmask.runtime.compressed`; this module builds it without ever forming the dense Ξ:
+
+1. **Cluster tree** of the contact vertices: recursive bisection at the median of the longest side of
+   the bounding box, down to :data:`LEAF` vertices.  Its order puts nearby vertices together.
+2. **Block partition** (a hierarchical matrix): a pair of clusters (I, J) is *admissible*, stored as
+   U Vᵀ, when the boxes are more than r_max apart (so no pair a mask can reach, |x_i − x_j| ≤ r_max, is
+   ever approximated: the near field stays exact) and more than half the larger box's diagonal apart
+   (η = 2: Ξ_IJ is then smooth, the Green's function's 1/r far from its pole; the rank adapts to the
+   tolerance, so η trades block count for rank, not accuracy).
+   Otherwise both are split; pairs of leaves are stored densely.
+3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices).  One task per
+   panel computes the columns of Ξ it holds, :math:`\Xi_{:,J} = W_E^T W_J` (the selected inversion's
+   W: :func:`pmask.precompute.greens.inverse_columns`), and compresses each of the panel's blocks:
+   a randomized range finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD
+   of :math:`Q^TB` truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is
+   computed, not estimated: B is at hand).  A block whose factors would not be smaller stays dense.
+   Only one panel, 3n x 3|J| numbers, exists at a time on a worker.
+4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
+   this machine, or a real cluster (``--scheduler ADDRESS``).  The factor is sent to every worker once;
+   the client writes each finished tile into a tile store in the run's work folder (HDF5) as it
+   arrives.  A lost worker's tiles are run again (by the scheduler, or here if the factor's every copy
+   went with it); finished tiles are in the store and are never recomputed, also by a rerun after a
+   crash.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from pmask.errors import InputError, ResourceError
+
+log = logging.getLogger(__name__)
+
+#: the default far-field tolerance, relative per block in the Frobenius norm
+TOLERANCE = 1e-4
+#: vertices per leaf cluster (dense near-field blocks are up to 3·LEAF square)
+LEAF = 32
+#: admissibility: blocks whose boxes are farther apart than the larger diagonal / ETA are low-rank (measured
+#: on the 3,882-vertex kidney at r_max = 10 mm: η = 1 stores 3.7x less than dense, η = 2 5.7x, η = 3 6.0x
+#: with twice the blocks of rank below 2; leaves of 16 vertices 6.3x with 3x the blocks)
+ETA = 2.0
+#: vertices per panel (one task); 3n x 3·PANEL doubles on a worker at a time
+PANEL = 512
+#: a tile is run again at most this often when workers are lost (then the run stops with the error)
+TILE_ATTEMPTS = 4
+
+
+@dataclass
+class ClusterTree:
+    """Clusters of the contact vertices: node k holds positions ``start[k]:stop[k]`` of ``perm``
+    (position -> contact index), its box ``lo[k]``, ``hi[k]``, children ``kids[k]`` (-1: leaf)."""
+
+    perm: np.ndarray
+    start: np.ndarray
+    stop: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    kids: np.ndarray
+
+    def leaf(self, k: int) -> bool:
+        return self.kids[k, 0] < 0
+
+    def size(self, k: int) -> int:
+        return int(self.stop[k] - self.start[k])
+
+    @property
+    def leaves(self) -> np.ndarray:
+        """First position of each leaf cluster, and n (the reader's ``leaves``)."""
+        is_leaf = self.kids[:, 0] < 0
+        return np.concatenate([np.sort(self.start[is_leaf]), [len(self.perm)]]).astype(np.int64)
+
+
+def cluster_tree(points: np.ndarray, leaf: int | None = None) -> ClusterTree:
+    """Recursive bisection of ``points`` (n, 3) at the median of the longest side of each box, down to
+    ``leaf`` vertices (default :data:`LEAF`)."""
+    leaf = leaf or LEAF
+    points = np.asarray(points, float)
+    perm = np.arange(len(points))
+    start, stop, lo, hi, kids = [], [], [], [], []
+
+    def add(s, e):
+        p = points[perm[s:e]]
+        start.append(s), stop.append(e), lo.append(p.min(axis=0)), hi.append(p.max(axis=0)), kids.append([-1, -1])
+        return len(start) - 1
+
+    stack = [add(0, len(points))] if len(points) else []
+    while stack:
+        k = stack.pop()
+        s, e = start[k], stop[k]
+        if e - s <= leaf:
+            continue
+        axis = int(np.argmax(hi[k] - lo[k]))
+        mid = (e - s) // 2
+        seg = perm[s:e]
+        perm[s:e] = seg[np.argpartition(points[seg, axis], mid, kind="introselect")]
+        kids[k] = [add(s, s + mid), add(s + mid, e)]
+        stack.extend(kids[k])
+    return ClusterTree(perm, np.array(start, np.int64), np.array(stop, np.int64), np.array(lo).reshape(-1, 3),
+                       np.array(hi).reshape(-1, 3), np.array(kids, np.int64).reshape(-1, 2))
+
+
+def panels(tree: ClusterTree, size: int = PANEL) -> list[int]:
+    """Column panels: the largest clusters of at most ``size`` vertices, in position order."""
+    out, stack = [], [0] if len(tree.start) else []
+    while stack:
+        k = stack.pop()
+        if tree.size(k) <= size or tree.leaf(k):
+            out.append(k)
+        else:
+            stack.extend(tree.kids[k][::-1])
+    return sorted(out, key=lambda k: tree.start[k])
+
+
+def admissible(tree: ClusterTree, i: int, j: int, r_max: float, eta: float | None = None) -> bool:
+    """Whether Ξ_IJ may be low-rank: the boxes apart by more than r_max and than the larger diagonal / η."""
+    gap = np.maximum(0.0, np.maximum(tree.lo[i] - tree.hi[j], tree.lo[j] - tree.hi[i]))
+    dist = float(np.linalg.norm(gap))
+    diam = max(float(np.linalg.norm(tree.hi[i] - tree.lo[i])), float(np.linalg.norm(tree.hi[j] - tree.lo[j])))
+    return dist > r_max and diam <= (eta or ETA) * dist
+
+
+def partition(tree: ClusterTree, column: int, r_max: float, eta: float | None = None) -> list[tuple[int, int, bool]]:
+    """The blocks (I, J, low-rank?) covering Ξ's columns of cluster ``column`` (all rows)."""
+    out, stack = [], [(0, column)]
+    while stack:
+        i, j = stack.pop()
+        if admissible(tree, i, j, r_max, eta):
+            out.append((i, j, True))
+        elif tree.leaf(i) and tree.leaf(j):
+            out.append((i, j, False))
+        elif tree.leaf(j) or (not tree.leaf(i) and tree.size(i) >= tree.size(j)):
+            stack.extend((c, j) for c in tree.kids[i])
+        else:
+            stack.extend((i, c) for c in tree.kids[j])
+    return out
+
+
+def low_rank(B: np.ndarray, tol: float, rng: np.random.Generator):
+    r"""U, V with :math:`\|B - UV^T\|_F \le` ``tol`` :math:`\|B\|_F`, or None where dense is not larger.
+
+    Randomized range finder (Halko, Martinsson & Tropp 2011, alg. 4.2 with the error computed exactly,
+    :math:`\|B - QQ^TB\|_F^2 = \|B\|_F^2 - \|Q^TB\|_F^2`), doubling the sample until half the error
+    budget is met, then the SVD of :math:`Q^T B` truncated within the other half."""
+    m, n = B.shape
+    norm2 = float(np.sum(B * B))
+    if norm2 == 0.0:
+        return np.zeros((m, 0)), np.zeros((n, 0))
+    budget = tol * tol * norm2
+    k = 16
+    while True:
+        if k * (m + n) >= m * n:
+            return None
+        Q, _ = np.linalg.qr(B @ rng.standard_normal((n, k)))
+        C = Q.T @ B
+        err = max(norm2 - float(np.sum(C * C)), 0.0)
+        if err <= 0.25 * budget:
+            break
+        k *= 2
+    Us, s, Vt = np.linalg.svd(C, full_matrices=False)
+    tail = np.concatenate([np.cumsum((s * s)[::-1])[::-1], [0.0]])  # tail[r] = Σ_{q≥r} s_q²
+    r = int(np.argmax(err + tail <= budget))
+    if r * (m + n) >= m * n:
+        return None
+    return Q @ (Us[:, :r] * s[:r]), Vt[:r].T
+
+
+def panel_columns(factor, perm: np.ndarray, c0: int, c1: int) -> np.ndarray:
+    """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order, from the factor."""
+    from pmask.precompute import greens
+
+    from pmask.precompute.amg import AmgSystem
+
+    nobs = factor.n_observed
+    dcols = (3 * perm[c0:c1, None] + np.arange(3)).ravel()  # the panel's traction columns (contact dofs)
+    if isinstance(factor, AmgSystem):  # no factor: block PCG with smoothed aggregation (--solver amg)
+        return factor.columns(dcols)[(3 * perm[:, None] + np.arange(3)).ravel()]
+    if factor.load is None:  # P1: a traction at dof d is the nodal force scale[d] there
+        n = factor.stats["dofs"]
+        B = sp.csc_matrix((factor.scale[dcols], (factor.rows[dcols], np.arange(len(dcols)))), shape=(n, len(dcols)))
+    else:
+        B = factor.load[:, dcols]
+    X, _ = greens.inverse_columns(factor.L, factor.rows[:nobs], B)
+    return X[(3 * perm[:, None] + np.arange(3)).ravel()]
+
+
+def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
+    """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
+    reader's layout with offsets relative to this tile (:func:`assemble` shifts them)."""
+    t0 = time.perf_counter()
+    trace = os.environ.get("PMASK_TILE_TRACE")
+    if trace:  # test hook: which process ran which tile (a test kills a worker and reads who ran what)
+        with open(trace, "a") as f:
+            f.write(f"{column} {os.getpid()}\n")
+    c0, c1 = int(tree.start[column]), int(tree.stop[column])
+    X = panel_columns(factor, tree.perm, c0, c1)
+    t_solve = time.perf_counter() - t0
+    rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
+    dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
+    d_off = u_off = v_off = 0
+    for i, j, far in blocks:
+        r0, r1, b0, b1 = (int(x) for x in (tree.start[i], tree.stop[i], tree.start[j], tree.stop[j]))
+        B = X[3 * r0:3 * r1, 3 * (b0 - c0):3 * (b1 - c0)]
+        uv = low_rank(B, tol, rng) if far else None
+        if uv is None:
+            dense_index.append((r0, r1, b0, b1, d_off))
+            dense.append(np.ascontiguousarray(B).ravel())
+            d_off += B.size
+        else:
+            U, V = uv
+            lr_index.append((r0, r1, b0, b1, U.shape[1], u_off, v_off))
+            Us.append(U.ravel()), Vs.append(V.ravel())
+            u_off += U.size
+            v_off += V.size
+    cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731
+    return {"column": int(column), "dense_index": np.array(dense_index, np.int64).reshape(-1, 5),
+            "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 7), "U": cat(Us),
+            "V": cat(Vs), "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid()}
+
+
+def assemble(tree: ClusterTree, tiles: list[dict], dtype=np.float64) -> dict:
+    """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from finished tiles."""
+    tiles = sorted(tiles, key=lambda t: tree.start[t["column"]])
+    di, li, d, U, V = [], [], [], [], []
+    d_off = u_off = v_off = 0
+    for t in tiles:
+        a = t["dense_index"].copy()
+        a[:, 4] += d_off
+        b = t["lowrank_index"].copy()
+        b[:, 5] += u_off
+        b[:, 6] += v_off
+        di.append(a), li.append(b), d.append(t["dense"]), U.append(t["U"]), V.append(t["V"])
+        d_off += len(t["dense"])
+        u_off += len(t["U"])
+        v_off += len(t["V"])
+    cat = lambda parts, w: np.concatenate(parts) if parts else np.zeros((0, w), np.int64)  # noqa: E731
+    return {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
+            "dense_index": cat(di, 5), "lowrank_index": cat(li, 7),
+            "dense": np.concatenate(d).astype(dtype), "U": np.concatenate(U).astype(dtype),
+            "V": np.concatenate(V).astype(dtype)}
+
+
+# ------------------------------------------------------------------------------- the tile store
+class TileStore:
+    """Finished tiles in an HDF5 file of the run's work folder (one group per tile, written as it
+    arrives; a group is complete once its ``done`` attribute is set), so that neither a lost worker
+    nor a crashed client loses one."""
+
+    FIELDS = ("dense_index", "dense", "lowrank_index", "U", "V")
+
+    def __init__(self, path: Path, key: str):
+        import h5py
+
+        self.path = Path(path)
+        self.file = h5py.File(self.path, "a")
+        if self.file.attrs.get("key") != key:  # another factor or tolerance: nothing to reuse
+            for g in list(self.file):
+                del self.file[g]
+            self.file.attrs["key"] = key
+        for g in [g for g in self.file if not self.file[g].attrs.get("done")]:
+            del self.file[g]  # written halfway when the client stopped
+
+    def done(self) -> set[int]:
+        return {int(g.split("-")[1]) for g in self.file}
+
+    def put(self, t: dict) -> None:
+        g = self.file.create_group(f"tile-{t['column']}")
+        for k in self.FIELDS:
+            g.create_dataset(k, data=t[k])
+        for k in ("solve_s", "compress_s", "pid"):
+            g.attrs[k] = t[k]
+        g.attrs["done"] = True
+        self.file.flush()
+
+    def tiles(self) -> list[dict]:
+        return [{"column": int(name.split("-")[1]), **{k: g[k][()] for k in self.FIELDS},
+                 **{k: g.attrs[k] for k in ("solve_s", "compress_s", "pid")}}
+                for name, g in self.file.items()]
+
+    def close(self) -> None:
+        self.file.close()
+
+
+# ------------------------------------------------------------------------------- the cluster
+def parse_memory(text) -> int:
+    """Bytes from '4G', '512M', '2.5GiB' or a number (a worker's memory limit)."""
+    s = str(text).strip().upper().removesuffix("IB").removesuffix("B")
+    try:
+        return int(float(s[:-1]) * {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}[s[-1]]) if s[-1:] in "KMGT" \
+            and s[-1:] else int(float(s))
+    except (ValueError, KeyError, IndexError):
+        raise InputError(f"--worker-memory must be bytes or a number with K, M or G (e.g. 4G), got {text!r}") from None
+
+
+def check_tolerance(tol) -> float:
+    try:
+        t = float(tol)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not 0.0 < t < 1.0:
+        raise InputError(f"--compress tolerance must lie in (0, 1) (relative error per far-field block; "
+                         f"default {TOLERANCE:g}), got {tol!r}")
+    return t
+
+
+def connect(scheduler: str | None, workers: int | None, memory_limit: int | None, timeout: float = 10.0):
+    """A dask.distributed Client: to ``scheduler`` (an address) or to a new LocalCluster of ``workers``
+    single-threaded worker processes (default: one per core) with ``memory_limit`` bytes each
+    (default: dask's share of this machine).  One line if the scheduler cannot be reached."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            with dask.config.set({"distributed.comm.timeouts.connect": f"{timeout}s"}):
+                return Client(scheduler, timeout=f"{timeout}s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"cannot reach the Dask scheduler at {scheduler!r} ({type(exc).__name__}: "
+                             f"{str(exc).splitlines()[0] if str(exc) else 'no answer'}); start it with "
+                             "`dask scheduler` and its workers with `dask worker ADDRESS`, or leave out "
+                             "--scheduler to run on this machine") from None
+    n = workers or os.cpu_count() or 1
+    for name in ("distributed", "distributed.scheduler", "distributed.nanny", "distributed.worker"):
+        logging.getLogger(name).setLevel(logging.WARNING)  # not pmask's INFO lines: a worker's start is no news
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                           memory_limit=memory_limit if memory_limit else "auto", silence_logs=logging.ERROR)
+    return Client(cluster)
+
+
+def tile_bytes(factor_bytes: float, n_contact: int, panel: int = PANEL) -> float:
+    """A worker's memory for one tile: its copy of the factor, the panel (3n x 3·panel doubles) with its
+    reordered copy, and the selected inversion's W (bounded by the factor's size: measured 0.3-0.4x it)."""
+    return factor_bytes + 2 * 8.0 * (3 * n_contact) * (3 * panel) + factor_bytes
+
+
+def check_worker_memory(limits: list[int | None], need: float) -> None:
+    """Refuse, before the tiles start, workers whose memory limit is below one tile."""
+    small = [m for m in limits if m and m < need]
+    if small:
+        raise ResourceError(f"{len(small)} of {len(limits)} Dask workers have a memory limit "
+                            f"({min(small) / 2**20:.0f} MiB) below one tile ({need / 2**20:.0f} MiB: the factor, a "
+                            "panel of Ξ and the selected inversion's work arrays); give them more (--worker-memory) "
+                            "or use fewer, larger workers")
+
+
+def factor_bytes(factor) -> int:
+    """Bytes a worker holds for the solves: the factor's arrays, or (AMG) K_FF and 3x it for the hierarchy
+    (measured: the hierarchy with six near-null vectors is 1.5-2.5x K_FF)."""
+    if hasattr(factor, "L"):
+        return int(sum(np.asarray(v).nbytes for v in factor.L.values()))
+    K = factor.K
+    return int(4 * (K.data.nbytes + K.indices.nbytes + K.indptr.nbytes))
+
+
+def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
+                      key: str, scheduler: str | None = None, workers: int | None = None,
+                      memory_limit: int | None = None, panel: int = PANEL, client=None, dtype=np.float64,
+                      on_tile=None) -> tuple[dict, dict]:
+    """Ξ compressed (the artifact's ``greens/hmatrix`` arrays) and statistics, from ``factor`` for the
+    contact vertices at ``points``; the tiles run as Dask tasks (module docstring).  ``store``: the tile
+    store's path, reused when ``key`` (factor and parameters) matches; ``client``: an open Client to use
+    instead of connecting; ``on_tile(tile)``: called with each finished tile (tests, progress)."""
+    from distributed import as_completed
+
+    tol = check_tolerance(tol)
+    tree = cluster_tree(points)
+    cols = panels(tree, panel)
+    plan = {c: partition(tree, c, r_max) for c in cols}
+    ts = TileStore(store, key)
+    todo = [c for c in cols if c not in ts.done()]
+    stats = {"tiles": len(cols), "tiles_reused": len(cols) - len(todo), "leaf": LEAF, "eta": ETA, "panel": panel,
+             "tolerance": tol, "scheduler": scheduler or "local"}
+    t0 = time.perf_counter()
+    own = client is None
+    try:
+        if todo:
+            client = client or connect(scheduler, workers, memory_limit)
+            limits = [w.get("memory_limit") for w in client.scheduler_info()["workers"].values()]
+            check_worker_memory(limits, tile_bytes(factor_bytes(factor), len(points), panel))
+            stats["workers"] = len(limits)
+            attempts = {c: 0 for c in todo}
+            fac = None
+            while todo:
+                if fac is None or fac.status != "finished":
+                    fac = client.scatter(factor, broadcast=True, hash=False)
+                futures = {client.submit(tile, fac, tree, c, plan[c], tol, key=f"pmask-tile-{c}-{attempts[c]}",
+                                         pure=False): c for c in todo}
+                lost = []
+                for fut in as_completed(futures):
+                    c = futures[fut]
+                    try:
+                        t = fut.result()
+                    except Exception as exc:  # a lost worker took every copy of the factor, or the task failed
+                        attempts[c] += 1
+                        if attempts[c] >= TILE_ATTEMPTS or isinstance(exc, (MemoryError, InputError)):
+                            raise
+                        log.warning("tile %d failed on its worker (%s: %s); running it again", c,
+                                    type(exc).__name__, exc)
+                        lost.append(c)
+                        continue
+                    fut.release()  # the result is in the store: a lost worker must not make dask recompute it
+                    ts.put(t)
+                    if on_tile is not None:
+                        on_tile(t)
+                todo = lost
+        tiles = ts.tiles()
+    finally:
+        if own and client is not None:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None:
+                cluster.close()
+        ts.close()
+    out = assemble(tree, tiles, dtype)
+    stats.update({"seconds": time.perf_counter() - t0, "solve_s": float(sum(t["solve_s"] for t in tiles)),
+                  "compress_s": float(sum(t["compress_s"] for t in tiles)),
+                  "dense_blocks": len(out["dense_index"]), "lowrank_blocks": len(out["lowrank_index"]),
+                  "stored_bytes": int(out["dense"].nbytes + out["U"].nbytes + out["V"].nbytes),
+                  "dense_bytes": int(8 * (3 * len(points)) ** 2),
+                  "max_rank": int(out["lowrank_index"][:, 4].max()) if len(out["lowrank_index"]) else 0})
+    stats["ratio"] = stats["dense_bytes"] / max(stats["stored_bytes"], 1)
+    log.info("compressed Ξ: %d tiles (%d reused), %d dense + %d low-rank blocks, %.1fx smaller than dense, %.1f s",
+             stats["tiles"], stats["tiles_reused"], stats["dense_blocks"], stats["lowrank_blocks"], stats["ratio"],
+             stats["seconds"])
+    return out, stats

@@ -1,0 +1,163 @@
+r"""Ξ in compressed form: the near field exact, the far field as low-rank blocks over a cluster tree.
+
+Ξ of an organ at haptic resolution does not fit one machine as a dense array ((3n)² numbers: 1.1 GiB at
+3,882 contact vertices, 29 GiB at 20,000).  Not every part of it is needed in the same form:
+
+* the vertex stiffness :math:`K_i = (\sum_j \rho^i_j \Xi_{ij})^{-1}` (eq. 12) reads only the blocks
+  within the mask radius, :math:`|x_i - x_j| \le r \le r_{max}`: the **near field**, stored exactly;
+* the deformation (eq. 16) and the coupling of several contacts read blocks between distant vertices:
+  the **far field**, smooth between well-separated parts of the surface and numerically of low rank.
+
+The contact vertices are ordered by a cluster tree (recursive bisection of their positions; ``perm``
+maps a position in that order to the contact index).  Ξ in that order is partitioned into rectangular
+blocks over pairs of tree clusters (I, J) (a hierarchical matrix): a pair whose bounding boxes are
+farther apart than ``r_max`` and than η times the larger box's diagonal is *admissible* and stored as
+:math:`U V^T` with :math:`\|\Xi_{IJ} - U V^T\|_F \le \varepsilon \|\Xi_{IJ}\|_F` (ε: the artifact's
+``tolerance``, default 1e-4); every other block (all of the near field among them) is stored densely,
+exactly as the dense route computes it.  Every block's rows and columns are whole leaf clusters, so a
+block is found from two leaf indices (``owner``).  Built by :mod:`pmask.precompute.compress`.
+
+Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in vertices):
+
+    perm           (n,)     contact index of each position
+    leaves         (L+1,)   first position of each leaf cluster, and n
+    dense_index    (nd, 5)  r0, r1, c0, c1, offset: block rows 3 r0..3 r1, columns 3 c0..3 c1, values
+                            row-major at ``dense[offset:]``
+    dense          (·,)     the dense blocks' values
+    lowrank_index  (nl, 7)  r0, r1, c0, c1, rank k, offset in U, offset in V
+    U, V           (·,)     U (3(r1-r0), k) and V (3(c1-c0), k), row-major, block ≈ U Vᵀ
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pmask.errors import InputError
+from pmask.runtime.artifact import HMATRIX as DATASETS  # the compressed form's datasets, as the artifact names them
+
+
+class CompressedXi:
+    """Ξ (3n x 3n) as near-field dense blocks and far-field low-rank blocks (module docstring).
+
+    The runtime's access layer for Ξ: :meth:`blocks` (3x3 blocks of vertex pairs: eq. 12's sums and the
+    coupling of contacts), :meth:`matvec` (Ξ x: the deformation of eq. 16), :meth:`to_dense` (tests)."""
+
+    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U, V, *, tolerance: float):
+        self.perm = np.asarray(perm, np.int64)
+        n = len(self.perm)
+        self.n = n
+        self.shape = (3 * n, 3 * n)
+        self.tolerance = float(tolerance)
+        self.leaves = np.asarray(leaves, np.int64)
+        self.dense_index = np.asarray(dense_index, np.int64).reshape(-1, 5)
+        self.lowrank_index = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
+        self.dense, self.U, self.V = dense, U, V
+        self.dtype = np.result_type(dense.dtype, U.dtype) if len(U) else dense.dtype
+        self.position = np.empty(n, np.int64)
+        self.position[self.perm] = np.arange(n)
+        # the leaf cluster of each position, and the block that owns each pair of leaf clusters
+        self.leaf_of = np.repeat(np.arange(len(self.leaves) - 1), np.diff(self.leaves))
+        nl = len(self.leaves) - 1
+        owner = np.full((nl, nl), -1, np.int64)
+        nd = len(self.dense_index)
+        for b, (r0, r1, c0, c1) in enumerate(np.vstack([self.dense_index[:, :4], self.lowrank_index[:, :4]])):
+            owner[self.leaf_of[r0]:self.leaf_of[r1 - 1] + 1, self.leaf_of[c0]:self.leaf_of[c1 - 1] + 1] = b
+        if n and (owner < 0).any():
+            raise InputError("the compressed Green's functions do not cover every pair of vertices; recompute the "
+                             "artifact (pmask precompute --force)")
+        self.owner, self._nd = owner, nd
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the stored values (what the compression ratio compares with (3n)² dense numbers)."""
+        return int(self.dense.nbytes + self.U.nbytes + self.V.nbytes)
+
+    def compression_ratio(self, itemsize: int = 8) -> float:
+        """Dense Ξ's bytes over this form's stored values."""
+        return (3 * self.n) ** 2 * itemsize / max(self.nbytes, 1)
+
+    def near_fraction(self) -> float:
+        """Share of Ξ's entries in dense (near-field) blocks."""
+        d = self.dense_index
+        return float(np.sum((d[:, 1] - d[:, 0]) * (d[:, 3] - d[:, 2]))) / max(self.n ** 2, 1)
+
+    def blocks(self, i, j) -> np.ndarray:
+        """Ξ_ij (pairs, 3, 3) for contact indices ``i`` and ``j`` (arrays of the same length): exact where the
+        pair lies in a dense block (every pair within r_max), U_i V_jᵀ (3x3 rows of the factors) elsewhere."""
+        p, q = self.position[np.asarray(i, np.int64)], self.position[np.asarray(j, np.int64)]
+        b = self.owner[self.leaf_of[p], self.leaf_of[q]]
+        out = np.empty((len(p), 3, 3))
+        three = np.arange(3)
+        dense = b < self._nd
+        if dense.any():
+            r0, _, c0, c1, off = self.dense_index[b[dense]].T
+            width = 3 * (c1 - c0)
+            rows = 3 * (p[dense] - r0)[:, None] + three  # (k, 3)
+            cols = 3 * (q[dense] - c0)[:, None] + three
+            idx = off[:, None, None] + rows[:, :, None] * width[:, None, None] + cols[:, None, :]
+            out[dense] = self.dense[idx]
+        far = np.flatnonzero(~dense)
+        if len(far):
+            lb = b[far] - self._nd
+            order = np.argsort(lb, kind="stable")
+            lb, far = lb[order], far[order]
+            cut = np.flatnonzero(np.diff(lb)) + 1
+            for grp in np.split(np.arange(len(far)), cut):
+                r0, r1, c0, c1, k, uo, vo = self.lowrank_index[lb[grp[0]]]
+                U = self.U[uo:uo + 3 * (r1 - r0) * k].reshape(3 * (r1 - r0), k)
+                V = self.V[vo:vo + 3 * (c1 - c0) * k].reshape(3 * (c1 - c0), k)
+                Ur = U[3 * (p[far[grp]] - r0)[:, None] + three]  # (g, 3, k)
+                Vr = V[3 * (q[far[grp]] - c0)[:, None] + three]
+                out[far[grp]] = np.einsum("grk,gck->grc", Ur, Vr)
+        return out
+
+    def matvec(self, x) -> np.ndarray:
+        """Ξ x for x (3n,) or (3n, m) in contact order; blocks whose columns x leaves zero are skipped (a
+        deformation's load sits on a few vertices)."""
+        x = np.asarray(x, float)
+        vec = x.ndim == 1
+        X = x.reshape(self.n, 3, -1)[self.perm].reshape(3 * self.n, -1)  # cluster order
+        Y = np.zeros_like(X)
+        nz = np.concatenate([[0], np.cumsum(np.any(X.reshape(self.n, -1) != 0, axis=1))])
+        for r0, r1, c0, c1, off in self.dense_index[(nz[self.dense_index[:, 3]] - nz[self.dense_index[:, 2]]) > 0]:
+            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
+            Y[3 * r0:3 * r1] += self.dense[off:off + m * w].reshape(m, w) @ X[3 * c0:3 * c1]
+        li = self.lowrank_index
+        for r0, r1, c0, c1, k, uo, vo in li[(nz[li[:, 3]] - nz[li[:, 2]]) > 0]:
+            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
+            U = self.U[uo:uo + m * k].reshape(m, k)
+            V = self.V[vo:vo + w * k].reshape(w, k)
+            Y[3 * r0:3 * r1] += U @ (V.T @ X[3 * c0:3 * c1])
+        out = np.empty_like(Y)
+        out.reshape(self.n, 3, -1)[self.perm] = Y.reshape(self.n, 3, -1)
+        return out.ravel() if vec else out
+
+    def to_dense(self) -> np.ndarray:
+        """The (3n, 3n) array in contact order (for tests and small models)."""
+        D = np.zeros(self.shape)
+        for r0, r1, c0, c1, off in self.dense_index:
+            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
+            D[3 * r0:3 * r1, 3 * c0:3 * c1] = self.dense[off:off + m * w].reshape(m, w)
+        for r0, r1, c0, c1, k, uo, vo in self.lowrank_index:
+            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
+            D[3 * r0:3 * r1, 3 * c0:3 * c1] = (self.U[uo:uo + m * k].reshape(m, k)
+                                               @ self.V[vo:vo + w * k].reshape(w, k).T)
+        dofs = (3 * self.perm[:, None] + np.arange(3)).ravel()
+        out = np.empty_like(D)
+        out[np.ix_(dofs, dofs)] = D
+        return out
+
+    @classmethod
+    def from_datasets(cls, data: dict, tolerance: float) -> "CompressedXi":
+        """From the artifact's datasets (:data:`DATASETS`, keyed by their full names)."""
+        g = {k.rsplit("/", 1)[1]: data[k] for k in DATASETS}
+        return cls(g["perm"], g["leaves"], g["dense_index"], g["dense"], g["lowrank_index"], g["U"], g["V"],
+                   tolerance=tolerance)
+
+
+def xi_blocks(Xi, i, j) -> np.ndarray:
+    """Ξ_ij (pairs, 3, 3) from either form: a dense (3n, 3n) array or :class:`CompressedXi`."""
+    if isinstance(Xi, CompressedXi):
+        return Xi.blocks(i, j)
+    n = Xi.shape[1] // 3
+    X4 = Xi.reshape(Xi.shape[0] // 3, 3, n, 3)
+    return np.asarray(X4[np.asarray(i), :, np.asarray(j), :], float)

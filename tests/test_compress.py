@@ -1,0 +1,186 @@
+"""Ξ compressed (near field exact, far field low-rank, tiles on Dask) against the dense route.
+
+The dense route's Ξ is itself checked against full FE solves to round-off (test_greens.py); here the
+compressed artifact of the same kidney is held to what the issue asks of it: K_i from the near field
+equal to the dense route's to 1e-10, every far-field block within its tolerance, deformation and the
+coupling of several contacts within 1e-3, and a run that survives a killed worker without recomputing
+a finished tile.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pmask.errors import InputError, ResourceError
+from pmask.pipeline.stages import Spec, run
+from pmask.precompute import compress
+from pmask.runtime import Model
+from pmask.runtime.compressed import CompressedXi
+
+#: a 10 mm probe tip on the default kidney (1,446 contact vertices, mean edge 3.2 mm)
+R_MAX = 0.01
+TOL = 1e-4
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """The default kidney with r_max = 10 mm, dense and compressed (2 local worker processes)."""
+    d = tmp_path_factory.mktemp("compress")
+    dense, comp = d / "dense.h5", d / "compressed.h5"
+    run(Spec(model="kidney", r_max=R_MAX), dense)
+    summary = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, workers=2), comp)
+    return Model.load(dense), Model.load(comp), summary
+
+
+def test_artifact_is_compressed_and_every_far_block_within_tolerance(pair):
+    dense, comp, summary = pair
+    C = comp.Xi
+    assert isinstance(C, CompressedXi) and comp.attrs["greens_form"] == "hmatrix"
+    assert summary["factor_stats"]["compress"]["lowrank_blocks"] > 0
+    # stores less than the dense array (measured 2.9x here; grows with n: README)
+    assert C.compression_ratio() > 2.0
+    X = dense.Xi
+    dofs = (3 * C.perm[:, None] + np.arange(3)).ravel()
+    Xp = X[np.ix_(dofs, dofs)]  # cluster order, as the blocks are stored
+    worst = 0.0
+    for r0, r1, c0, c1, k, uo, vo in C.lowrank_index:
+        B = Xp[3 * r0:3 * r1, 3 * c0:3 * c1]
+        UV = C.U[uo:uo + 3 * (r1 - r0) * k].reshape(-1, k) @ C.V[vo:vo + 3 * (c1 - c0) * k].reshape(-1, k).T
+        worst = max(worst, np.linalg.norm(B - UV) / np.linalg.norm(B))
+    # the bound is the construction's (computed, not estimated); 1.01: the two routes' round-off
+    assert worst <= 1.01 * TOL
+    for r0, r1, c0, c1, off in C.dense_index[::7]:  # dense blocks: the same numbers as the dense route
+        B = Xp[3 * r0:3 * r1, 3 * c0:3 * c1]
+        assert np.abs(C.dense[off:off + B.size].reshape(B.shape) - B).max() <= 1e-12 * np.abs(B).max()
+
+
+def test_near_field_is_exact_so_vertex_stiffness_matches_dense(pair):
+    dense, comp, _ = pair
+    pts = comp.points[comp.contact]
+    C = comp.Xi
+    # every pair within r_max lies in a dense block (the masks up to r_max read only those)
+    i, j = np.nonzero(np.linalg.norm(pts[:, None] - pts[None], axis=2) <= R_MAX)
+    owner = C.owner[C.leaf_of[C.position[i]], C.leaf_of[C.position[j]]]
+    assert np.all(owner < len(C.dense_index))
+    for mask, radius in (("linear", R_MAX), ("gaussian", 0.6 * R_MAX), ("single", None)):
+        Kd = dense.stiffness(mask, radius).K_full
+        Kc = comp.stiffness(mask, radius).K_full
+        # 1e-10: the issue's bound; the two routes differ by the order of their sums (gemm against syrk)
+        assert np.abs(Kc - Kd).max() <= 1e-10 * np.abs(Kd).max()
+
+
+def test_deformation_and_coupled_contacts_within_1e_3(pair):
+    dense, comp, _ = pair
+    sd, sc = dense.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
+    rng = np.random.default_rng(3)
+    touch = np.flatnonzero(sd.touchable)
+    tris = rng.choice(touch, 4, replace=False)
+    bary = rng.dirichlet(np.ones(3), 4)
+    f = rng.normal(size=(4, 3))
+    for k in range(2):  # one load, then all four at once
+        loads = [(tris[m], bary[m], f[m]) for m in range(k * 3 + 1)]
+        vd, vc = sd.deformation_of(loads), sc.deformation_of(loads)
+        # 1e-3: the issue's bound; the far field is within 1e-4 per block, the near field exact
+        assert np.linalg.norm(vc - vd) <= 1e-3 * np.linalg.norm(vd)
+    pts = [(tris[m], bary[m]) for m in range(3)]
+    u = rng.normal(size=(3, 3)) * 1e-3
+    fd, fc = sd.coupled_forces(pts, u), sc.coupled_forces(pts, u)
+    assert np.linalg.norm(fc - fd) <= 1e-3 * np.linalg.norm(fd)
+
+
+def test_the_zeta_table_is_refused_with_a_line_that_says_what_to_use(pair):
+    _, comp, _ = pair
+    with pytest.raises(InputError, match="coupled_forces"):
+        comp.stiffness("linear", R_MAX).zeta_table()
+
+
+def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
+    """Two worker processes, small panels; after the first tile arrives one worker is killed (SIGKILL).
+    The run finishes with the same numbers, and no tile that had finished is run again."""
+    from distributed import Client, LocalCluster
+
+    from pmask.pipeline import stages
+
+    trace = tmp_path / "trace.txt"
+    monkeypatch.setenv("PMASK_TILE_TRACE", str(trace))  # inherited by the worker processes
+    spec = Spec(model="kidney", r_max=R_MAX)
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    factor, _ = stages.factor_stage(spec, mesh, surf)
+    pts = mesh.points[surf.vertices[surf.regions.contact]]
+    finished, killed = [], []
+    with Client(LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)) as client:
+        pids = client.run(os.getpid)
+
+        def on_tile(t):
+            finished.append(t["column"])
+            if not killed:
+                victim = next(p for p in pids.values() if p != t["pid"])
+                os.kill(victim, signal.SIGKILL)
+                killed.append(victim)
+
+        arrays, stats = compress.compressed_greens(factor, pts, R_MAX, tol=TOL, store=tmp_path / "tiles.h5", key="k",
+                                                   panel=96, client=client, on_tile=on_tile)
+    assert killed and stats["tiles"] >= 10
+    assert sorted(finished) == sorted(set(finished)) and len(finished) == stats["tiles"]
+    runs = [tuple(map(int, line.split())) for line in trace.read_text().splitlines()]
+    first = finished[0]
+    assert [c for c, _ in runs].count(first) == 1  # the tile finished before the kill never ran again
+    assert any(pid == killed[0] for _, pid in runs)  # the victim had been working
+    C = CompressedXi(**arrays, tolerance=TOL)
+    X = pair[0].Xi
+    # every block within TOL of its own norm, so the whole within TOL of Ξ's (the tiles after the kill too)
+    assert np.linalg.norm(C.to_dense() - X) <= TOL * np.linalg.norm(X)
+
+
+def test_a_rerun_reuses_the_finished_tiles(tmp_path):
+    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1)
+    out = tmp_path / "k.h5"
+    from pmask.pipeline import stages
+
+    keys = stages.stage_keys(spec)
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    factor, _ = stages.factor_stage(spec, mesh, surf)
+    pts = mesh.points[surf.vertices[surf.regions.contact]]
+    store = tmp_path / "tiles.h5"
+    a, s1 = compress.compressed_greens(factor, pts, R_MAX, store=store, key=keys["artifact"], panel=64, workers=1)
+    b, s2 = compress.compressed_greens(factor, pts, R_MAX, store=store, key=keys["artifact"], panel=64, workers=1)
+    assert s1["tiles_reused"] == 0 and s2["tiles_reused"] == s2["tiles"] > 1
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    del out
+
+
+@pytest.mark.parametrize("tol", [0.0, 1.0, -1e-4, float("nan"), 2.0])
+def test_tolerance_outside_0_1_is_one_line_before_any_work(tol, tmp_path):
+    with pytest.raises(InputError, match=r"must lie in \(0, 1\)"):
+        run(Spec(model="kidney", compress=tol), tmp_path / "k.h5")
+    assert not (tmp_path / ".work").exists()
+
+
+def test_cli_bad_inputs_are_one_line(tmp_path):
+    def cli(*args):
+        p = subprocess.run([sys.executable, "-m", "pmask.pipeline", "precompute", "kidney", "-o", str(tmp_path / "k.h5"),
+                            *args], capture_output=True, text=True, timeout=120)
+        assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
+        return p.stderr.strip().splitlines()[-1]
+
+    assert "cannot reach the Dask scheduler" in cli("--compress", "--scheduler", "tcp://127.0.0.1:9")
+    assert "(0, 1)" in cli("--compress", "3")
+    assert "apply to --compress" in cli("--workers", "2")
+    assert "below one tile" in cli("--compress", "--r-max", "0.01", "--workers", "1", "--worker-memory", "20M")
+    assert not (tmp_path / "k.h5").exists()
+
+
+def test_memory_string_parsing():
+    assert compress.parse_memory("4G") == 4 * 2**30 and compress.parse_memory("512MiB") == 512 * 2**20
+    assert compress.parse_memory("1000") == 1000
+    with pytest.raises(InputError, match="worker-memory"):
+        compress.parse_memory("lots")
+    with pytest.raises(ResourceError, match="below one tile"):
+        compress.check_worker_memory([2**30, 2**20], 2**25)
