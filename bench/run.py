@@ -132,6 +132,10 @@ def main() -> None:
     import repair_compare
 
     res["repair_routes"] = repair_compare.run()
+    print("compressed Ξ against dense, workers, AMG ...", flush=True)
+    import compress_bench
+
+    res["compressed"] = compress_bench.main(HERE / "compress_results.json")
     print("float32 ...", flush=True)
     r32 = precompute(0.005, work / "kidney_f32.h5", "--float32")
     res["float32"] = float32_effect(work / "kidney_0.005.h5", work / "kidney_f32.h5", r32)
@@ -328,6 +332,10 @@ def markdown(res: dict) -> str:
         import repair_compare
 
         L += ["", repair_compare.markdown(res["repair_routes"])]
+    if res.get("compressed"):
+        import compress_bench
+
+        L += ["", compress_bench.markdown(res["compressed"])]
     s = res["scaling"]
     L += ["", f"Scaling: total time ∝ n_free^{s['time_vs_free_exponent']:.2f}, "
               f"∝ condensed dofs^{s['time_vs_condensed_dofs_exponent']:.2f}.", ""]

@@ -184,3 +184,32 @@ def test_memory_string_parsing():
         compress.parse_memory("lots")
     with pytest.raises(ResourceError, match="below one tile"):
         compress.check_worker_memory([2**30, 2**20], 2**25)
+
+
+def test_amg_route_agrees_with_the_factor_and_rigid_modes_are_the_null_space():
+    """The memory-light route's columns against the factor's (an independent solver: smoothed aggregation and
+    CG instead of Cholesky), and the near-null space it is given: K u = 0 for every rigid motion of the
+    unsupported body (the invariant SA relies on)."""
+    from pmask.pipeline import stages
+    from pmask.precompute import amg, elements
+
+    spec = Spec(model="kidney", params={"size": 0.0085}, r_max=R_MAX)
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    factor, _ = stages.factor_stage(spec, mesh, surf)
+    element = elements.get_element("P1")
+    d = element.discretise(mesh.points, mesh.tets)
+    contact = surf.vertices[surf.regions.contact]
+    B, scale = element.load(d, surf.vertices[surf.triangles], contact, surf.areas[surf.regions.contact])
+    K = element.stiffness(d, *stages.material(spec, mesh))
+    all_dofs = np.arange(K.shape[0])
+    rbm = amg.rigid_body_modes(mesh.points, all_dofs)
+    # rigid motions are K's null space: ‖K u‖ at round-off of ‖K‖‖u‖
+    assert np.abs(K @ rbm).max() <= 1e-12 * abs(K).max() * np.abs(rbm).max() * 30
+    dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed], surf.held_facets()))
+    system = amg.amg_system(K, dirichlet, elements.observed_dofs(contact), d.points, B, scale=scale)
+    perm = compress.cluster_tree(mesh.points[contact]).perm
+    Xf = compress.panel_columns(factor, perm, 0, 48)
+    Xa = compress.panel_columns(system, perm, 0, 48)
+    # CG stops at a relative residual of 1e-10; measured 3.6e-12 here
+    assert np.linalg.norm(Xa - Xf) <= 1e-9 * np.linalg.norm(Xf)

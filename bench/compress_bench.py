@@ -1,0 +1,204 @@
+"""Compressed Ξ against dense (issue #17): ratio, time, errors, workers, memory per worker, AMG vs factor.
+
+Run by ``make bench`` (bench/run.py) or alone: ``python bench/compress_bench.py [OUT.json]``.  Every
+figure comes from this run; the README quotes the latest.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+R_MAX = 0.01  # a 10 mm probe tip
+TOL = 1e-4
+
+
+class PeakRSS:
+    """Peak resident memory of this process and its children (the Dask workers), sampled every 0.1 s;
+    per child process too."""
+
+    def __init__(self):
+        import psutil
+
+        self.me = psutil.Process()
+        self.peak, self.per, self._stop = 0, {}, threading.Event()
+        self.t = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.wait(0.1):
+            total = 0
+            for p in [self.me, *self.me.children(recursive=True)]:
+                try:
+                    r = p.memory_info().rss
+                except Exception:
+                    continue
+                total += r
+                self.per[p.pid] = max(self.per.get(p.pid, 0), r)
+            self.peak = max(self.peak, total)
+
+    def __enter__(self):
+        self.t.start()
+        return self
+
+    def __exit__(self, *a):
+        self._stop.set()
+        self.t.join()
+
+
+def setup(size):
+    from pmask.pipeline import stages
+
+    spec = stages.Spec(model="kidney", params={"size": size}, r_max=R_MAX)
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    factor, _ = stages.factor_stage(spec, mesh, surf)
+    return spec, mesh, surf, factor
+
+
+def errors(size, work: Path) -> dict:
+    """Dense and compressed artifacts of the same kidney through the whole pipeline; the runtime's errors."""
+    from pmask.pipeline.stages import Spec, run
+    from pmask.runtime import Model
+
+    out = {}
+    for name, kw in (("dense", {}), ("compressed_1", {"compress": TOL, "workers": 1}),
+                     ("compressed_2", {"compress": TOL, "workers": 2})):
+        p = work / f"{name}.h5"
+        with PeakRSS() as m:
+            s = run(Spec(model="kidney", params={"size": size}, r_max=R_MAX, **kw), p, force=True)
+        out[name] = {"greens_s": s["timings"]["greens"], "peak_rss_gib": m.peak / 2**30, "bytes": p.stat().st_size}
+        if kw:
+            out[name]["stats"] = s["factor_stats"]["compress"]
+    d, c = Model.load(work / "dense.h5"), Model.load(work / "compressed_2.h5")
+    out["contact"] = len(d.contact)
+    sd, sc = d.stiffness("linear", R_MAX), c.stiffness("linear", R_MAX)
+    out["K_i_max_rel"] = float(np.abs(sc.K_full - sd.K_full).max() / np.abs(sd.K_full).max())
+    rng = np.random.default_rng(0)
+    inner = np.zeros(len(d.points), bool)
+    inner[d.contact[d.core]] = True
+    touch = np.flatnonzero(inner[d.triangles].all(axis=1))  # every corner has a mask (not next to the support)
+    dev, cpl = [], []
+    for _ in range(10):
+        t = rng.choice(touch, 3, replace=False)
+        b = rng.dirichlet(np.ones(3), 3)
+        f = rng.normal(size=(3, 3))
+        loads = list(zip(t, b, f))
+        vd, vc = sd.deformation_of(loads), sc.deformation_of(loads)
+        dev.append(float(np.linalg.norm(vc - vd) / np.linalg.norm(vd)))
+        u = rng.normal(size=(3, 3)) * 1e-3
+        fd, fc = sd.coupled_forces(list(zip(t, b)), u), sc.coupled_forces(list(zip(t, b)), u)
+        cpl.append(float(np.linalg.norm(fc - fd) / np.linalg.norm(fd)))
+    out["deformation_rel_max"], out["coupling_rel_max"] = max(dev), max(cpl)
+    out["dense_Xi_bytes"] = 8 * (3 * len(d.contact)) ** 2
+    out["compressed_stored_bytes"] = c.Xi.nbytes
+    return out
+
+
+def eight_workers(size, work: Path) -> dict:
+    """A simulated 8-worker cluster on this 2-core machine, each worker limited to 1 GiB: peak RSS per worker."""
+    from distributed import Client, LocalCluster
+
+    from pmask.precompute import compress
+
+    _, mesh, surf, factor = setup(size)
+    pts = mesh.points[surf.vertices[surf.regions.contact]]
+    with Client(LocalCluster(n_workers=8, threads_per_worker=1, memory_limit="1GiB", dashboard_address=None)) as cl:
+        pids = set(cl.run(os.getpid).values())
+        with PeakRSS() as m:
+            t0 = time.perf_counter()
+            _, st = compress.compressed_greens(factor, pts, R_MAX, store=work / "t8.h5", key="8", panel=128, client=cl)
+            secs = time.perf_counter() - t0
+    per = sorted(m.per[p] / 2**20 for p in pids if p in m.per)
+    return {"workers": 8, "memory_limit_mib": 1024, "tiles": st["tiles"], "seconds": secs,
+            "peak_rss_per_worker_mib": per, "factor_mib": compress.factor_bytes(factor) / 2**20,
+            "tile_estimate_mib": compress.tile_bytes(compress.factor_bytes(factor), len(pts), 128) / 2**20}
+
+
+def amg_vs_factor(sizes) -> list:
+    """One 64-column panel by the factor's selected inversion and by AMG + block PCG; memory of each."""
+    from pmask.pipeline import stages
+    from pmask.precompute import amg, compress, elements
+
+    rows = []
+    for size in sizes:
+        spec, mesh, surf, factor = setup(size)
+        pts = mesh.points[surf.vertices[surf.regions.contact]]
+        tree = compress.cluster_tree(pts)
+        t0 = time.perf_counter()
+        Xf = compress.panel_columns(factor, tree.perm, 0, 64)
+        t_factor = time.perf_counter() - t0
+        element = elements.get_element("P1")
+        d = element.discretise(mesh.points, mesh.tets)
+        contact = surf.vertices[surf.regions.contact]
+        B, scale = element.load(d, surf.vertices[surf.triangles], contact, surf.areas[surf.regions.contact])
+        K = element.stiffness(d, *stages.material(spec, mesh))
+        dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed], surf.held_facets()))
+        system = amg.amg_system(K, dirichlet, elements.observed_dofs(contact), d.points, B, scale=scale)
+        t0 = time.perf_counter()
+        system.hierarchy()
+        t_setup = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        Xa = compress.panel_columns(system, tree.perm, 0, 64)
+        t_amg = time.perf_counter() - t0
+        rows.append({"size": size, "dofs": factor.stats["dofs"], "contact": len(pts),
+                     "factor_s": factor.stats["factor_s"], "factor_mib": compress.factor_bytes(factor) / 2**20,
+                     "panel_factor_s": t_factor, "amg_setup_s": t_setup, "panel_amg_s": t_amg,
+                     "amg_mib": system.nbytes() / 2**20, "pcg_steps": system.stats["iterations"][-1],
+                     "amg_rel_err": float(np.linalg.norm(Xa - Xf) / np.linalg.norm(Xf))})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
+def main(out: Path) -> dict:
+    import tempfile
+
+    res = {"date": time.strftime("%Y-%m-%d %H:%M"), "r_max_m": R_MAX, "tolerance": TOL}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        for size in (0.005, 0.003):
+            print(f"dense vs compressed, kidney size {size} ...", flush=True)
+            res[f"kidney_{size}"] = errors(size, tmp)
+            print(json.dumps(res[f"kidney_{size}"], default=str)[:600], flush=True)
+        print("8 memory-limited workers ...", flush=True)
+        res["eight_workers"] = eight_workers(0.005, tmp)
+        print(json.dumps(res["eight_workers"]), flush=True)
+    print("AMG vs factor ...", flush=True)
+    res["amg_vs_factor"] = amg_vs_factor((0.0085, 0.005, 0.003))
+    out.write_text(json.dumps(res, indent=1, default=float))
+    return res
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent / "compress_results.json")
+
+
+def markdown(res: dict) -> str:
+    """The README's table of this bench."""
+    L = [f"**Compressed Ξ** (kidney, r_max = {1e3 * res['r_max_m']:.0f} mm, tolerance {res['tolerance']:g}; "
+         f"{res['date']}):", "",
+         "| contact vertices | dense Ξ | compressed | ratio | GF stage dense / 1 worker / 2 workers | "
+         "peak RSS dense / 2 workers | K_i | deformation | 3 coupled contacts |", "|---|---|---|---|---|---|---|---|---|"]
+    for key in sorted(k for k in res if k.startswith("kidney_")):
+        r = res[key]
+        L.append(f"| {r['contact']:,} | {r['dense_Xi_bytes'] / 2**20:.0f} MiB | {r['compressed_stored_bytes'] / 2**20:.0f} MiB "
+                 f"| {r['dense_Xi_bytes'] / r['compressed_stored_bytes']:.1f}x | {r['dense']['greens_s']:.1f} / "
+                 f"{r['compressed_1']['greens_s']:.1f} / {r['compressed_2']['greens_s']:.1f} s | "
+                 f"{r['dense']['peak_rss_gib']:.2f} / {r['compressed_2']['peak_rss_gib']:.2f} GiB | "
+                 f"{r['K_i_max_rel']:.1e} | {r['deformation_rel_max']:.1e} | {r['coupling_rel_max']:.1e} |")
+    e = res["eight_workers"]
+    L += ["", f"8 simulated workers (LocalCluster, 1 GiB each, on 2 cores), {e['tiles']} tiles of the default kidney "
+              f"in {e['seconds']:.1f} s: peak RSS per worker {min(e['peak_rss_per_worker_mib']):.0f}–"
+              f"{max(e['peak_rss_per_worker_mib']):.0f} MiB (the factor {e['factor_mib']:.0f} MiB, a tile estimated "
+              f"{e['tile_estimate_mib']:.0f} MiB).", "",
+          "| kidney | dofs | factor: time, memory | 64-column panel: factor | AMG: setup, panel, memory, PCG steps | AMG error |",
+          "|---|---|---|---|---|---|"]
+    for r in res["amg_vs_factor"]:
+        L.append(f"| {r['contact']:,} vertices | {r['dofs']:,} | {r['factor_s']:.2f} s, {r['factor_mib']:.0f} MiB | "
+                 f"{r['panel_factor_s']:.2f} s | {r['amg_setup_s']:.2f} s, {r['panel_amg_s']:.1f} s, "
+                 f"{r['amg_mib']:.0f} MiB, {r['pcg_steps']} | {r['amg_rel_err']:.1e} |")
+    return "\n".join(L)
