@@ -139,9 +139,9 @@ def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
 
 
 def test_a_rerun_reuses_the_finished_tiles(tmp_path):
-    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1)
-    out = tmp_path / "k.h5"
     from pmask.pipeline import stages
+
+    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1)
 
     keys = stages.stage_keys(spec)
     mesh = stages.support_stage(spec, stages.mesh_stage(spec))
@@ -153,7 +153,6 @@ def test_a_rerun_reuses_the_finished_tiles(tmp_path):
     b, s2 = compress.compressed_greens(factor, pts, R_MAX, store=store, key=keys["artifact"], panel=64, workers=1)
     assert s1["tiles_reused"] == 0 and s2["tiles_reused"] == s2["tiles"] > 1
     assert all(np.array_equal(a[k], b[k]) for k in a)
-    del out
 
 
 @pytest.mark.parametrize("tol", [0.0, 1.0, -1e-4, float("nan"), 2.0])
