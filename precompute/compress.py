@@ -291,13 +291,10 @@ class TileStore:
 
 # ------------------------------------------------------------------------------- the cluster
 def parse_memory(text) -> int:
-    """Bytes from '4G', '512M', '2.5GiB' or a number (a worker's memory limit)."""
-    s = str(text).strip().upper().removesuffix("IB").removesuffix("B")
-    try:
-        return int(float(s[:-1]) * {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}[s[-1]]) if s[-1:] in "KMGT" \
-            and s[-1:] else int(float(s))
-    except (ValueError, KeyError, IndexError):
-        raise InputError(f"--worker-memory must be bytes or a number with K, M or G (e.g. 4G), got {text!r}") from None
+    """A worker's memory limit in bytes ('4G', '512M', a number: :func:`pmask.precompute.greens.parse_bytes`)."""
+    from pmask.precompute.greens import parse_bytes
+
+    return parse_bytes(text, "--worker-memory")
 
 
 def check_tolerance(tol) -> float:

@@ -137,15 +137,22 @@ def available_memory() -> int | None:
                     avail = int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
-    cap = os.environ.get("PMASK_MAX_MEMORY", "").strip().upper()
+    cap = os.environ.get("PMASK_MAX_MEMORY", "").strip()
     if cap:
-        try:
-            limit = int(float(cap[:-1]) * {"K": 2**10, "M": 2**20, "G": 2**30}[cap[-1]]) if cap[-1] in "KMG" else int(cap)
-        except (ValueError, KeyError):
-            from pmask.errors import InputError
-            raise InputError(f"PMASK_MAX_MEMORY must be bytes or a number with K, M or G, got {cap!r}") from None
+        limit = parse_bytes(cap, "PMASK_MAX_MEMORY")
         avail = limit if avail is None else min(avail, limit)
     return avail
+
+
+def parse_bytes(text, what: str) -> int:
+    """Bytes from '4G', '512M', '2.5GiB' or a plain number (K, M, G, T: powers of 1024); ``what`` names the
+    setting in the one-line error (``PMASK_MAX_MEMORY``, ``--worker-memory``)."""
+    s = str(text).strip().upper().removesuffix("IB").removesuffix("B")
+    try:
+        unit = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}.get(s[-1:], 1)
+        return int(float(s[:-1] if unit > 1 else s) * unit)
+    except ValueError:
+        raise InputError(f"{what} must be bytes or a number with K, M or G (e.g. 4G), got {text!r}") from None
 
 
 def cholmod_backend(prefer: str | None = None) -> str:

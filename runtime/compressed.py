@@ -160,4 +160,4 @@ def xi_blocks(Xi, i, j) -> np.ndarray:
         return Xi.blocks(i, j)
     n = Xi.shape[1] // 3
     X4 = Xi.reshape(Xi.shape[0] // 3, 3, n, 3)
-    return np.asarray(X4[np.asarray(i), :, np.asarray(j), :], float)
+    return X4[np.asarray(i), :, np.asarray(j), :]  # (float32 stays float32: the mask weights' product upcasts)
