@@ -153,11 +153,12 @@ def _distinct(want: np.ndarray, n: int) -> np.ndarray:
     return want
 
 
-def _forward(tree: _Tree, W: list, cols, s: int):
+def _forward(tree: _Tree, W: list, cols, s: int, size=None):
     """One supernode of the forward solve W = L⁻¹ R (W[s]: the transpose of W's rows of s, restricted
     to the columns that reach s): W[s] ← W[s] L_ssᵀ⁻¹, then the ancestors' rows are updated.
     ``cols``: the first column of each supernode's contiguous range (an array), or each supernode's
-    sorted column set (a list of arrays).  Returns W[s] and the flops spent."""
+    sorted column set (a list of arrays).  ``size``: each supernode's column count, to allocate an
+    ancestor's W on its first update (W[t] None: :func:`forward_sweep`).  Returns W[s] and the flops spent."""
     nc, nr = tree.ncol[s], tree.nrow[s] - tree.ncol[s]
     m = W[s].shape[0]
     block = tree.block(s)
@@ -171,6 +172,8 @@ def _forward(tree: _Tree, W: list, cols, s: int):
         owners = tree.snode[rows]
         for t in np.unique(owners):
             sel = owners == t
+            if W[t] is None:
+                W[t] = np.zeros((size[t], tree.ncol[t]), order="F")
             if isinstance(cols, np.ndarray):  # contiguous ranges: s's columns start at cols[s] - cols[t] in t
                 W[t][cols[s] - cols[t]:cols[s] - cols[t] + m, rows[sel] - tree.sup[t]] -= U[:, sel]
             else:  # explicit sets: s's set is a subset of its ancestors'
@@ -178,38 +181,65 @@ def _forward(tree: _Tree, W: list, cols, s: int):
     return X, flops
 
 
+def forward_sweep(tree: _Tree, want: np.ndarray, emit) -> dict:
+    r"""W = L⁻¹ P E supernode by supernode, holding only what is still to be finished.
+
+    The wanted dofs ``want`` sorted by pivot: supernode s meets the contiguous range
+    [lo_s, hi_s) of them (its subtree's).  For each supernode with a non-empty range, in postorder,
+    ``emit(s, lo_s, X_s)`` receives :math:`X_s`, the (hi_s − lo_s, ncol_s) rows of W's transpose
+    (column-major; it may be kept: it is not reused).  A supernode's W is allocated when its first
+    child updates it and dropped once emitted, so the live memory is the pending ancestors' only,
+    not all of W.  Returns ``pos`` (each wanted dof's sorted position), ``lo``, ``hi`` and ``flops``.
+    Then :math:`(A^{-1})_{EE}[\mathrm{pos}_i, \mathrm{pos}_j] = \sum_s X_s X_s^T` on the ranges.
+    """
+    want = _distinct(want, tree.n)
+    piv = tree.iperm[want]
+    lo, hi, pos = tree.ranges(piv)
+    W = [None] * tree.ns
+    size = hi - lo
+    for i, k in enumerate(piv):
+        s = tree.snode[k]
+        if W[s] is None:
+            W[s] = np.zeros((size[s], tree.ncol[s]), order="F")
+        W[s][pos[i] - lo[s], k - tree.sup[s]] = 1.0
+    flops = 0.0
+    for s in range(tree.ns):
+        if size[s] == 0:
+            continue
+        X, f = _forward(tree, W, lo, s, size)
+        W[s] = None
+        flops += f
+        emit(s, int(lo[s]), X)
+    return {"pos": pos, "lo": lo, "hi": hi, "flops": flops}
+
+
 def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, dict]:
     """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j (C order), as ``native.selected_inverse``: the
-    symmetric case, one syrk per supernode."""
+    symmetric case, one syrk per supernode of :func:`forward_sweep`."""
     tree = _Tree(L)
     want = _distinct(want, tree.n)
     scale = np.asarray(scale, float)
     nw = len(want)
     if scale.shape != (nw,):
         raise ValueError(f"{len(scale)} scale factors for {nw} wanted dofs")
-    piv = tree.iperm[want]
-    lo, hi, sp_ = tree.ranges(piv)
-    W = [np.zeros((hi[s] - lo[s], tree.ncol[s]), order="F") for s in range(tree.ns)]
-    for i, k in enumerate(piv):
-        s = tree.snode[k]
-        W[s][sp_[i] - lo[s], k - tree.sup[s]] = 1.0
     D = np.zeros((nw, nw), order="F")
-    flops = 0.0
-    for s in range(tree.ns):
-        m = hi[s] - lo[s]
-        if m == 0:
-            continue
-        X, f = _forward(tree, W, lo, s)
-        flops += f + float(m) * m * tree.ncol[s]
+    syrk_flops = [0.0]
+
+    def syrk(s, lo, X):
+        hi = lo + X.shape[0]
+        syrk_flops[0] += float(X.shape[0]) ** 2 * tree.ncol[s]
         # in place when the block is all of D (the root); else on a copy of the block, put back
-        C = blas.dsyrk(1.0, X, beta=1.0, c=D[lo[s]:hi[s], lo[s]:hi[s]], lower=1, overwrite_c=1)
+        C = blas.dsyrk(1.0, X, beta=1.0, c=D[lo:hi, lo:hi], lower=1, overwrite_c=1)
         if not np.shares_memory(C, D):
-            D[lo[s]:hi[s], lo[s]:hi[s]] = C
+            D[lo:hi, lo:hi] = C
+
+    st = forward_sweep(tree, want, syrk)
     _mirror_lower(D)
+    sp_ = st["pos"]
     X = D.T[np.ix_(sp_, sp_)]  # D is symmetric now; its C-ordered view gathers 4x faster, no copy
     del D
     X *= scale[None, :]
-    return X, {"flops": flops}
+    return X, {"flops": st["flops"] + syrk_flops[0]}
 
 
 def column_sets(tree: _Tree, B) -> tuple[list, np.ndarray]:
