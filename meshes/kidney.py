@@ -25,10 +25,18 @@ HILUM_RADIUS = 0.019  # m: the indentation is 8 mm deep at its centre
 DEFAULT_SIZE = 0.005
 
 
-def build(size: float = DEFAULT_SIZE) -> ModelMesh:
-    """Mesh the kidney with largest edge ``size`` [m] (curvature refines below it)."""
+def build(size: float = DEFAULT_SIZE, interior: float | None = None) -> ModelMesh:
+    """Mesh the kidney with largest edge ``size`` [m] (curvature refines below it).
+
+    ``interior`` [m]: a graded volume whose edges grow from the surface's to this length at depth
+    3·interior (a Distance + Threshold field from the boundary).  Only the surface's vertices carry
+    Green's functions, and the surface keeps its resolution; the coarse core cuts the volume's vertices
+    (measured at size 1.3 mm: 4.5x fewer with interior = 6 mm), hence the factor's size and time, for
+    organ-scale surfaces.  Default: the volume follows the surface sizes (gmsh's extension inward)."""
     if not size > 0:
         raise InputError(f"kidney: size must be > 0 m, got {size}")
+    if interior is not None and not float(interior) >= size:
+        raise InputError(f"kidney: interior must be at least size ({size} m), got {interior}")
     with gmsh_session("kidney") as gmsh:
         occ = gmsh.model.occ
         body = occ.addSphere(0, 0, 0, 1.0)
@@ -48,14 +56,32 @@ def build(size: float = DEFAULT_SIZE) -> ModelMesh:
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         gmsh.option.setNumber("Mesh.MeshSizeMin", size / 4)
         gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+        if interior is not None:
+            interior = float(interior)
+            field = gmsh.model.mesh.field
+            fd = field.add("Distance")
+            field.setNumbers(fd, "SurfacesList", surfaces)
+            field.setNumber(fd, "Sampling", 200)
+            th = field.add("Threshold")
+            field.setNumber(th, "InField", fd)
+            field.setNumber(th, "SizeMin", size)
+            field.setNumber(th, "SizeMax", interior)
+            field.setNumber(th, "DistMin", size)
+            field.setNumber(th, "DistMax", 3 * interior)
+            field.setAsBackgroundMesh(th)
+            gmsh.option.setNumber("Mesh.MeshSizeMax", interior)
+            gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", -2)  # into surfaces, not the volume
         gmsh.model.mesh.generate(3)
         # nodes of the hilum surface (including its rim) form the fixed group
         hilum_tags = np.unique(np.concatenate(
             [gmsh.model.mesh.getNodes(2, s, includeBoundary=True)[0] for s in hilum]))
         points, tets, tags = tets_from_gmsh(gmsh, with_tags=True)
     hilum_mask = np.isin(tags, hilum_tags)
+    info = {"semi_axes_m": list(SEMI_AXES), "hilum_centre_m": list(HILUM_CENTRE), "hilum_radius_m": HILUM_RADIUS,
+            "size_m": size}
+    if interior is not None:
+        info["interior_m"] = interior
     return ModelMesh(points=points, tets=tets, fixed="group:hilum",
                      material={"E": 1.0e4, "nu": 0.45}, groups={"hilum": hilum_mask},
-                     info={"semi_axes_m": list(SEMI_AXES), "hilum_centre_m": list(HILUM_CENTRE),
-                           "hilum_radius_m": HILUM_RADIUS, "size_m": size})
+                     info=info)
 

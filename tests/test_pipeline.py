@@ -44,6 +44,26 @@ def test_kidney_default_size_and_spread():
     assert np.percentile(a, 95) / np.percentile(a, 5) > 2.5  # a mesher's spread, not a uniform mesh
 
 
+def test_kidney_graded_interior_keeps_the_surface_and_thins_the_volume():
+    """``interior`` coarsens only the volume: the surface (where Ξ lives) keeps its resolution, the
+    volume's vertices (the factor's size) drop, and the mesh is still one closed solid of the same volume."""
+    from pmask.precompute.meshing import enclosed_volume
+
+    size = 0.006
+    plain, graded = kidney.build(size), kidney.build(size, interior=0.02)
+    (sp_, tp), (sg, tg) = boundary_surface(plain.points, plain.tets), boundary_surface(graded.points, graded.tets)
+    # the same surface: the field is the surface's size there, and sizes still extend into the surfaces
+    assert len(sg) == len(sp_) and len(tg) == len(tp)
+    # 30 % fewer inner vertices at least (measured 39 % fewer at this coarse size, where the kidney is only
+    # ~6 edges thick; 3x fewer at 1.3 mm)
+    assert len(graded.points) - len(sg) < 0.7 * (len(plain.points) - len(sp_))
+    # the solid: both enclose the same volume to the surfaces' discretisation difference
+    vp, vg = abs(enclosed_volume(plain.points[sp_], tp)), abs(enclosed_volume(graded.points[sg], tg))
+    assert abs(vg - vp) <= 0.01 * vp
+    with pytest.raises(InputError, match="interior must be at least size"):
+        kidney.build(size, interior=0.001)
+
+
 def test_artifact_round_trip(kidney_small):
     d = read_artifact(kidney_small)
     a = d["attrs"]
