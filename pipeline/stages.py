@@ -438,8 +438,9 @@ def material(spec: Spec, mesh: ModelMesh) -> tuple[float, float]:
 def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | None = None) -> dict:
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
-    route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker a
-    copy of it and one tile (:func:`pmask.precompute.compress.tile_bytes`)."""
+    route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker one
+    tile (:func:`pmask.precompute.compress.tile_bytes`) with W's largest block or a copy of the factor
+    (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast)."""
     from pmask.precompute import greens
 
     need = element.memory_estimate(n_volume_vertices, n_contact)
@@ -449,12 +450,13 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
         local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
         if spec.solver == "amg":  # K_FF (~81 stored entries per dof row, 12 bytes each) and its hierarchy
             need["factor"] = 4 * 12.0 * 81 * 3 * n_volume_vertices * element.dofs_per_vertex
-        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact)
+        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact,
+                                                                            compress.panel_size(n_contact))
         avail = greens.available_memory()
         if avail is not None and need["total"] > avail:
             raise ResourceError(
-                f"the sparse factor (~{_bytes(need['factor'])}) and {local} local Dask workers, each with a copy and "
-                f"one tile, need ~{_bytes(need['total'])}, more than the {_bytes(avail)} this machine has "
+                f"the sparse factor (~{_bytes(need['factor'])}) and {local} local Dask workers, each with one tile, "
+                f"need ~{_bytes(need['total'])}, more than the {_bytes(avail)} this machine has "
                 "available: use fewer workers (--workers), a cluster (--scheduler) or a coarser mesh")
         return need
     if greens.cholmod_backend() != "native":

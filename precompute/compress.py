@@ -11,19 +11,31 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    (η = 2: Ξ_IJ is then smooth, the Green's function's 1/r far from its pole; the rank adapts to the
    tolerance, so η trades block count for rank, not accuracy).
    Otherwise both are split; pairs of leaves are stored densely.
-3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices).  One task per
-   panel computes the columns of Ξ it holds, :math:`\Xi_{:,J} = W_E^T W_J` (the selected inversion's
-   W: :func:`pmask.precompute.greens.inverse_columns`), and compresses each of the panel's blocks:
-   a randomized range finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD
-   of :math:`Q^TB` truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is
-   computed, not estimated: B is at hand).  A block whose factors would not be smaller stays dense.
-   Only one panel, 3n x 3|J| numbers, exists at a time on a worker.
+3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices, fewer for large
+   n so that a panel stays near :data:`PANEL_BYTES`).  One task per panel computes the columns of Ξ it
+   holds and compresses each of the panel's blocks: a randomized range finder grown until
+   :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of :math:`Q^TB` truncated to the
+   smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is computed, not estimated: B is
+   at hand).  A block whose factors would not be smaller stays dense.  Only one panel, 3n x 3|J|
+   numbers, exists at a time on a worker.
+
+   The columns come from the selected inversion's W (:mod:`pmask.precompute.selinv`): with P1's load
+   :math:`\Xi = W^T W\,\mathrm{diag}(a)`, W = L⁻¹PE, so :math:`\Xi_{:,J} = \sum_s X_s X_{s,J}^T a_J`
+   over the supernodes s that J's columns reach (X_s: W's rows of s, :func:`sweep`).  W is computed
+   once, by one forward sweep in the client, and written supernode by supernode to a file in the run's
+   work folder (:class:`SweepStore`; 2.2 GiB at 20,427 contact vertices, where the dense Ξ is 28 GiB);
+   a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
+   :math:`W^TW` products (twice: each panel all rows) and nothing else, and a worker needs no factor.
+   P2 (a consistent load B ≠ E diag(a)) and the AMG route solve each panel instead
+   (:func:`pmask.precompute.greens.inverse_columns`, :mod:`pmask.precompute.amg`), with the factor
+   or the AMG system sent to every worker.
 4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
-   this machine, or a real cluster (``--scheduler ADDRESS``).  The factor is sent to every worker once;
-   the client writes each finished tile into a tile store in the run's work folder (HDF5) as it
-   arrives.  A lost worker's tiles are run again (by the scheduler, or here if the factor's every copy
-   went with it); finished tiles are in the store and are never recomputed, also by a rerun after a
-   crash.
+   this machine, or a real cluster (``--scheduler ADDRESS``; the work folder must then be on a
+   filesystem every worker sees, for W's store: checked before the tiles).  The client writes each
+   finished tile into a tile store in the run's work folder (HDF5) as it arrives.  A lost worker's
+   tiles are run again (by the scheduler, or here if the task's inputs went with it); finished tiles
+   are in the store and are never recomputed, also by a rerun after a crash.  The artifact's arrays
+   are then filled from the store one tile at a time (:func:`assemble`).
 """
 from __future__ import annotations
 
@@ -50,6 +62,12 @@ LEAF = 32
 ETA = 2.0
 #: vertices per panel (one task); 3n x 3·PANEL doubles on a worker at a time
 PANEL = 512
+#: fewer vertices per panel where 3n x 3·panel doubles would exceed this (panels of ~180 vertices at n = 20,000)
+PANEL_BYTES = 256 * 2**20
+#: W's blocks are read by a tile in row chunks of at most this many bytes
+READ_BYTES = 64 * 2**20
+#: the W store's file layout (a store of another layout is swept again)
+LAYOUT = "X_s row-major, supernodes in postorder"
 #: a tile is run again at most this often when workers are lost (then the run stops with the error)
 TILE_ATTEMPTS = 4
 
@@ -106,6 +124,12 @@ def cluster_tree(points: np.ndarray, leaf: int | None = None) -> ClusterTree:
         stack.extend(kids[k])
     return ClusterTree(perm, np.array(start, np.int64), np.array(stop, np.int64), np.array(lo).reshape(-1, 3),
                        np.array(hi).reshape(-1, 3), np.array(kids, np.int64).reshape(-1, 2))
+
+
+def panel_size(n: int) -> int:
+    """Vertices per panel for n contact vertices: :data:`PANEL`, or fewer so that a panel's 3n x 3·panel
+    doubles stay within :data:`PANEL_BYTES` (never below a leaf)."""
+    return int(min(PANEL, max(LEAF, PANEL_BYTES // (8 * 9 * max(n, 1)))))
 
 
 def panels(tree: ClusterTree, size: int = PANEL) -> list[int]:
@@ -173,14 +197,117 @@ def low_rank(B: np.ndarray, tol: float, rng: np.random.Generator):
     return Q @ (Us[:, :r] * s[:r]), Vt[:r].T
 
 
+class SweepStore:
+    """W's supernode blocks X_s (:func:`pmask.precompute.selinv.forward_sweep`) of a P1 factor, in a
+    file of the run's work folder, and the index a tile needs to read them: for each supernode its
+    range of wanted columns (sorted by pivot) and its parent; for each contact dof its sorted position
+    and its first supernode.  Small to pickle (the index); the blocks stay in the file."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        with np.load(self.index_path(self.path)) as ix:
+            self.index = {k: ix[k] for k in ix.files}
+        self.key = str(self.index["key"])
+        self.largest = int(self.index["largest"])  # doubles in the largest X_s
+
+    @staticmethod
+    def index_path(path: Path) -> Path:
+        return Path(path).with_suffix(".index.npz")
+
+    def columns(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        r"""Ξ[rows, cols] for contact dofs ``rows`` (all of them, in any order) and ``cols``:
+        :math:`\sum_s X_s X_{s,J}^T` over the supernodes on the tree paths up from the columns' first
+        supernodes, scaled by the columns' areas (Ξ = G diag(a)).  A block larger than :data:`READ_BYTES`
+        is read in row chunks (its rows are contiguous in the file), so a tile holds its panel and one
+        chunk, not the root's whole block (3n rows by the top separator's columns)."""
+        ix = self.index
+        pos, lo, hi, parent, ncol, offset = ix["pos"], ix["lo"], ix["hi"], ix["parent"], ix["ncol"], ix["offset"]
+        pj = pos[cols]
+        reached = np.zeros(len(lo), bool)
+        for s in np.unique(ix["first"][cols]):
+            while s >= 0 and not reached[s]:
+                reached[s] = True
+                s = parent[s]
+        D = np.zeros((len(pos), len(cols)), order="F")
+        with open(self.path, "rb") as f:
+            for s in np.flatnonzero(reached):
+                sel = np.flatnonzero((pj >= lo[s]) & (pj < hi[s]))
+                m, nc, off = int(hi[s] - lo[s]), int(ncol[s]), int(offset[s])
+                step = max(1, READ_BYTES // (8 * nc))
+                if m <= step:
+                    f.seek(8 * off)
+                    X = np.fromfile(f, np.float64, m * nc).reshape(m, nc)
+                    D[lo[s]:hi[s], sel] += X @ X[pj[sel] - lo[s]].T
+                    continue
+                XJ = np.empty((len(sel), nc))
+                for q, r in enumerate(pj[sel] - lo[s]):  # the panel's rows of X_s
+                    f.seek(8 * (off + int(r) * nc))
+                    XJ[q] = np.fromfile(f, np.float64, nc)
+                for r0 in range(0, m, step):
+                    r1 = min(m, r0 + step)
+                    f.seek(8 * (off + r0 * nc))
+                    X = np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc)
+                    D[lo[s] + r0:lo[s] + r1, sel] += X @ XJ.T
+        out = D[pos[rows]]
+        del D
+        out *= ix["scale"][cols][None, :]
+        return out
+
+
+def sweep(factor, path: Path, key: str) -> SweepStore:
+    """W = L⁻¹PE of a P1 factor, supernode by supernode, into ``path`` (:class:`SweepStore`); reused when
+    its index holds ``key`` (a rerun after a crash does not sweep again).  The index is written last
+    and atomically, so a file without one is never read."""
+    from pmask.precompute import selinv
+
+    path = Path(path)
+    index = SweepStore.index_path(path)
+    if index.exists():
+        try:
+            store = SweepStore(path)
+            if store.key == key and str(store.index.get("layout")) == LAYOUT and path.exists():
+                return store
+        except (OSError, ValueError, KeyError):
+            pass  # a damaged index: sweep again
+    tree = selinv._Tree(factor.L)
+    nobs = factor.n_observed
+    offset = np.zeros(tree.ns, np.int64)
+    written = [0]
+    tmp = path.with_suffix(".part")
+    with open(tmp, "wb") as f:
+        def emit(s, lo, X):
+            offset[s] = written[0]
+            step = max(1, READ_BYTES // (8 * X.shape[1]))
+            for r0 in range(0, X.shape[0], step):  # row-major, so that a tile reads row chunks
+                np.ascontiguousarray(X[r0:r0 + step]).tofile(f)
+            written[0] += X.size
+
+        st = selinv.forward_sweep(tree, factor.rows[:nobs], emit)
+    os.replace(tmp, path)
+    piv = tree.iperm[np.asarray(factor.rows[:nobs], np.int64)]
+    m = st["hi"] - st["lo"]
+    arrays = {"key": np.array(key), "layout": np.array(LAYOUT), "pos": st["pos"], "lo": st["lo"], "hi": st["hi"],
+              "ncol": tree.ncol,
+              "parent": tree.parent, "first": tree.snode[piv], "offset": offset, "scale": factor.scale,
+              "largest": np.array(int((m * tree.ncol).max()) if len(m) else 0), "flops": np.array(st["flops"]),
+              "gram_flops": np.array(float(np.sum(m.astype(float) ** 2 * tree.ncol)))}  # the dense route's syrks
+    tmp = index.with_suffix(".part.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, index)
+    return SweepStore(path)
+
+
 def panel_columns(factor, perm: np.ndarray, c0: int, c1: int) -> np.ndarray:
-    """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order, from the factor."""
+    """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order: from W's store
+    (:class:`SweepStore`), or solved from the factor or the AMG system."""
     from pmask.precompute import greens
 
     from pmask.precompute.amg import AmgSystem
 
-    nobs = factor.n_observed
     dcols = (3 * perm[c0:c1, None] + np.arange(3)).ravel()  # the panel's traction columns (contact dofs)
+    if isinstance(factor, SweepStore):
+        return factor.columns((3 * perm[:, None] + np.arange(3)).ravel(), dcols)
+    nobs = factor.n_observed
     if isinstance(factor, AmgSystem):  # no factor: block PCG with smoothed aggregation (--solver amg)
         return factor.columns(dcols)[(3 * perm[:, None] + np.arange(3)).ravel()]
     if factor.load is None:  # P1: a traction at dof d is the nodal force scale[d] there
@@ -226,26 +353,38 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
             "V": cat(Vs), "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid()}
 
 
-def assemble(tree: ClusterTree, tiles: list[dict], dtype=np.float64) -> dict:
-    """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from finished tiles."""
-    tiles = sorted(tiles, key=lambda t: tree.start[t["column"]])
-    di, li, d, U, V = [], [], [], [], []
-    d_off = u_off = v_off = 0
-    for t in tiles:
-        a = t["dense_index"].copy()
-        a[:, 4] += d_off
-        b = t["lowrank_index"].copy()
-        b[:, 5] += u_off
-        b[:, 6] += v_off
-        di.append(a), li.append(b), d.append(t["dense"]), U.append(t["U"]), V.append(t["V"])
-        d_off += len(t["dense"])
-        u_off += len(t["U"])
-        v_off += len(t["V"])
-    cat = lambda parts, w: np.concatenate(parts) if parts else np.zeros((0, w), np.int64)  # noqa: E731
-    return {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
-            "dense_index": cat(di, 5), "lowrank_index": cat(li, 7),
-            "dense": np.concatenate(d).astype(dtype), "U": np.concatenate(U).astype(dtype),
-            "V": np.concatenate(V).astype(dtype)}
+def assemble(tree: ClusterTree, store: "TileStore", dtype=np.float64) -> tuple[dict, dict]:
+    """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from the finished tiles
+    in ``store``, filled into arrays allocated once at their final size, one tile read at a time (the
+    client holds the compressed Ξ once, not the tiles and their concatenation).  Also the tiles'
+    summed timings."""
+    names = sorted(store.file, key=lambda g: tree.start[int(g.split("-")[1])])
+    groups = [store.file[g] for g in names]
+    size = {k: sum(g[k].shape[0] for g in groups) for k in TileStore.FIELDS}
+    out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
+           "dense_index": np.zeros((size["dense_index"], 5), np.int64),
+           "lowrank_index": np.zeros((size["lowrank_index"], 7), np.int64),
+           **{k: np.empty(size[k], dtype) for k in ("dense", "U", "V")}}
+    at = dict.fromkeys(TileStore.FIELDS, 0)
+    times = {"solve_s": 0.0, "compress_s": 0.0}
+    for g in groups:
+        di, li = g["dense_index"][()].reshape(-1, 5), g["lowrank_index"][()].reshape(-1, 7)
+        di[:, 4] += at["dense"]
+        li[:, 5] += at["U"]
+        li[:, 6] += at["V"]
+        for k, a in (("dense_index", di), ("lowrank_index", li)):
+            out[k][at[k]:at[k] + len(a)] = a
+            at[k] += len(a)
+        for k in ("dense", "U", "V"):
+            n = g[k].shape[0]
+            if n and out[k].dtype == g[k].dtype:
+                g[k].read_direct(out[k], dest_sel=np.s_[at[k]:at[k] + n])
+            elif n:  # --float32: cast one tile at a time
+                out[k][at[k]:at[k] + n] = g[k][()]
+            at[k] += n
+        for k in times:
+            times[k] += float(g.attrs[k])
+    return out, times
 
 
 # ------------------------------------------------------------------------------- the tile store
@@ -279,11 +418,6 @@ class TileStore:
             g.attrs[k] = t[k]
         g.attrs["done"] = True
         self.file.flush()
-
-    def tiles(self) -> list[dict]:
-        return [{"column": int(name.split("-")[1]), **{k: g[k][()] for k in self.FIELDS},
-                 **{k: g.attrs[k] for k in ("solve_s", "compress_s", "pid")}}
-                for name, g in self.file.items()]
 
     def close(self) -> None:
         self.file.close()
@@ -332,10 +466,19 @@ def connect(scheduler: str | None, workers: int | None, memory_limit: int | None
     return Client(cluster)
 
 
-def tile_bytes(factor_bytes: float, n_contact: int, panel: int = PANEL) -> float:
-    """A worker's memory for one tile: its copy of the factor, the panel (3n x 3·panel doubles) with its
-    reordered copy, and the selected inversion's W (bounded by the factor's size: measured 0.3-0.4x it)."""
-    return factor_bytes + 2 * 8.0 * (3 * n_contact) * (3 * panel) + factor_bytes
+def tile_bytes(held: float, n_contact: int, panel: int = PANEL) -> float:
+    """A worker's memory for one tile: the panel (3n x 3·panel doubles) with its reordered copy, and
+    ``held`` bytes (:func:`source_bytes`: what the panel's columns are computed from)."""
+    return 2 * 8.0 * (3 * n_contact) * (3 * panel) + held
+
+
+def source_bytes(source) -> float:
+    """A worker's memory for the columns' source: one chunk of W's blocks (:class:`SweepStore`); or a
+    copy of the factor and the selected inversion's W (bounded by the factor's size: measured 0.3-0.4x
+    it); or the AMG system."""
+    if isinstance(source, SweepStore):
+        return float(min(8 * source.largest, READ_BYTES))
+    return 2.0 * factor_bytes(source)
 
 
 def check_worker_memory(limits: list[int | None], need: float) -> None:
@@ -359,7 +502,7 @@ def factor_bytes(factor) -> int:
 
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
                       key: str, scheduler: str | None = None, workers: int | None = None,
-                      memory_limit: int | None = None, panel: int = PANEL, client=None, dtype=np.float64,
+                      memory_limit: int | None = None, panel: int | None = None, client=None, dtype=np.float64,
                       on_tile=None) -> tuple[dict, dict]:
     """Ξ compressed (the artifact's ``greens/hmatrix`` arrays) and statistics, from ``factor`` for the
     contact vertices at ``points``; the tiles run as Dask tasks (module docstring).  ``store``: the tile
@@ -368,6 +511,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     from distributed import as_completed
 
     tol = check_tolerance(tol)
+    store = Path(store)
+    panel = panel or panel_size(len(points))
     tree = cluster_tree(points)
     cols = panels(tree, panel)
     plan = {c: partition(tree, c, r_max) for c in cols}
@@ -377,48 +522,71 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
              "tolerance": tol, "scheduler": scheduler or "local"}
     t0 = time.perf_counter()
     own = client is None
+    w_path = store.with_name(f"W-{store.stem}.bin")
+    source = factor
     try:
-        if todo:
-            client = client or connect(scheduler, workers, memory_limit)
-            limits = [w.get("memory_limit") for w in client.scheduler_info()["workers"].values()]
-            check_worker_memory(limits, tile_bytes(factor_bytes(factor), len(points), panel))
-            stats["workers"] = len(limits)
-            attempts = {c: 0 for c in todo}
-            fac = None
-            while todo:
-                if fac is None or fac.status != "finished":
-                    fac = client.scatter(factor, broadcast=True, hash=False)
-                futures = {client.submit(tile, fac, tree, c, plan[c], tol, key=f"pmask-tile-{c}-{attempts[c]}",
-                                         pure=False): c for c in todo}
-                lost = []
-                for fut in as_completed(futures):
-                    c = futures[fut]
-                    try:
-                        t = fut.result()
-                    except Exception as exc:  # a lost worker took every copy of the factor, or the task failed
-                        attempts[c] += 1
-                        if attempts[c] >= TILE_ATTEMPTS or isinstance(exc, (MemoryError, InputError)):
-                            raise
-                        log.warning("tile %d failed on its worker (%s: %s); running it again", c,
-                                    type(exc).__name__, exc)
-                        lost.append(c)
-                        continue
-                    fut.release()  # the result is in the store: a lost worker must not make dask recompute it
-                    ts.put(t)
-                    if on_tile is not None:
-                        on_tile(t)
-                todo = lost
-        tiles = ts.tiles()
+        try:
+            if todo:
+                if getattr(factor, "load", True) is None:  # P1 factor: W once, tiles read it (module docstring)
+                    t1 = time.perf_counter()
+                    source = sweep(factor, w_path, key)
+                    stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1,
+                                  "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
+                                  "gram_flops": float(source.index["gram_flops"])})
+                else:
+                    stats["route"] = "solve per panel"
+                client = client or connect(scheduler, workers, memory_limit)
+                limits = [w.get("memory_limit") for w in client.scheduler_info()["workers"].values()]
+                stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel)
+                check_worker_memory(limits, stats["tile_bytes"])
+                stats["workers"] = len(limits)
+                if isinstance(source, SweepStore):
+                    seen = client.run(os.path.exists, str(source.path))
+                    if not all(seen.values()):
+                        raise InputError(f"{sum(not v for v in seen.values())} of {len(seen)} Dask workers cannot read "
+                                         f"{source.path} (W's store for the tiles): with --scheduler the artifact's "
+                                         "work folder (.work next to -o) must be on a filesystem every worker mounts")
+                attempts = {c: 0 for c in todo}
+                done = len(cols) - len(todo)
+                fac = None
+                while todo:
+                    if fac is None or fac.status != "finished":
+                        fac = client.scatter(source, broadcast=True, hash=False)
+                    futures = {client.submit(tile, fac, tree, c, plan[c], tol, key=f"pmask-tile-{c}-{attempts[c]}",
+                                             pure=False): c for c in todo}
+                    lost = []
+                    for fut in as_completed(futures):
+                        c = futures[fut]
+                        try:
+                            t = fut.result()
+                        except Exception as exc:  # a lost worker took every copy of the inputs, or the task failed
+                            attempts[c] += 1
+                            if attempts[c] >= TILE_ATTEMPTS or isinstance(exc, (MemoryError, InputError)):
+                                raise
+                            log.warning("tile %d failed on its worker (%s: %s); running it again", c,
+                                        type(exc).__name__, exc)
+                            lost.append(c)
+                            continue
+                        fut.release()  # the result is in the store: a lost worker must not make dask recompute it
+                        ts.put(t)
+                        done += 1
+                        if done * 10 // len(cols) > (done - 1) * 10 // len(cols):
+                            log.info("compressed Ξ: %d of %d tiles, %.0f s", done, len(cols), time.perf_counter() - t0)
+                        if on_tile is not None:
+                            on_tile(t)
+                    todo = lost
+            for p in (w_path, SweepStore.index_path(w_path)):  # every tile is in the store: W is not needed again
+                p.unlink(missing_ok=True)
+        finally:  # the workers go before the assembly: the client then holds the compressed Ξ once
+            if own and client is not None:
+                cluster = getattr(client, "cluster", None)
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+        out, times = assemble(tree, ts, dtype)
     finally:
-        if own and client is not None:
-            cluster = getattr(client, "cluster", None)
-            client.close()
-            if cluster is not None:
-                cluster.close()
         ts.close()
-    out = assemble(tree, tiles, dtype)
-    stats.update({"seconds": time.perf_counter() - t0, "solve_s": float(sum(t["solve_s"] for t in tiles)),
-                  "compress_s": float(sum(t["compress_s"] for t in tiles)),
+    stats.update({"seconds": time.perf_counter() - t0, **times,
                   "dense_blocks": len(out["dense_index"]), "lowrank_blocks": len(out["lowrank_index"]),
                   "stored_bytes": int(out["dense"].nbytes + out["U"].nbytes + out["V"].nbytes),
                   "dense_bytes": int(8 * (3 * len(points)) ** 2),

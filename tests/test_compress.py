@@ -152,7 +152,63 @@ def test_a_rerun_reuses_the_finished_tiles(tmp_path):
     a, s1 = compress.compressed_greens(factor, pts, R_MAX, store=store, key=keys["artifact"], panel=64, workers=1)
     b, s2 = compress.compressed_greens(factor, pts, R_MAX, store=store, key=keys["artifact"], panel=64, workers=1)
     assert s1["tiles_reused"] == 0 and s2["tiles_reused"] == s2["tiles"] > 1
+    assert s1["route"] == "W store" and "route" not in s2  # the rerun needed neither W nor a worker
     assert all(np.array_equal(a[k], b[k]) for k in a)
+    assert not list(tmp_path.glob("W-*"))  # W (as large as a tenth of dense Ξ) is gone once the tiles are in
+
+
+def _small_factor(element="P1"):
+    from pmask.pipeline import stages
+
+    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, element=element)
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    factor, _ = stages.factor_stage(spec, mesh, surf)
+    return factor, mesh.points[surf.vertices[surf.regions.contact]]
+
+
+def test_w_store_columns_are_the_dense_routes_in_chunks_too(tmp_path, monkeypatch):
+    """The tiles' source: Ξ's columns from W's supernode blocks on the columns' tree paths, read whole and
+    in row chunks of a few rows, against the dense route's Ξ (the native selected inversion's syrk over all
+    of W: the same products, summed in another order and by another code)."""
+    from pmask.precompute import greens
+
+    factor, pts = _small_factor()
+    Xi, _ = greens.greens_functions(factor)
+    n = len(pts)
+    rng = np.random.default_rng(5)
+    cols = rng.choice(3 * n, 40, replace=False)
+    rows = rng.permutation(3 * n)
+    for read_bytes in (compress.READ_BYTES, 8 * 3 * 60):  # whole blocks; then ~3 rows per read
+        monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
+        store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
+        X = store.columns(rows, cols)
+        # round-off of sums of ~10³ products in another order
+        assert np.abs(X - Xi[np.ix_(rows, cols)]).max() <= 1e-12 * np.abs(Xi).max()
+    # the same key reuses the store; another key sweeps again
+    mtime = (tmp_path / f"W-{read_bytes}.bin").stat().st_mtime_ns
+    assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k").path.stat().st_mtime_ns == mtime
+    assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="other").key == "other"
+
+
+def test_p2_compresses_by_solving_each_panel(tmp_path):
+    """P2's consistent load is not E diag(a), so its tiles solve their panels from the factor (the other
+    route); the same bounds against P2's dense Ξ."""
+    from pmask.precompute import greens
+
+    factor, pts = _small_factor("P2")
+    Xi, _ = greens.greens_functions(factor)
+    arrays, stats = compress.compressed_greens(factor, pts, R_MAX, tol=TOL, store=tmp_path / "t.h5", key="p2",
+                                               panel=64, workers=1)
+    assert stats["route"] == "solve per panel" and stats["lowrank_blocks"] > 0
+    C = CompressedXi(**arrays, tolerance=TOL)
+    # every block within TOL of its norm, so the whole within TOL of Ξ's
+    assert np.linalg.norm(C.to_dense() - Xi) <= TOL * np.linalg.norm(Xi)
+    for r0, r1, c0, c1, off in C.dense_index:  # near field: the dense route's numbers
+        rows = (3 * C.perm[r0:r1, None] + np.arange(3)).ravel()
+        cols = (3 * C.perm[c0:c1, None] + np.arange(3)).ravel()
+        B = Xi[np.ix_(rows, cols)]
+        assert np.abs(C.dense[off:off + B.size].reshape(B.shape) - B).max() <= 1e-12 * np.abs(Xi).max()
 
 
 @pytest.mark.parametrize("tol", [0.0, 1.0, -1e-4, float("nan"), 2.0])
