@@ -84,7 +84,7 @@ def add_precompute(sub) -> None:
                         "dense Ξ (for organs whose Ξ does not fit one machine)")
     p.add_argument("--solver", choices=("factor", "amg"), default="factor",
                    help="with --compress: solve the tiles with the sparse factor (default) or, where it does not fit, "
-                        "with AMG-preconditioned CG (pyamg; 80-150x slower, to ~1e-11 instead of round-off)")
+                        "with AMG-preconditioned CG (pyamg; 90-250x slower, to ~1e-11 instead of round-off)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="with --compress: run the tiles on this Dask scheduler "
                                                           "(default: a LocalCluster on this machine)")
     p.add_argument("--workers", type=int, help="with --compress: local worker processes (default: one per core)")

@@ -12,7 +12,7 @@ iterative solves: memory is K_FF and a multigrid hierarchy, a few times K_FF's o
   own step lengths (the columns converge independently; finished ones drop out).
 * Accuracy: stopped at a relative residual :data:`RTOL`; measured on the kidney (508–3,882 contact
   vertices), a 64-column panel agrees with the factor's to 3–4e-12 relative, in 24–26 steps.
-* Cost (``make bench``): 80–150x the factor's time per panel (the V-cycle runs per column in Python),
+* Cost (``make bench``): 90–250x the factor's per-panel solve (the V-cycle runs per column in Python),
   for 1.0x / 1.7x / 3.0x less memory than the factor at 1.9k / 7.1k / 26k dofs (the factor's fill grows
   like dof^{4/3}, the hierarchy like dof).  So the factor wins wherever it fits; this route is for where
   it does not, and is not the default.
