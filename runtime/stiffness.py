@@ -393,7 +393,12 @@ class Stiffness(SurfaceStiffness):
         for i, (ta, ba) in enumerate(pts):
             for j, (tb, bb) in enumerate(pts):
                 C[3 * i:3 * i + 3, 3 * j:3 * j + 3] = self.compliance_between(ta, ba, tb, bb)
-        return np.linalg.solve(C, u.ravel()).reshape(s, 3)
+        try:
+            return np.linalg.solve(C, u.ravel()).reshape(s, 3)
+        except np.linalg.LinAlgError:
+            raise InputError(f"the {s} contact points cannot take these displacements together: a point lies where "
+                             "nothing moves (on the support's held vertices) or two points coincide; drop that "
+                             "point or move it onto the free surface") from None
 
     def report(self) -> dict:
         """Numbers a user should see: mask reach, asymmetry of K_i, stiffness range, k_rigid and the bound."""

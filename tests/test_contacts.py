@@ -112,6 +112,22 @@ def test_a_grasp_is_in_equilibrium_with_the_support_reactions(model, stiff):
     assert np.linalg.norm(f[0]) > 1.2 * alone[0] and np.linalg.norm(f[1]) > 1.2 * alone[1]
 
 
+def test_contacts_that_cannot_move_are_one_line(model, stiff):
+    """A point on a held vertex has no compliance, two coinciding points the same row twice: the several-contact
+    solve is singular, and says which inputs to change instead of numpy's 'Singular matrix'."""
+    from pmask.errors import InputError
+
+    fixed = np.isin(model.triangles, model.fixed)
+    t = int(np.flatnonzero(fixed.any(axis=1) & stiff.touchable)[0])
+    b = np.where(fixed[t], 1.0, 0.0)
+    b /= b.sum()
+    with pytest.raises(InputError, match="support's held vertices"):
+        stiff.coupled_forces([(t, b)], [[0.0, 0.0, -1e-3]])
+    p = contact_points(model, stiff, 1, seed=4)[0]
+    with pytest.raises(InputError, match="two points coincide"):
+        stiff.coupled_forces([p, p], [[0.0, 0.0, -1e-3]] * 2)
+
+
 def test_one_coupled_contact_is_the_single_contact(model, stiff):
     """s = 1 through the several-contact solver is the single contact, tick for tick."""
     p0 = model.points[model.contact[model.core]][np.argmax(model.points[model.contact[model.core], 2])]
