@@ -439,8 +439,8 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
     route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker one
-    tile (:func:`pmask.precompute.compress.tile_bytes`) with W's largest block or a copy of the factor
-    (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast)."""
+    tile (:func:`pmask.precompute.compress.tile_bytes`) with a chunk of W or (P2, AMG) a copy of the
+    factor (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast)."""
     from pmask.precompute import greens
 
     need = element.memory_estimate(n_volume_vertices, n_contact)

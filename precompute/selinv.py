@@ -157,8 +157,9 @@ def _forward(tree: _Tree, W: list, cols, s: int, size=None):
     """One supernode of the forward solve W = L⁻¹ R (W[s]: the transpose of W's rows of s, restricted
     to the columns that reach s): W[s] ← W[s] L_ssᵀ⁻¹, then the ancestors' rows are updated.
     ``cols``: the first column of each supernode's contiguous range (an array), or each supernode's
-    sorted column set (a list of arrays).  ``size``: each supernode's column count, to allocate an
-    ancestor's W on its first update (W[t] None: :func:`forward_sweep`).  Returns W[s] and the flops spent."""
+    sorted column set (a list of arrays).  ``size``: how many columns reach each supernode, to allocate
+    an ancestor's W on its first update (W[t] None: :func:`forward_sweep`).  Returns W[s] and the flops
+    spent."""
     nc, nr = tree.ncol[s], tree.nrow[s] - tree.ncol[s]
     m = W[s].shape[0]
     block = tree.block(s)
