@@ -108,7 +108,7 @@ def large(params: dict, work: Path, n_check: int = 8) -> dict:
     (native selected inversion per panel: another code path than the tiles' W store)."""
     from pmask.errors import ResourceError
     from pmask.pipeline import stages
-    from pmask.precompute import elements, greens
+    from pmask.precompute import compress, elements
     from pmask.runtime import Model
 
     spec = stages.Spec(model="kidney", params=params, r_max=R_MAX, compress=TOL, workers=2)
@@ -137,11 +137,7 @@ def large(params: dict, work: Path, n_check: int = 8) -> dict:
     rng = np.random.default_rng(1)
     pick = np.sort(rng.choice(n, n_check, replace=False))
     dcols = (3 * pick[:, None] + np.arange(3)).ravel()
-    import scipy.sparse as sp
-
-    B = sp.csc_matrix((factor.scale[dcols], (factor.rows[dcols], np.arange(len(dcols)))),
-                      shape=(factor.stats["dofs"], len(dcols)))
-    exact, _ = greens.inverse_columns(factor.L, factor.rows[:factor.n_observed], B)
+    exact = compress.solved_columns(factor, dcols)
     E = np.zeros((3 * n, len(dcols)))
     E[dcols, np.arange(len(dcols))] = 1.0
     got = c.Xi.matvec(E)

@@ -298,26 +298,33 @@ def sweep(factor, path: Path, key: str) -> SweepStore:
     return SweepStore(path)
 
 
+def solved_columns(factor, dcols: np.ndarray) -> np.ndarray:
+    """Ξ's columns ``dcols`` (contact dofs), rows in contact order, solved from the factor by the selected
+    inversion (:func:`pmask.precompute.greens.inverse_columns`): the route of P2 tiles, and an independent
+    check of the W store's columns."""
+    from pmask.precompute import greens
+
+    if factor.load is None:  # P1: a traction at dof d is the nodal force scale[d] there
+        B = sp.csc_matrix((factor.scale[dcols], (factor.rows[dcols], np.arange(len(dcols)))),
+                          shape=(factor.stats["dofs"], len(dcols)))
+    else:
+        B = factor.load[:, dcols]
+    X, _ = greens.inverse_columns(factor.L, factor.rows[:factor.n_observed], B)
+    return X
+
+
 def panel_columns(factor, perm: np.ndarray, c0: int, c1: int) -> np.ndarray:
     """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order: from W's store
     (:class:`SweepStore`), or solved from the factor or the AMG system."""
-    from pmask.precompute import greens
-
     from pmask.precompute.amg import AmgSystem
 
-    dcols = (3 * perm[c0:c1, None] + np.arange(3)).ravel()  # the panel's traction columns (contact dofs)
+    rows = (3 * perm[:, None] + np.arange(3)).ravel()  # contact dofs in cluster order
+    dcols = rows[3 * c0:3 * c1]  # the panel's traction columns
     if isinstance(factor, SweepStore):
-        return factor.columns((3 * perm[:, None] + np.arange(3)).ravel(), dcols)
-    nobs = factor.n_observed
+        return factor.columns(rows, dcols)
     if isinstance(factor, AmgSystem):  # no factor: block PCG with smoothed aggregation (--solver amg)
-        return factor.columns(dcols)[(3 * perm[:, None] + np.arange(3)).ravel()]
-    if factor.load is None:  # P1: a traction at dof d is the nodal force scale[d] there
-        n = factor.stats["dofs"]
-        B = sp.csc_matrix((factor.scale[dcols], (factor.rows[dcols], np.arange(len(dcols)))), shape=(n, len(dcols)))
-    else:
-        B = factor.load[:, dcols]
-    X, _ = greens.inverse_columns(factor.L, factor.rows[:nobs], B)
-    return X[(3 * perm[:, None] + np.arange(3)).ravel()]
+        return factor.columns(dcols)[rows]
+    return solved_columns(factor, dcols)[rows]
 
 
 def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
