@@ -13,7 +13,7 @@ PIP    := $(BIN)/pip install --quiet -c constraints.txt
 view: venv
 	$(BIN)/pmask view artifacts/$(MODEL).h5 $(ARGS)
 
-.PHONY: view venv system-deps precompute test test-slow test-pip bench reference figures stroke clean distclean
+.PHONY: view venv system-deps precompute test test-slow test-pip sanitize bench reference figures stroke clean distclean
 
 ## make system-deps: Debian packages for the native routes, the viewer's build (npm) and its browser tests
 ## (chromium + chromedriver) (root; prints what it installs)
@@ -27,7 +27,7 @@ system-deps:
 venv: $(VENV)/.installed
 
 # the package in editable mode; the build backend (setup.py) compiles the C extensions in place
-$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c runtime/servo/*.c runtime/servo/*.h viewer/src/*.js viewer/package-lock.json)
+$(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c runtime/servo/*.c runtime/servo/*.h runtime/servo/core/*.c runtime/servo/core/*.h viewer/src/*.js viewer/package-lock.json)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip "setuptools>=77" wheel
 	$(PIP) --no-build-isolation -e '.[$(EXTRAS)]'
@@ -49,6 +49,10 @@ test-slow: venv
 ## make test-pip: the Green's-function and runtime tests again on the pip-only route
 test-pip: venv
 	PMASK_CHOLMOD=cvxopt $(BIN)/python -m pytest -q tests/test_greens.py tests/test_runtime.py tests/test_selinv.py
+
+## make sanitize: the C example, the servo core's threads and the selected inversion under ASan+UBSan and TSan
+sanitize: venv
+	$(BIN)/python tests/c/sanitize.py
 
 ## make bench: precompute and runtime benchmarks -> bench/results.json, bench/results.md, README table
 bench: venv

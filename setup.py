@@ -3,8 +3,8 @@
 - ``pmask.precompute._selinv``: the P1/P2 Green's-function stage by selected inversion, C over the
   system's CHOLMOD and LAPACK (needs SuiteSparse's headers: ``make system-deps``).  Loaded with ctypes
   by ``pmask.precompute.native``; without it the pip-only route (cvxopt + numpy) runs the same algorithm.
-- ``pmask.runtime.servo._core``: the haptic servo core (``runtime/servo/pmask_servo.c``, C99 over libc,
-  libm and pthreads) with its CPython binding.  Without it the Python engine runs the same step.
+- ``pmask.runtime.servo._core``: the haptic servo core (``runtime/servo/core/*.c``, one C99 file per step of
+  the contact algorithm, over libc, libm and pthreads) with its CPython binding.  Without it the Python engine runs the same step.
   ``-ffp-contract=off``: no fused multiply-adds, so that the C's forces equal the Python engine's to
   the last bit (a test holds them to 1e-12).
 
@@ -17,6 +17,7 @@ Every extension is optional: a machine without a compiler or without the headers
 and runs the pure-Python fallbacks.  ``PMASK_REQUIRE_NATIVE=1`` (CI sets it) turns a missing header
 or a compile error (or, for the viewer's page, a missing npm) into a failed build, so that a broken C source cannot hide behind a fallback.
 """
+import glob
 import os
 import shutil
 import subprocess
@@ -34,8 +35,8 @@ WARN = ["-Wall", "-Wextra", "-Wno-unused-parameter"] + (["-Werror"] if REQUIRED 
 
 def extensions():
     exts = [Extension(
-        "pmask.runtime.servo._core", ["runtime/servo/_coremodule.c", "runtime/servo/pmask_servo.c"],
-        include_dirs=["runtime/servo"], depends=["runtime/servo/pmask_servo.h"],
+        "pmask.runtime.servo._core", ["runtime/servo/_coremodule.c", *sorted(glob.glob("runtime/servo/core/*.c"))],
+        include_dirs=["runtime/servo"], depends=["runtime/servo/pmask_servo.h", "runtime/servo/core/pm_internal.h"],
         extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math", "-pthread", *WARN],
         extra_link_args=["-pthread"], libraries=["m"], optional=not REQUIRED)]
     if Path(SUITESPARSE, "cholmod.h").is_file():

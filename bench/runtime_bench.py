@@ -93,7 +93,7 @@ def build_servo_bench(work: Path) -> Path | None:
     exe = work / "servo_bench"
     inc = servo.include_dir()
     subprocess.run([cc, "-std=c99", "-O2", "-ffp-contract=off", f"-I{inc}", str(HERE / "servo_bench.c"),
-                    str(inc / "pmask_servo.c"), "-lm", "-lpthread", "-o", str(exe)], check=True)
+                    *map(str, servo.sources()), "-lm", "-lpthread", "-o", str(exe)], check=True)
     return exe
 
 
@@ -363,7 +363,7 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
     """kidneys: {surface vertices: artifact path}; synthetic: callable n -> SurfaceStiffness."""
     from pmask.pipeline.strokes import tour
     from pmask.runtime import Model
-    from pmask.runtime.haptics import Surface
+    from pmask.runtime.contact import ContactSurface
     from pmask.runtime.table import write_table
 
     exe = build_servo_bench(work) if _native() else None
@@ -374,7 +374,7 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
         print(f"  haptics on kidney {nv} ...", flush=True)
         m = Model.load(path)
         stiff = m.stiffness("linear", 2.0 * m.mean_edge_length)
-        srf = Surface(stiff)
+        srf = ContactSurface(stiff)
         res["surfaces"][f"kidney_{len(m.points)}"] = dict(surface_bench(f"kidney_{nv}", srf, tour_probes, exe, work),
                                                           synthetic=False)
         res["surfaces"][f"kidney_{len(m.points)}"]["deformation"] = [deformation_bench(stiff, m, e)
@@ -384,7 +384,7 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
     eq = equator_path()
     for n in (500, 5000, 50000, 164000):
         print(f"  haptics on synthetic {n} ...", flush=True)
-        srf = Surface(synthetic(n))
+        srf = ContactSurface(synthetic(n))
         res["surfaces"][f"synthetic_{len(srf.P)}"] = dict(surface_bench(f"synthetic_{n}", srf, eq, exe, work),
                                                           synthetic=True)
     m, stiff, srf = default

@@ -5,11 +5,11 @@
  * TRACE: little-endian int64 tick count, then ticks x N x 3 float64 probe positions.  Prints one JSON
  * object:
  *   tight      the step over the whole trace back to back (median, p99, p99.9, max in µs)
- *   paced      the step in a 1 kHz loop paced by clock_nanosleep on an absolute schedule, as a device
+ *   paced      the step in a 1 kHz loop paced by pm_clock_sleep_until on an absolute schedule, as a device
  *              loop runs it (blocks of 500 ticks, alternating with the references below)
  *   blend_*    the noise/physics reference in the same loops: eq. 15 at the contact's own point, three 3x3
  *              blocks blended (the issue's "physical limit"), timed the same way
- *   empty_*    the timer itself (two clock_gettime calls around nothing)
+ *   empty_*    the timer itself (two pm_clock_now calls around nothing)
  *   late       paced ticks whose step finished after the tick's period ended
  *   batch      K(x) for random points, single thread: queries per second; beside it the memory floor, the
  *              same bytes (32 read, 72 written per query) moved by memcpy and memset
@@ -25,20 +25,9 @@
 
 #include "pmask_servo.h"
 
-static double now_s(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
-static void sleep_until(double t)
-{
-    struct timespec ts;
-    ts.tv_sec = (time_t)t;
-    ts.tv_nsec = (long)((t - (double)ts.tv_sec) * 1e9);
-    clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
-}
+/* the library's own clock (pm_clock_now, pm_clock_sleep_until): what its servo thread schedules by */
+#define now_s pm_clock_now
+#define sleep_until pm_clock_sleep_until
 
 static int cmp(const void *a, const void *b)
 {

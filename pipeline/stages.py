@@ -657,14 +657,20 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             check_memory(element, len(mesh.points), len(surf.regions.contact), spec)
         solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
+        factor = None
         if ck.exists():
             t0 = time.perf_counter()
-            factor = greens.factor_from_arrays(np.load(ck))
-            st.resumed.append("factor")
-            st.timings.update({"assemble": 0.0, "factor": time.perf_counter() - t0})
-            if st.bar is not None:
-                st.bar.update()
-        else:
+            try:
+                factor = greens.factor_from_arrays(np.load(ck))
+            except (greens.CheckpointError, OSError, ValueError, KeyError) as exc:  # damaged on disk: start over
+                log.warning("the factor checkpoint %s cannot be used (%s); factorising again", ck, exc)
+                ck.unlink(missing_ok=True)
+            else:
+                st.resumed.append("factor")
+                st.timings.update({"assemble": 0.0, "factor": time.perf_counter() - t0})
+                if st.bar is not None:
+                    st.bar.update()
+        if factor is None:
             factor, t = factor_stage(spec, mesh, surf)
             st.timings.update(t)
             if spec.solver == "factor":  # (AMG: nothing worth keeping; the tile store is the checkpoint)

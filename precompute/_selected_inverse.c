@@ -1,8 +1,9 @@
 /* The P1 Green's-function stage by selected inversion over CHOLMOD's supernodal factor.
  *
- * Built by tools/build_native.sh (make venv) against Debian's SuiteSparse and the system LAPACK
- * (threaded OpenBLAS after tools/install_cholmod.sh), loaded with ctypes by precompute/native.py.
- * The maths is in precompute/condense.py.  In short, with A = K_FF (every unconstrained dof),
+ * Built by the build backend (setup.py, as the extension pmask.precompute._selinv) against Debian's
+ * SuiteSparse and the system LAPACK (threaded OpenBLAS after `make system-deps`), loaded with ctypes by
+ * precompute/native.py.  The maths is in precompute/greens.py.  In short, with A = K_FF (every
+ * unconstrained dof),
  * P A P^T = L L^T (METIS nested dissection, postordered supernodes) and E the unit columns of the
  * wanted dofs (the free surface),
  *
@@ -30,8 +31,14 @@
  *                  load reaches corner and edge nodes), one dgemm per supernode; see below.
  *   pmask_free     frees what pmask_factor returned.
  *
- * Indices are int64_t (CHOLMOD's SuiteSparse_long on LP64 and LLP64 alike); BLAS takes int.
+ * Indices are int64_t (CHOLMOD's SuiteSparse_long on LP64 and LLP64 alike); BLAS takes int, and every
+ * size passed to it is checked to fit (-5 otherwise).  The factor's arrays may come from a checkpoint on
+ * disk: they are checked (-6) before any of them is used as an index.  Each call takes its own cancel flag
+ * (pmask_cancel_set from another thread): the loops stop at the next supernode and return -4.
  */
+#define _DEFAULT_SOURCE  /* madvise and MADV_HUGEPAGE (glibc hides them under a bare _POSIX_C_SOURCE) */
+#define _POSIX_C_SOURCE 200809L  /* clock_gettime, CLOCK_MONOTONIC, sysconf under -std=c99 */
+#include <limits.h>
 #include <pthread.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -52,11 +59,56 @@ void dgemm_(const char *transa, const char *transb, const int *m, const int *n, 
 
 /* bumped whenever a signature below changes; precompute/native.py refuses a library built from
  * another version (a stale build in the venv) instead of calling it with the wrong arguments */
-int pmask_abi_version(void) { return 5; }
+int pmask_abi_version(void) { return 6; }
 
-/* Set by the caller's other thread (Ctrl-C, a time budget): the supernode loops stop at the next
- * supernode and return -4.  CHOLMOD's factorisation cannot be stopped inside. */
-volatile int32_t pmask_cancel = 0;
+/* A call's cancel flag (NULL: none), set by the caller's other thread (Ctrl-C, a time budget) through
+ * pmask_cancel_set: the supernode loops stop at the next supernode and return -4.  CHOLMOD's
+ * factorisation cannot be stopped inside. */
+void pmask_cancel_set(int32_t *flag, int32_t value) { __atomic_store_n(flag, value, __ATOMIC_RELAXED); }
+
+static int cancelled(const int32_t *flag) { return flag != NULL && __atomic_load_n(flag, __ATOMIC_RELAXED) != 0; }
+
+/* -6 unless the supernodal arrays (from CHOLMOD, or read back from a checkpoint) describe a factor of an
+ * n x n matrix whose every index lies in range: super strictly increasing from 0 to n, pi and px
+ * non-decreasing within Ls's ns and Lx's nx entries, each supernode's row list starting with its own
+ * columns and then rows below them, Perm a permutation of 0..n-1 (iperm: workspace of n). */
+static int check_factor(int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi, const int64_t *px,
+                        const int64_t *Ls, int64_t ns, int64_t nx, const int64_t *Perm, int64_t *iperm)
+{
+    int64_t s, k;
+    if (n < 0 || nsuper < 0 || ns < 0 || nx < 0 || super[0] != 0 || super[nsuper] != n || pi[0] != 0 || px[0] != 0)
+        return -6;
+    for (s = 0; s < nsuper; s++) {
+        int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s];
+        if (nc <= 0 || nrow < nc || pi[s + 1] > ns || px[s + 1] < px[s] || nrow > INT64_MAX / nc ||
+            px[s + 1] - px[s] < nrow * nc || px[s + 1] > nx)
+            return -6;
+        for (k = 0; k < nrow; k++) {
+            int64_t r = Ls[pi[s] + k];
+            if (k < nc ? r != super[s] + k : (r < super[s + 1] || r >= n || (k > nc && r <= Ls[pi[s] + k - 1])))
+                return -6;
+        }
+    }
+    for (k = 0; k < n; k++)
+        iperm[k] = -1;
+    for (k = 0; k < n; k++) {
+        if (Perm[k] < 0 || Perm[k] >= n || iperm[Perm[k]] >= 0)
+            return -6;
+        iperm[Perm[k]] = k;
+    }
+    return 0;
+}
+
+/* -5 unless every supernode's row count fits BLAS's int (m and k are bounded by the caller's sizes) */
+static int check_blas_sizes(int64_t nsuper, const int64_t *pi, int64_t most)
+{
+    if (most > INT_MAX)
+        return -5;
+    for (int64_t s = 0; s < nsuper; s++)
+        if (pi[s + 1] - pi[s] > INT_MAX)
+            return -5;
+    return 0;
+}
 
 typedef struct {
     cholmod_common c;
@@ -64,13 +116,13 @@ typedef struct {
 } pm_factor;
 
 /* Faults a zeroed buffer in from its end, writing nothing new: an atomic add of zero per page. */
-typedef struct { double *x; size_t n; } prefault_job;
+typedef struct { double *x; size_t n; const int32_t *cancel; } prefault_job;
 
 static void *prefault(void *arg)
 {
     prefault_job *job = arg;
     size_t step = (size_t)sysconf(_SC_PAGESIZE) / sizeof(double), k;
-    for (k = job->n; k >= step && !pmask_cancel; k -= step)
+    for (k = job->n; k >= step && !cancelled(job->cancel); k -= step)
         __atomic_fetch_add((int64_t *)(job->x + k - step), (int64_t)0, __ATOMIC_RELAXED);
     return NULL;
 }
@@ -158,7 +210,7 @@ int pmask_factor(int64_t n, int64_t *Ap, int64_t *Ai, double *Ax, pm_factor **ou
     cholmod_l_factorize(&A, f->L, &f->c);
     times[1] = now() - t0;
     if (f->c.status == CHOLMOD_NOT_POSDEF)
-        status = (int)f->L->minor + 1;
+        status = f->L->minor < (size_t)INT_MAX ? (int)f->L->minor + 1 : INT_MAX;
     else if (f->c.status != CHOLMOD_OK || !f->L->is_super)
         status = -1;
     if (status != 0) {
@@ -254,11 +306,12 @@ unordered:
  * (computed column-major as its transpose diag(scale) A^-1, both triangles).
  * times: setup, forward solve (trsm + gemm + scatter), syrk, mirror + permutation; the flops of
  * the dense kernels; the doubles of W; the wait for the prefault helper after the solve.
+ * ns, nx: the lengths of Ls and Lx.  cancel: this call's flag (NULL: none).
  * Returns 0; -2 for a bad want list; -3 if the factor is not postordered; -1 out of memory; -4 if
- * pmask_cancel was set. */
+ * cancelled; -5 if a block is too large for BLAS's int; -6 if the factor's arrays are not a valid factor. */
 int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi, const int64_t *px, const int64_t *Ls,
-                 const double *Lx, const int64_t *Perm, int64_t nw, const int64_t *want, const double *scale,
-                 double *D, double *times)
+                 int64_t ns, const double *Lx, int64_t nx, const int64_t *Perm, int64_t nw, const int64_t *want,
+                 const double *scale, double *D, double *times, const int32_t *cancel)
 {
     pm_tree tree = {0};
     int64_t *iperm = NULL, *rank = NULL, *cnt = NULL, *snode = NULL, *fc = NULL, *lo = NULL, *woff = NULL,
@@ -280,10 +333,11 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
         status = -1;
         goto done;
     }
-    for (k = 0; k < n; k++) {
-        iperm[Perm[k]] = k;
+    if ((status = check_factor(n, nsuper, super, pi, px, Ls, ns, nx, Perm, iperm)) != 0 ||
+        (status = check_blas_sizes(nsuper, pi, nw)) != 0)
+        goto done;
+    for (k = 0; k < n; k++)
         rank[k] = -1;
-    }
     for (i = 0; i < nw; i++) {
         if (want[i] < 0 || want[i] >= n || rank[iperm[want[i]]] >= 0) {
             status = -2;
@@ -335,13 +389,13 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
     /* the helper faults D in (first touch costs ~0.5 s per GB on this VM) while the forward
      * solve runs; the products then write into mapped memory */
     {
-        prefault_job job = {D, (size_t)nw * (size_t)nw};
+        prefault_job job = {D, (size_t)nw * (size_t)nw, cancel};
         want_huge_pages(D, sizeof(double) * job.n);
         started = pthread_create(&helper, NULL, prefault, &job) == 0;
 
         /* forward solve W = L^-1 P E, supernode by supernode (children before parents) */
         t0 = now();
-        for (s = 0; s < nsuper && !pmask_cancel; s++) {
+        for (s = 0; s < nsuper && !cancelled(cancel); s++) {
             int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
             int64_t m = cnt[super[s + 1]] - lo[s];
             int im = (int)m, inc = (int)nc, inr = (int)nr, ild = (int)nrow;
@@ -371,7 +425,7 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
             pthread_join(helper, NULL);
         started = 0;
     }
-    if (pmask_cancel) {
+    if (cancelled(cancel)) {
         status = -4;
         goto done;
     }
@@ -382,7 +436,7 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
     for (s = 0; s < nsuper; s++) {
         int64_t nc = super[s + 1] - super[s], m = cnt[super[s + 1]] - lo[s];
         int im = (int)m, inc = (int)nc, inw = (int)nw;
-        if (pmask_cancel) {
+        if (cancelled(cancel)) {
             status = -4;
             goto done;
         }
@@ -402,7 +456,7 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
         int64_t i0, j0;
         for (j0 = 0; j0 < nw; j0 += T) {
             int64_t j1 = j0 + T < nw ? j0 + T : nw;
-            if (pmask_cancel) {
+            if (cancelled(cancel)) {
                 status = -4;
                 goto done;
             }
@@ -427,7 +481,7 @@ int pmask_selinv(int64_t n, int64_t nsuper, const int64_t *super, const int64_t 
         }
         for (j = 0; j < nw; j++) {
             int64_t cur = j;
-            if (pmask_cancel) {
+            if (cancelled(cancel)) {
                 free(moved);
                 free(first);
                 status = -4;
@@ -498,11 +552,14 @@ static int64_t find_sorted(const int64_t *a, int64_t m, int64_t q)
  * rows: nE distinct dofs; B: n x k in CSC (Bp, Bi, Bx; any row order, duplicates summed).
  * X: nE x k, zero on entry; on return X[i * k + c] = (A^-1 B)[rows_i, c] (row-major).
  * times: setup, forward solves, products, output permutation; flops; doubles of W_E and W_B.
+ * ns, nx: the lengths of Ls and Lx.  cancel: this call's flag (NULL: none).
  * Returns 0; -2 for a bad row list or an index of B out of range; -3 if the factor is not
- * postordered; -1 out of memory. */
+ * postordered; -1 out of memory; -4 if cancelled; -5 if a block is too large for BLAS's int; -6 if the
+ * factor's arrays are not a valid factor. */
 int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t *pi, const int64_t *px,
-                  const int64_t *Ls, const double *Lx, const int64_t *Perm, int64_t nE, const int64_t *rows,
-                  int64_t k, const int64_t *Bp, const int64_t *Bi, const double *Bx, double *X, double *times)
+                  const int64_t *Ls, int64_t ns, const double *Lx, int64_t nx, const int64_t *Perm, int64_t nE,
+                  const int64_t *rows, int64_t k, const int64_t *Bp, const int64_t *Bi, const double *Bx, double *X,
+                  double *times, const int32_t *cancel)
 {
     enum { TILE = 256 };
     pm_tree tree = {0};
@@ -517,6 +574,17 @@ int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t
     const int64_t n1 = n > 0 ? n : 1, ns1 = nsuper > 0 ? nsuper : 1, k1 = k > 0 ? k : 1,
                   e1 = nE > 0 ? nE : 1;
 
+    {
+        int64_t *iperm = malloc(sizeof(int64_t) * n1);
+        if (!iperm)
+            return -1;
+        status = check_factor(n, nsuper, super, pi, px, Ls, ns, nx, Perm, iperm);
+        free(iperm);
+        if (status == 0)
+            status = check_blas_sizes(nsuper, pi, nE > k ? nE : k);
+        if (status != 0)
+            return status;
+    }
     if ((status = tree_init(&tree, n, nsuper, super, pi, Ls, Perm)) != 0)
         return status;
     rankE = malloc(sizeof(int64_t) * n1);
@@ -655,7 +723,7 @@ int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t
     for (s = 0; s < nsuper; s++) {
         int64_t nc = super[s + 1] - super[s], nrow = pi[s + 1] - pi[s], nr = nrow - nc;
         int64_t mE = cntE[super[s + 1]] - loE[s], mB = setlen[s];
-        if (pmask_cancel) {
+        if (cancelled(cancel)) {
             status = -4;
             goto done;
         }
@@ -744,7 +812,7 @@ int pmask_selcols(int64_t n, int64_t nsuper, const int64_t *super, const int64_t
         }
         for (i = 0; i < nE; i++) {
             int64_t cur = i;
-            if (pmask_cancel) {
+            if (cancelled(cancel)) {
                 free(moved);
                 status = -4;
                 goto done;

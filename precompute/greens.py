@@ -88,8 +88,35 @@ def factor_arrays(factor: SparseFactor) -> dict:
     return out
 
 
+class CheckpointError(ValueError):
+    """A factor checkpoint whose arrays are not a factor (damaged on disk): the caller factorises again."""
+
+
+def check_factor_arrays(L: dict) -> None:
+    """Refuse supernodal arrays (:data:`pmask.precompute.selinv.FACTOR_ARRAYS`) whose indices would reach
+    outside the factor: the checks the native selected inversion makes before it uses them (``check_factor``
+    in ``_selected_inverse.c``), for both routes."""
+    try:
+        sup, pi, px, Ls, x, perm = (np.asarray(L[k]) for k in selinv.FACTOR_ARRAYS)
+        n, ns = len(perm), len(sup) - 1
+        nc, nrow = np.diff(sup), np.diff(pi)
+        ok = (ns >= 0 and sup[0] == 0 and sup[-1] == n and pi[0] == 0 and px[0] == 0 and np.all(nc > 0)
+              and np.all(nrow >= nc) and pi[-1] <= len(Ls) and np.all(np.diff(px) >= nrow * nc) and px[-1] <= len(x)
+              and np.array_equal(np.sort(perm), np.arange(n)) and (len(Ls) == 0 or (Ls.min() >= 0 and Ls.max() < n)))
+        if ok:  # each supernode's rows start with its own columns
+            first = pi[:-1][:, None] + np.arange(int(nc.max()) if ns else 0)[None, :]
+            own = np.arange(int(nc.max()) if ns else 0)[None, :] < nc[:, None]
+            ok = np.array_equal(Ls[first[own]], (sup[:-1][:, None] + np.arange(first.shape[1]))[own])
+    except (KeyError, ValueError, TypeError, IndexError):
+        ok = False
+    if not ok:
+        raise CheckpointError("the factor checkpoint's arrays are not a supernodal factor (damaged on disk?)")
+
+
 def factor_from_arrays(ck) -> SparseFactor:
-    """The factor saved by :func:`factor_arrays` (``ck``: the loaded npz)."""
+    """The factor saved by :func:`factor_arrays` (``ck``: the loaded npz); :class:`CheckpointError` when its
+    arrays are not a factor."""
+    check_factor_arrays({k: ck[f"L_{k}"] for k in selinv.FACTOR_ARRAYS})
     def matrix(name):
         if f"{name}_data" not in ck:
             return None

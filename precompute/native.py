@@ -38,7 +38,7 @@ def _library_path() -> Path | None:
 LIBRARY = _library_path()
 
 #: must equal pmask_abi_version() in _selected_inverse.c
-ABI_VERSION = 5
+ABI_VERSION = 6
 
 _F64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _I64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
@@ -65,12 +65,15 @@ def _lib():
     lib.pmask_factor.restype = _c_int
     lib.pmask_factor_arrays.argtypes = [_p, _I64, ctypes.POINTER(_p)]
     lib.pmask_factor_arrays.restype = None
-    lib.pmask_selinv.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _F64, _I64, _c_long, _I64, _F64,
-                                 _p, _F64]
+    _flag = ctypes.POINTER(ctypes.c_int32)
+    lib.pmask_selinv.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _c_long, _F64, _c_long, _I64, _c_long, _I64,
+                                 _F64, _p, _F64, _flag]
     lib.pmask_selinv.restype = _c_int
-    lib.pmask_selcols.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _F64, _I64, _c_long, _I64, _c_long,
-                                  _I64, _I64, _F64, _p, _F64]
+    lib.pmask_selcols.argtypes = [_c_long, _c_long, _I64, _I64, _I64, _I64, _c_long, _F64, _c_long, _I64, _c_long, _I64,
+                                  _c_long, _I64, _I64, _F64, _p, _F64, _flag]
     lib.pmask_selcols.restype = _c_int
+    lib.pmask_cancel_set.argtypes = [_flag, ctypes.c_int32]
+    lib.pmask_cancel_set.restype = None
     lib.pmask_free.argtypes = [_p]
     lib.pmask_free.restype = None
     return lib
@@ -125,21 +128,23 @@ def budget(seconds: float | None, flag: str = "--solve-timeout"):
         _deadline = previous
 
 
-def _run(fn, *args, keep=()):
+def _run(fn, *args, keep=(), cancellable=False):
     """``fn(*args)`` (a ctypes function: it releases the GIL) in a helper thread, so that Ctrl-C and the
-    :func:`budget` stop it within about a supernode: the selected inversion's loops read ``pmask_cancel``
-    between supernodes and return -4.  CHOLMOD's factorisation cannot be stopped inside; it is left to
-    finish in the background with its arguments (and ``keep``: buffers passed as addresses) kept alive."""
-    flag = ctypes.c_int32.in_dll(_lib(), "pmask_cancel")
+    :func:`budget` stop it within about a supernode: with ``cancellable`` the call gets a cancel flag of its
+    own as its last argument, which the selected inversion's loops read between supernodes (then they return
+    -4).  CHOLMOD's factorisation cannot be stopped inside; it is left to finish in the background with its
+    arguments (and ``keep``: buffers passed as addresses) kept alive."""
+    lib = _lib()
+    flag = ctypes.c_int32(0)
     while _pending:  # a cancelled call ends within a supernode; an abandoned factorisation when it is done
         _pending[0][0].wait()
         _pending.pop(0)
-    flag.value = 0
     result, done = {}, threading.Event()
+    call_args = (*args, ctypes.byref(flag)) if cancellable else args
 
     def target():
         try:
-            result["status"] = fn(*args)
+            result["status"] = fn(*call_args)
         finally:
             done.set()
 
@@ -150,8 +155,9 @@ def _run(fn, *args, keep=()):
                 raise ResourceError(f"the factorisation and Green's functions did not finish within {_deadline[1]:g} s "
                                     f"({_deadline[2]}); coarsen the mesh, restrict --contact, or allow longer")
     except BaseException:  # Ctrl-C or the budget: stop the C loops, then go
-        flag.value = 1
-        _pending.append((done, args, keep))
+        if cancellable:
+            lib.pmask_cancel_set(ctypes.byref(flag), 1)
+        _pending.append((done, args, (keep, flag)))
         if done.wait(1.0):
             _pending.pop()
         raise
@@ -205,14 +211,11 @@ def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray):
         raise ValueError(f"{len(scale)} scale factors for {nw} wanted dofs")
     D = np.zeros((nw, nw))
     times = np.zeros(7)
-    status = _run(lib.pmask_selinv, n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
-                  nw, want, scale, D.ctypes.data, times, keep=(D, arr))
+    status = _run(lib.pmask_selinv, n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], len(arr["s"]), arr["x"],
+                  len(arr["x"]), arr["perm"], nw, want, scale, D.ctypes.data, times, keep=(D, arr), cancellable=True)
     if status == -2:
         raise ValueError("wanted dofs must be distinct indices of the factorised matrix")
-    if status == -3:
-        raise ValueError("the factor's supernodes are not postordered")
-    if status != 0:
-        raise MemoryError("out of memory in the selected inversion")
+    _check_status(status)
     return D, {"setup_s": times[0], "solve_s": times[1], "syrk_s": times[2], "permute_s": times[3],
                "flops": float(times[4]), "W_doubles": int(times[5]), "prefault_wait_s": times[6]}
 
@@ -238,16 +241,31 @@ def selected_columns(L: dict, rows: np.ndarray, B):
     times = np.zeros(6)
     Bp, Bi, Bx = (np.ascontiguousarray(B.indptr, np.int64), np.ascontiguousarray(B.indices, np.int64),
                   np.ascontiguousarray(B.data, np.float64))
-    status = _run(lib.pmask_selcols, n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], arr["x"], arr["perm"],
-                  len(rows), rows, k, Bp, Bi, Bx, X.ctypes.data, times, keep=(X, arr, Bp, Bi, Bx))
+    status = _run(lib.pmask_selcols, n, nsuper, arr["super"], arr["pi"], arr["px"], arr["s"], len(arr["s"]), arr["x"],
+                  len(arr["x"]), arr["perm"], len(rows), rows, k, Bp, Bi, Bx, X.ctypes.data, times,
+                  keep=(X, arr, Bp, Bi, Bx), cancellable=True)
     if status == -2:
         raise ValueError("wanted dofs must be distinct indices of the factorised matrix, and B's rows in range")
-    if status == -3:
-        raise ValueError("the factor's supernodes are not postordered")
-    if status != 0:
-        raise MemoryError("out of memory in the selected inversion")
+    _check_status(status)
     return X, {"setup_s": times[0], "solve_s": times[1], "gemm_s": times[2], "permute_s": times[3],
                "flops": float(times[4]), "W_doubles": int(times[5])}
+
+
+class FactorArraysError(ValueError):
+    """Supernodal arrays that are not a valid factor (a damaged checkpoint): nothing was computed."""
+
+
+def _check_status(status: int) -> None:
+    """The C's other refusals (-2 is the caller's message)."""
+    if status == -3:
+        raise ValueError("the factor's supernodes are not postordered")
+    if status == -5:
+        raise ResourceError("a block of the selected inversion is too large for BLAS's 32-bit sizes (over 2^31 "
+                            "rows): coarsen the mesh or restrict --contact")
+    if status == -6:
+        raise FactorArraysError("the factor's arrays are not a valid supernodal factor (a damaged checkpoint?)")
+    if status != 0:
+        raise MemoryError("out of memory in the selected inversion")
 
 
 def cholmod_version() -> str | None:

@@ -2,7 +2,7 @@
 
 A table is exported from an artifact for one mask and radius (``pmask export-table ARTIFACT --mask
 linear --radius R -o FILE``, or :func:`export_table`); the native servo core
-(``runtime/servo/pmask_servo.c``) and :meth:`pmask.runtime.haptics.Surface.from_table` read it.  It holds
+(``runtime/servo/core/``) and :meth:`pmask.runtime.contact.ContactSurface.from_table` read it.  It holds
 the rendered per-vertex stiffness K_i (eq. 12 with the support blend and the region taper of
 :mod:`pmask.runtime.stiffness`), so an application needs neither Ξ nor the masks.
 
@@ -65,7 +65,7 @@ class TableError(InputError):
 
 
 def surface_sections(surface, zeta: bool = True) -> dict:
-    """The sections of a table for a :class:`pmask.runtime.haptics.Surface` (without ``meta``)."""
+    """The sections of a table for a :class:`pmask.runtime.contact.ContactSurface` (without ``meta``)."""
     s = surface
     out = {
         "points": s.P, "triangles": s.T, "neighbours": s.neighbours, "frames": s.tri_geom,
@@ -224,17 +224,17 @@ def _check(t: dict, where: str) -> None:
 def export_table(artifact, out, *, mask: str = "linear", radius: float | None = None, k_rigid: float | None = None,
                  normal_radius: float | None = None, zeta: bool = True, device=None) -> Path:
     """Export a runtime table from an artifact: :meth:`pmask.runtime.Model.stiffness` for the mask and
-    radius, the contact surface of :class:`pmask.runtime.haptics.Surface`, and (``zeta``) the ζ table
+    radius, the contact surface of :class:`pmask.runtime.contact.ContactSurface`, and (``zeta``) the ζ table
     for several coupled contacts and the deformation (3n_c x 3n_c doubles: 150 MB at the default
     kidney's 1,446 contact vertices).  radius : default 2 mean edge lengths."""
-    from pmask.runtime.haptics import Surface
+    from pmask.runtime.contact import ContactSurface
     from pmask.runtime.model import Model
 
     model = artifact if isinstance(artifact, Model) else Model.load(artifact)
     if radius is None and mask != "single":
         radius = 2.0 * model.mean_edge_length
     stiff = model.stiffness(mask, radius, k_rigid=k_rigid, device=device)
-    surface = Surface(stiff, normal_radius)
+    surface = ContactSurface(stiff, normal_radius)
     meta = {"format": f"{TABLE_MAJOR}.{TABLE_MINOR}", "mask": stiff.masks.kind, "radius": stiff.masks.radius,
             "k_rigid": stiff.k_rigid, "symmetric": stiff.symmetric, "support_blend": stiff.support_blend,
             "normal_radius": surface.normal_radius, "units": {"length": "model units (as the artifact)",

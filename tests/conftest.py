@@ -148,9 +148,9 @@ def stiff(model):
 @pytest.fixture(scope="session")
 def surface(stiff):
     """The haptic surface built once (normals, gradients, grid), shared by the haptics and servo tests."""
-    from pmask.runtime.haptics import Surface
+    from pmask.runtime.contact import ContactSurface
 
-    return Surface(stiff)
+    return ContactSurface(stiff)
 
 
 @pytest.fixture(scope="session")

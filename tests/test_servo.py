@@ -23,8 +23,9 @@ from hypothesis import strategies as st
 
 from pmask.pipeline.strokes import region_edge_slide, tour
 from pmask.runtime import Contacts, HapticContact, Model, Status
-from pmask.runtime.haptics import Surface
+from pmask.runtime.contact import ContactSurface
 from pmask.runtime.table import TableError, read_table, surface_sections, table_bytes, write_table
+from pmask.errors import InputError
 from pmask.runtime import servo
 
 pytestmark = pytest.mark.skipif(not servo.available(), reason="the native servo core is not built")
@@ -99,7 +100,7 @@ def test_the_tour_with_bad_samples_gives_the_same_statuses_and_forces(surface, o
 def test_the_edge_of_a_contact_region_and_the_support(kidney_top):
     """kidney_top: Ξ only over the upper half, the rest a band (taper λ) and the hilum's support."""
     m = Model.load(kidney_top)
-    srf = Surface(m.stiffness("linear", 2 * m.mean_edge_length))
+    srf = ContactSurface(m.stiffness("linear", 2 * m.mean_edge_length))
     probes = region_edge_slide()
     trace = [[p] for p in probes]
     py = run(Contacts(srf, 1, engine="python", friction=0.3), trace)
@@ -163,7 +164,7 @@ def test_an_internal_error_is_held_the_same_way(surface, caplog):
     normals = secs["normals"].copy()
     normals[surface.T[t]] = 0.0
     secs["normals"] = normals
-    srf = Surface.from_table(read_table(table_bytes(secs, {})))
+    srf = ContactSurface.from_table(read_table(table_bytes(secs, {})))
     centre = surface.P[surface.T[t]].mean(axis=0)
     trace = [[centre + np.array([0.0, 0.0, 2e-3 - 4e-3 * k / 200])] for k in range(200)]
     with caplog.at_level("ERROR"):
@@ -186,7 +187,7 @@ def test_a_probe_far_outside_is_reported_once_by_the_native_engine(surface, capl
 # ------------------------------------------------------------------------------- tables
 def test_a_table_round_trips_and_both_loaders_read_the_same(table_path, surface):
     t = read_table(table_path)
-    srf = Surface.from_table(t)
+    srf = ContactSurface.from_table(t)
     for name in ("P", "T", "tri_geom", "neighbours", "vertex_normals", "K", "taper", "gradient"):
         assert np.array_equal(getattr(srf, name), getattr(surface, name)), name
     native = servo.load_table(table_path)
@@ -348,6 +349,49 @@ def test_the_python_thread_mode_has_the_same_api(surface, model):
     assert statuses == [Status.CONTACT] and c.tick_stats()["ticks"] > 50
 
 
+@pytest.mark.parametrize("engine", ["native", "python"])
+def test_a_device_loop_in_python_exchanges_samples_tick_by_tick(surface, model, engine):
+    """The haptics issue's tick-synchronous way for a Python device loop: with start(exchange=True) each sample
+    given to exchange() is used by exactly one tick of the servo thread, in order, so the forces the loop reads
+    equal the binding's own step on the same trace, tick for tick (bit for bit: the same C, or the same Python,
+    on the same samples).  Before, set_probes/read beside the running thread skipped and repeated ticks: the
+    force change the loop saw per tick was up to 10x the step's on the same path."""
+    import time
+
+    probes, _ = tour()
+    trace = [[p] for p in probes[:1500]]
+    c = Contacts(surface, 1, engine=engine, friction=0.3)
+    c.start(1000.0, exchange=True)
+    got = []
+    try:
+        for k, smp in enumerate(trace):
+            got.append(c.exchange(smp))
+            if k % 97 == 0:
+                time.sleep(0.003)  # a loop that falls behind now and then: the thread idles, nothing is lost
+        stats = c.tick_stats()
+        with pytest.raises(InputError, match="exchange mode"):
+            c.set_probes(trace[0])
+    finally:
+        c.stop()
+    ref = run(Contacts(surface, 1, engine=engine, friction=0.3), trace)
+    assert_same((np.array([f for f, _ in got], float), [s for _, s in got]), ref)
+    assert stats["idle"] > 0 and stats["ticks"] >= len(trace)
+    assert {Status.CONTACT, Status.NO_CONTACT} <= {s[0] for s in ref[1]}
+
+
+@pytest.mark.parametrize("engine", ["native", "python"])
+def test_text_and_truth_values_are_not_samples(surface, model, engine):
+    """step("000") was a probe at the origin and step(b"\x00\x01\x02") one at (0, 1, 2) m; bools were
+    coordinates too.  All are BAD_SAMPLE now, in both engines, and a real sample after them still works."""
+    i = model.contact[model.core][np.argmax(model.points[model.contact[model.core], 2])]
+    h = HapticContact(surface, engine=engine)
+    for bad in ("000", b"\x00\x01\x02", bytearray(b"abc"), [True, False, True], (0.0, True, 0.0),
+                np.array([1, 0, 1], bool), ["0", "0", "0"], [b"1", 0.0, 0.0], (np.bool_(True), 0.0, 0.0)):
+        assert h.step(bad)[1] == Status.BAD_SAMPLE, bad
+    assert h.step(model.points[i] + [0, 0, 1e-3])[1] == Status.NO_CONTACT
+    assert h.step(model.points[i] - [0, 0, 1e-3])[1] == Status.CONTACT
+
+
 def test_without_the_native_core_the_python_engine_runs(surface, monkeypatch):
     from pmask.errors import InputError
 
@@ -385,7 +429,7 @@ def test_the_c_example_builds_runs_and_replays_through_python(table_path, surfac
     exe = tmp_path / "haptic_loop"
     inc = servo.include_dir()
     build = [cc, "-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2", "-ffp-contract=off", f"-I{inc}",
-             "examples/c/haptic_loop.c", str(inc / "pmask_servo.c"), "-lm", "-lpthread", "-o", str(exe)]
+             "examples/c/haptic_loop.c", *map(str, servo.sources()), "-lm", "-lpthread", "-o", str(exe)]
     r = subprocess.run(build, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     trace = tmp_path / "trace.csv"

@@ -1,8 +1,8 @@
 /* A 1 kHz haptic loop in C over a runtime table, with a simulated 3-DOF device.
  *
  *   pmask export-table artifacts/kidney.h5 -o kidney.tbl
- *   cc -std=c99 -O2 -ffp-contract=off -I runtime/servo examples/c/haptic_loop.c runtime/servo/pmask_servo.c \
- *      -lm -lpthread -o haptic_loop
+ *   cc -std=c99 -O2 -ffp-contract=off -I$(python -m pmask.runtime.servo --include) examples/c/haptic_loop.c \
+ *      $(python -m pmask.runtime.servo --sources) -lm -lpthread -o haptic_loop
  *   ./haptic_loop kidney.tbl                 # as fast as it runs (a scripted 4.5 s session)
  *   ./haptic_loop kidney.tbl --realtime      # paced at 1 kHz on the wall clock, the loop in main()
  *   ./haptic_loop kidney.tbl --thread        # the library's own servo thread, the device in its callbacks
@@ -37,7 +37,8 @@ typedef struct {
     double x[3], v[3];          /* device position and velocity */
     double hand[3], hand_v[3];  /* the scripted hand */
     double top[3];              /* the model's highest point (from the table's bounds) */
-    int64_t tick;
+    int64_t tick;               /* ticks simulated (in thread mode only the servo's thread touches it) */
+    int64_t done;               /* thread mode: the same count, published to main() with atomics */
     double force[3];            /* rendered force, held during the tick */
     int32_t status;
 } sim;
@@ -86,13 +87,6 @@ static void device_advance(sim *s)
     s->tick += 1;
 }
 
-static double now_s(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
 static int cmp(const void *a, const void *b)
 {
     double x = *(const double *)a, y = *(const double *)b;
@@ -112,6 +106,7 @@ static void io_write(void *user, const double *forces, const int32_t *status)
     memcpy(s->force, forces, sizeof s->force);
     s->status = status[0];
     if (s->tick < TICKS) device_advance(s);
+    __atomic_store_n(&s->done, s->tick, __ATOMIC_RELEASE);
 }
 
 int main(int argc, char **argv)
@@ -163,6 +158,8 @@ int main(int argc, char **argv)
         pm_servo_state(servo, 0, &cs);
         if (cs.triangle < 0) {
             fprintf(stderr, "error: tracking did not start above the model\n");
+            pm_servo_free(servo);
+            pm_table_free(table);
             return 1;
         }
         memcpy(s.top, cs.point, sizeof s.top);
@@ -175,46 +172,48 @@ int main(int argc, char **argv)
     FILE *trace = NULL;
     if (trace_path && !(trace = fopen(trace_path, "w"))) {
         fprintf(stderr, "error: cannot write %s\n", trace_path);
+        pm_servo_free(servo);
+        pm_table_free(table);
         return 1;
     }
     if (trace) fprintf(trace, "tick,px,py,pz,fx,fy,fz,status\n");
     double *step_time = malloc(TICKS * sizeof(double));
+    int rc = 0;
     if (!step_time) {
         fprintf(stderr, "error: out of memory\n");
-        return 1;
+        rc = 1;
+        goto done;
     }
     int64_t contact = 0, late = 0;
     double fmax = 0.0, f_hold[3] = {0, 0, 0}, grip_hold[3] = {0, 0, 0};
 
     if (threaded) {
         pm_io io = {io_read, io_write, &s};
-        int rc = pm_servo_start(servo, RATE, PM_SPIN_DEFAULT, &io);
-        if (rc) {
-            fprintf(stderr, "error: the servo thread did not start (%d)\n", rc);
-            return 1;
+        int started = pm_servo_start(servo, RATE, PM_SPIN_DEFAULT, &io);
+        if (started) {
+            fprintf(stderr, "error: the servo thread did not start (%d)\n", started);
+            rc = 1;
+            goto done;
         }
         struct timespec ts = {0, 50000000L};
-        while (__atomic_load_n(&s.tick, __ATOMIC_ACQUIRE) < TICKS) nanosleep(&ts, NULL);
+        while (__atomic_load_n(&s.done, __ATOMIC_ACQUIRE) < TICKS) nanosleep(&ts, NULL);
         pm_servo_stop(servo);
         pm_tick_stats stats;
         pm_servo_read(servo, NULL, NULL, &stats);
         printf("thread: %lld ticks, %lld late, largest lateness %.1f us, longest step %.2f us\n",
                (long long)stats.ticks, (long long)stats.late, 1e6 * stats.max_lateness, 1e6 * stats.step_max);
     } else {
-        double next = now_s();
+        double next = pm_clock_now();
         for (int64_t k = 0; k < TICKS; k++) {
-            if (realtime) {
+            if (realtime) {  /* the library's clock: the schedule its own thread keeps */
                 next += 1.0 / RATE;
-                struct timespec ts;
-                ts.tv_sec = (time_t)next;
-                ts.tv_nsec = (long)((next - (double)ts.tv_sec) * 1e9);
-                clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &ts, NULL);
+                pm_clock_sleep_until(next);
             }
             double probe[3];
             memcpy(probe, s.x, sizeof probe);   /* read the device */
-            double t0 = now_s();
+            double t0 = pm_clock_now();
             pm_servo_step(servo, probe, s.force, &s.status);
-            double t1 = now_s();
+            double t1 = pm_clock_now();
             step_time[k] = t1 - t0;
             if (realtime && t1 > next + 1.0 / RATE) late++;
             if (trace)
@@ -240,9 +239,10 @@ int main(int argc, char **argv)
                realtime ? "" : " (unpaced)");
         if (realtime) printf("paced: %lld late ticks of %d\n", (long long)late, TICKS);
     }
+done:
     if (trace) fclose(trace);
     free(step_time);
     pm_servo_free(servo);
     pm_table_free(table);
-    return 0;
+    return rc;
 }

@@ -1,10 +1,11 @@
 """The native servo core: the haptic contact step in C, for C/C++ haptic loops and behind the Python API.
 
-- ``pmask_servo.h`` / ``pmask_servo.c`` (C99, libc + libm + pthreads; shipped in this folder and in the
-  wheel): load a runtime table (:mod:`pmask.runtime.table`), run the step of
-  :mod:`pmask.runtime.haptics` for n instruments (operation for operation the Python engine's
-  algorithm: a test holds them to identical statuses and forces equal to 1e-12), optionally on a thread
-  of its own at a set rate.  :func:`include_dir` tells a C/C++ build where the two files are.
+- ``pmask_servo.h`` and ``core/*.c`` (C99, libc + libm + pthreads; one file per step of the contact algorithm,
+  as :mod:`pmask.runtime.contact` has one module per step; shipped in this folder and in the wheel): load a
+  runtime table (:mod:`pmask.runtime.table`), run the step of :mod:`pmask.runtime.haptics` for n instruments
+  (operation for operation the Python engine's algorithm: a test holds them to identical statuses and forces
+  equal to 1e-12), optionally on a thread of its own at a set rate.  :func:`include_dir` and :func:`sources`
+  tell a C/C++ build where the files are.
 - ``_core``: the CPython binding, built by the package's build backend; :class:`pmask.runtime.Contacts`
   and :class:`pmask.runtime.HapticContact` use it when it is built (``engine="native"`` insists,
   ``engine="python"`` forces the fallback).
@@ -37,9 +38,29 @@ def available() -> bool:
 
 
 def include_dir() -> Path:
-    """The folder holding ``pmask_servo.h`` and ``pmask_servo.c`` (compile the .c into your application,
-    with ``-ffp-contract=off`` for results identical to the Python engine's)."""
+    """The folder holding ``pmask_servo.h`` (and ``core/`` with the sources, :func:`sources`)."""
     return Path(__file__).resolve().parent
+
+
+def sources() -> list[Path]:
+    """The C files to compile into an application (with ``-ffp-contract=off`` for results identical to the
+    Python engine's): ``cc -I$(include_dir) app.c $(sources) -lm -lpthread``."""
+    return sorted((include_dir() / "core").glob("*.c"))
+
+
+def main(argv=None) -> int:
+    """``python -m pmask.runtime.servo --include`` / ``--sources``: what a Makefile needs, on one line."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m pmask.runtime.servo", description=main.__doc__)
+    p.add_argument("--include", action="store_true", help="the include folder")
+    p.add_argument("--sources", action="store_true", help="the C files, space-separated")
+    a = p.parse_args(argv)
+    if a.include or not a.sources:
+        print(include_dir())
+    if a.sources:
+        print(" ".join(str(f) for f in sources()))
+    return 0
 
 
 def load_table(source):
@@ -126,8 +147,8 @@ class NativeContacts:
         return out
 
     # thread mode
-    def start(self, rate: float, spin: float) -> None:
-        rc = self.servo.start(float(rate), float(spin))
+    def start(self, rate: float, spin: float, exchange: bool = False) -> None:
+        rc = (self.servo.start_exchange if exchange else self.servo.start)(float(rate), float(spin))
         if rc != 0:
             raise InputError({-1: "the servo thread is already running",
                               -2: f"rate must be in (0, 100 kHz] and spin in [0, 10 ms], got {rate}, {spin}",
@@ -143,8 +164,12 @@ class NativeContacts:
         self.servo.set_probes(probes)
 
     def read(self):
-        forces, statuses, (ticks, late, lateness, step_max) = self.servo.read()
-        return forces, statuses, {"ticks": ticks, "late": late, "max_lateness": lateness, "step_max": step_max}
+        forces, statuses, (ticks, late, lateness, step_max, idle) = self.servo.read()
+        return forces, statuses, {"ticks": ticks, "late": late, "max_lateness": lateness, "step_max": step_max,
+                                  "idle": idle}
+
+    def exchange(self, probes, timeout: float):
+        return self.servo.exchange(probes, float(timeout))
 
 
 def table_meta(table) -> dict:

@@ -1,4 +1,4 @@
-/* pmask.runtime.servo._core: the CPython binding of the native servo core (pmask_servo.c).
+/* pmask.runtime.servo._core: the CPython binding of the native servo core (pmask_servo.h, core/).
  *
  * Thin on purpose: it converts probes exactly as the Python engine's float() does (PyNumber_Float; a
  * value that does not convert becomes NaN, a bad sample), calls pm_servo_step, and returns the same
@@ -27,10 +27,19 @@ static PyObject *status_object(int32_t s)
 }
 
 /* ------------------------------------------------------------------ probe conversion */
+/* a coordinate: a real number that is not a truth value or text (the Python engine's tracking.coordinate) */
+static int not_a_coordinate(PyObject *o)
+{
+    if (PyBool_Check(o) || PyUnicode_Check(o) || PyBytes_Check(o) || PyByteArray_Check(o)) return 1;
+    const char *name = Py_TYPE(o)->tp_name;  /* numpy's bool scalar converts to 0.0 / 1.0 as Python's does */
+    return strcmp(name, "numpy.bool") == 0 || strcmp(name, "numpy.bool_") == 0;
+}
+
 static double to_double(PyObject *o)
 {
     if (PyFloat_CheckExact(o)) return PyFloat_AS_DOUBLE(o);
-    PyObject *f = PyNumber_Float(o);   /* what float(o) does: __float__, __index__, strings */
+    if (not_a_coordinate(o)) return NAN;
+    PyObject *f = PyNumber_Float(o);   /* what float(o) does: __float__, __index__ */
     if (!f) {
         PyErr_Clear();
         return NAN;
@@ -49,6 +58,7 @@ static int is_double_format(const char *f)
 static void sample_from(PyObject *o, double *out)
 {
     out[0] = out[1] = out[2] = NAN;
+    if (PyUnicode_Check(o) || PyBytes_Check(o) || PyByteArray_Check(o)) return;  /* text is not a point */
     if ((PyTuple_CheckExact(o) || PyList_CheckExact(o)) && PySequence_Fast_GET_SIZE(o) == 3) {
         PyObject **it = PySequence_Fast_ITEMS(o);
         for (int k = 0; k < 3; k++) out[k] = to_double(it[k]);
@@ -428,10 +438,53 @@ static PyObject *Servo_read(ServoObject *self, PyObject *unused)
     if (after_step(self)) return NULL;
     PyObject *r = results(self);
     if (!r) return NULL;
-    PyObject *out = Py_BuildValue("(OO(LLdd))", PyTuple_GET_ITEM(r, 0), PyTuple_GET_ITEM(r, 1), (long long)st.ticks,
-                                  (long long)st.late, st.max_lateness, st.step_max);
+    PyObject *out = Py_BuildValue("(OO(LLddL))", PyTuple_GET_ITEM(r, 0), PyTuple_GET_ITEM(r, 1), (long long)st.ticks,
+                                  (long long)st.late, st.max_lateness, st.step_max, (long long)st.idle);
     Py_DECREF(r);
     return out;
+}
+
+static PyObject *Servo_start_exchange(ServoObject *self, PyObject *args)
+{
+    double rate, spin = PM_SPIN_DEFAULT;
+    if (!PyArg_ParseTuple(args, "d|d", &rate, &spin)) return NULL;
+    return PyLong_FromLong(pm_servo_start_exchange(self->servo, rate, spin));
+}
+
+/* exchange(probes, timeout) -> (forces, statuses): the tick that used these probes (the GIL released while
+ * waiting); None when no tick answered in time */
+static PyObject *Servo_exchange(ServoObject *self, PyObject *args)
+{
+    PyObject *probes;
+    double timeout;
+    if (!PyArg_ParseTuple(args, "Od", &probes, &timeout)) return NULL;
+    /* its own buffers: other Python threads may step or read this servo while this one waits without the GIL */
+    double *in = PyMem_Calloc(6 * (size_t)self->n, sizeof(double));
+    int32_t *st = PyMem_Calloc((size_t)self->n, sizeof(int32_t));
+    if (!in || !st) {
+        PyMem_Free(in);
+        PyMem_Free(st);
+        return PyErr_NoMemory();
+    }
+    double *out = in + 3 * (size_t)self->n;
+    probes_from(probes, self->n, in);
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = pm_servo_exchange(self->servo, in, out, st, timeout);
+    Py_END_ALLOW_THREADS
+    if (rc == 0) {
+        memcpy(self->forces, out, 3 * (size_t)self->n * sizeof(double));
+        memcpy(self->status, st, (size_t)self->n * sizeof(int32_t));
+    }
+    PyMem_Free(in);
+    PyMem_Free(st);
+    if (rc == -2) {
+        PyErr_SetString(PyExc_RuntimeError, "exchange() needs the servo thread started in exchange mode");
+        return NULL;
+    }
+    if (rc != 0) Py_RETURN_NONE;
+    if (after_step(self)) return NULL;
+    return results(self);
 }
 
 static PyMethodDef Servo_methods[] = {
@@ -444,7 +497,9 @@ static PyMethodDef Servo_methods[] = {
     {"stop", (PyCFunction)Servo_stop, METH_NOARGS, "stop the thread"},
     {"running", (PyCFunction)Servo_running, METH_NOARGS, "whether the thread runs"},
     {"set_probes", (PyCFunction)Servo_set_probes, METH_O, "the probes the thread uses from its next tick"},
-    {"read", (PyCFunction)Servo_read, METH_NOARGS, "(forces, statuses, (ticks, late, max_lateness, step_max))"},
+    {"read", (PyCFunction)Servo_read, METH_NOARGS, "(forces, statuses, (ticks, late, max_lateness, step_max, idle))"},
+    {"start_exchange", (PyCFunction)Servo_start_exchange, METH_VARARGS, "start_exchange(rate[, spin]): the thread on exchanged samples"},
+    {"exchange", (PyCFunction)Servo_exchange, METH_VARARGS, "exchange(probes, timeout) -> (forces, statuses) of the tick that used them"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject ServoType = {

@@ -16,9 +16,15 @@
  * contact tracking in O(log n) whatever the probe's depth.
  *
  * Threads: a table is read-only after loading and may be shared.  A servo (contact state for n
- * instruments) is used by one thread at a time, except in thread mode (pm_servo_start), where its own
- * thread runs the step at a set rate and other threads only call pm_servo_set_probes / pm_servo_read
- * (a sequence lock: no locks and no allocation inside the tick).
+ * instruments) is used by one thread at a time, except in thread mode (pm_servo_start,
+ * pm_servo_start_exchange), where its own thread runs the step at a set rate and any other threads call
+ * pm_servo_set_probes, pm_servo_exchange, pm_servo_read, pm_servo_state and pm_servo_deformation.  Inside the
+ * tick there is no lock, no wait and no allocation: results are published under a sequence lock whose payload
+ * is copied with atomic word loads and stores, probes arrive through a triple buffer and exchanged samples
+ * through a ring (the callers' side of those may take a mutex; the tick's never does).
+ *
+ * The sources: this header and core/ (one C99 file per step of the contact algorithm, pm_internal.h shared
+ * between them).  Compile every .c file of core/ into your application (pmask.runtime.servo.sources() lists them).
  *
  * Indices are int64_t and sizes size_t throughout (no `long`: Windows is LLP64).
  */
@@ -88,13 +94,14 @@ typedef struct {
     int32_t status, in_contact, sliding, pad;
 } pm_contact_state;
 
-/* Timing of thread mode (pm_servo_start). */
+/* Timing of thread mode (pm_servo_start, pm_servo_start_exchange). */
 typedef struct {
-    int64_t ticks;        /* steps run */
+    int64_t ticks;        /* ticks run */
     int64_t late;         /* ticks whose force was not ready within their own period (finished after
                              scheduled start + period), and ticks skipped because the loop fell behind */
     double max_lateness;  /* [s] */
     double step_max;      /* longest step [s] */
+    int64_t idle;         /* exchange mode: ticks at which no sample was waiting (no step ran, the force held) */
 } pm_tick_stats;
 
 /* Load a table from a file, or from memory (copied).  0 on success; otherwise a message in err. */
@@ -155,8 +162,26 @@ typedef struct {
 PM_API int pm_servo_start(pm_servo *servo, double rate, double spin, const pm_io *io);
 PM_API void pm_servo_stop(pm_servo *servo);
 PM_API int32_t pm_servo_running(const pm_servo *servo);
-/* From one thread at a time; never blocks the servo's thread (a sequence lock). */
+/* The probes (3n) the thread uses from its next tick: any thread, any time (callers take turns on a mutex;
+ * the servo's thread takes the latest complete set without waiting, never a torn one).  Before the first
+ * call every probe is NaN (a bad sample). */
 PM_API void pm_servo_set_probes(pm_servo *servo, const double *probes);
+
+/* Tick-synchronous exchange, for a loop that reads its device on its own schedule but wants the servo's
+ * timing: pm_servo_start_exchange runs the thread at `rate` on the samples given to pm_servo_exchange, each
+ * used by exactly one tick, in order (a tick with no sample waiting runs no step and counts as idle).
+ * pm_servo_exchange queues one sample (3n), waits (without the GIL, from Python) for the tick that uses it and
+ * returns that tick's forces (3n) and statuses (n): the sequence of forces is the one pm_servo_step gives on
+ * the same sequence of samples.  Returns 0; -1 when no tick answered within `timeout` seconds; -2 when the
+ * thread does not run in exchange mode; -3 when 64 samples wait unanswered.  From one thread at a time (callers
+ * take turns on a mutex). */
+PM_API int pm_servo_start_exchange(pm_servo *servo, double rate, double spin);
+PM_API int pm_servo_exchange(pm_servo *servo, const double *probes, double *forces, int32_t *status, double timeout);
+
+/* The clock the thread schedules by: CLOCK_MONOTONIC in seconds, and a sleep to an absolute time on it
+ * (POSIX; 0 and a no-op elsewhere).  A device loop in C can pace itself with them as the thread does. */
+PM_API double pm_clock_now(void);
+PM_API void pm_clock_sleep_until(double t);
 /* The latest forces (3n), statuses (n) and timing; any pointer may be NULL. */
 PM_API void pm_servo_read(pm_servo *servo, double *forces, int32_t *status, pm_tick_stats *stats);
 

@@ -1,0 +1,118 @@
+r"""Step 3, several contacts solved together through the body.
+
+The compliance C (3s x 3s) has as diagonal blocks the local laws' own (so that s = 1 is exactly the single
+contact) and as off-diagonal ones the displacement at x_l per unit force at x_k from the Green's functions,
+C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i) (symmetrised).  Block Gauss–Seidel: each contact applies the law
+(:func:`pmask.runtime.contact.law.local_law`) to the displacement left to it, ū_l − Σ_{k≠l} C_lk f_k; a
+contact whose penetration that leaves is ≤ 0 would pull and is released (the LCP's complementarity),
+friction in the same local law (as SOFA's LCP does).  Frictionless contacts start from the exact solution of
+the coupled normal problem (the Delassus system).
+
+The native core's ``core/coupling.c`` is the same code operation for operation.
+"""
+from __future__ import annotations
+
+from pmask.runtime.contact.law import local_law, normal_compliance
+from pmask.runtime.contact.state import GS_SWEEPS
+
+
+def solve(c, states, active, geo, ubar):
+    """The contact law for every active contact, the several coupled by block Gauss-Seidel on the compliance
+    (one sweep when uncoupled).  Returns {l: ((f, ū', sliding, δ), ū left to l)}."""
+    coupling = coupling_blocks(c, states, active) if c.coupled and len(active) > 1 else None
+    if coupling and c._frictionless:
+        force = normal_start(active, geo, ubar, coupling)
+    else:
+        force = {l: states[l].law_force for l in active}  # warm start: last tick's forces
+    result = {}
+    for _ in range(GS_SWEEPS if coupling else 1):
+        change, size = 0.0, 0.0
+        for l in active:
+            ux, uy, uz = ubar[l]
+            if coupling:
+                for k in active:
+                    if k != l:
+                        C, (gx, gy, gz) = coupling[(l, k)], force[k]
+                        ux -= C[0] * gx + C[1] * gy + C[2] * gz
+                        uy -= C[3] * gx + C[4] * gy + C[5] * gz
+                        uz -= C[6] * gx + C[7] * gy + C[8] * gz
+            res = local_law(c, states[l], geo[l], ux, uy, uz)
+            old = force[l]
+            force[l] = res[0]
+            result[l] = (res, (ux, uy, uz))
+            change = max(change, abs(res[0][0] - old[0]), abs(res[0][1] - old[1]), abs(res[0][2] - old[2]))
+            size = max(size, abs(res[0][0]), abs(res[0][1]), abs(res[0][2]))
+        if change <= 1e-13 * size:
+            break
+    for l in active:
+        states[l].law_force = force[l]
+    return result
+
+
+def normal_start(active, geo, ubar, coupling):
+    """Frictionless contacts' start for the sweeps: the normal forces φ (f_l = −φ_l N_l) that solve the coupled
+    normal problem with every active contact pressing, A φ = δ̄ with A_ll = Nᵀ K⁻¹ N / λ (the law's own
+    compliance), A_lk = N_lᵀ C_lk N_k and δ̄_l = −N_l · ū_l (the Delassus system, symmetric positive definite:
+    Gaussian elimination without pivoting), clipped at zero.  When no contact would pull (the usual case) this
+    is the solution and the sweeps stop after one; otherwise they release the pulling ones from there.  (From
+    last tick's forces the sweeps took 12-15 to converge to 1e-13.)"""
+    s = len(active)
+    A = [[0.0] * s for _ in range(s)]
+    r = [0.0] * s
+    for x, l in enumerate(active):
+        Nx, Ny, Nz, K, Ki, lam, _ = geo[l]
+        A[x][x] = normal_compliance(Nx, Ny, Nz, Ki) / lam
+        ux, uy, uz = ubar[l]
+        r[x] = -(Nx * ux + Ny * uy + Nz * uz)
+        for y, k in enumerate(active):
+            if k != l:
+                C = coupling[(l, k)]
+                Mx, My, Mz = geo[k][0], geo[k][1], geo[k][2]
+                cx = C[0] * Mx + C[1] * My + C[2] * Mz
+                cy = C[3] * Mx + C[4] * My + C[5] * Mz
+                cz = C[6] * Mx + C[7] * My + C[8] * Mz
+                A[x][y] = Nx * cx + Ny * cy + Nz * cz
+    phi = solve_spd(A, r)
+    out = {}
+    for x, l in enumerate(active):
+        p = 0.0 if phi is None else max(phi[x], 0.0)
+        Nx, Ny, Nz = geo[l][0], geo[l][1], geo[l][2]
+        out[l] = (-p * Nx, -p * Ny, -p * Nz)
+    return out
+
+
+def coupling_blocks(c, states, active):
+    """C_lk (symmetrised, 9 floats row-major) for every ordered pair of active contacts."""
+    srf = c.surface
+    out = {}
+    for a in active:
+        for b in active:
+            if a < b:
+                C = srf.compliance(states[a].tri, states[a].b, states[b].tri, states[b].b)
+                Ct = srf.compliance(states[b].tri, states[b].b, states[a].tri, states[a].b)
+                S = [0.5 * (C[3 * i + j] + Ct[3 * j + i]) for i in range(3) for j in range(3)]
+                out[(a, b)] = S
+                out[(b, a)] = [S[3 * j + i] for i in range(3) for j in range(3)]
+    return out
+
+
+def solve_spd(A, r):
+    """x with A x = r by Gaussian elimination without pivoting (A symmetric positive definite), in place;
+    None if a pivot is not positive.  The native core runs the same operations in the same order."""
+    s = len(r)
+    for k in range(s):
+        p = A[k][k]
+        if not p > 0.0:
+            return None
+        for i in range(k + 1, s):
+            q = A[i][k] / p
+            for j in range(k + 1, s):
+                A[i][j] = A[i][j] - q * A[k][j]
+            r[i] = r[i] - q * r[k]
+    x = [0.0] * s
+    for i in range(s - 1, -1, -1):
+        acc = r[i]
+        for j in range(i + 1, s):
+            acc = acc - A[i][j] * x[j]
+        x[i] = acc / A[i][i]
+    return x

@@ -1,0 +1,240 @@
+r"""Step 1, tracking and the proxy: where on the surface the probe is, and the proxy that follows it.
+
+The contact point is the surface point under the probe p along the interpolated vertex normal (a Phong
+projection, p = x + s N(x), continuous over edges where a closest point jumps by depth x dihedral angle),
+found by walking from the proxy's triangle; a spatial grid restarts tracking in O(1).  Contact begins when
+the tool sphere (radius r_tool) crosses the surface from outside.  The proxy x follows that projection along
+the surface (a god-object step: across edges, never through the body) by at most ``proxy_speed`` times the
+probe's motion per tick.
+
+Functions of the contact options ``c`` (a :class:`pmask.runtime.Contacts`: its ``surface`` and options) and
+of one :class:`~pmask.runtime.contact.state.ContactState`; the native core's ``core/tracking.c`` is the same
+code operation for operation.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from pmask.runtime.contact.state import FAR_FACTOR, VELOCITY_FILTER, Status, hold, release
+
+log = logging.getLogger("pmask.runtime.haptics")
+
+
+def project(srf, t, px, py, pz):
+    """Phong projection onto triangle t's plane: p = x + s N(x); returns (b0, b1, b2, s).  Two fixed-point
+    steps from the flat projection (each contracts by about depth x normal variation / edge length, ~0.05
+    at haptic depths)."""
+    ox, oy, oz, ax, ay, az, bx, by, bz, nx, ny, nz = srf._tri[t]
+    i0, i1, i2 = srf._idx[t]
+    VN = srf._N
+    n0x, n0y, n0z = VN[i0]
+    n1x, n1y, n1z = VN[i1]
+    n2x, n2y, n2z = VN[i2]
+    dx, dy, dz = px - ox, py - oy, pz - oz
+    h = nx * dx + ny * dy + nz * dz
+    b1 = ax * dx + ay * dy + az * dz
+    b2 = bx * dx + by * dy + bz * dz
+    s = h
+    for _ in range(2):
+        b0 = 1.0 - b1 - b2
+        Nx = b0 * n0x + b1 * n1x + b2 * n2x
+        Ny = b0 * n0y + b1 * n1y + b2 * n2y
+        Nz = b0 * n0z + b1 * n1z + b2 * n2z
+        hn = Nx * nx + Ny * ny + Nz * nz
+        if hn < 0.1:  # normals turned away from the face: keep the flat projection
+            break
+        s = h / hn
+        qx, qy, qz = dx - s * Nx, dy - s * Ny, dz - s * Nz
+        b1 = ax * qx + ay * qy + az * qz
+        b2 = bx * qx + by * qy + bz * qz
+    return 1.0 - b1 - b2, b1, b2, s
+
+
+def locate(c, t, px, py, pz, retry=True):
+    """Walk from triangle t to the one holding the projection of p; return (t, b0, b1, b2, s).
+
+    Two triangles that send the walk to each other hold p's projection on their shared edge (the gap of a
+    convex edge) unless the projection map folds there (normals blended near a crease): then the spatial
+    grid's nearest triangle restarts the walk, once."""
+    srf = c.surface
+    prev = -1
+    nbs = srf._nb
+    for _ in range(c.max_walk):
+        b0, b1, b2, s = project(srf, t, px, py, pz)
+        if b0 >= 0.0 and b1 >= 0.0 and b2 >= 0.0:
+            return t, b0, b1, b2, s
+        k = 0 if (b0 <= b1 and b0 <= b2) else (1 if b1 <= b2 else 2)
+        nb = nbs[t][k]
+        if nb < 0 or nb == prev:
+            if retry:
+                near = srf.grid.nearest((px, py, pz))
+                if near != t and near != prev:
+                    return locate(c, near, px, py, pz, retry=False)
+            break  # a ridge or an open edge: clamp onto t (already projected)
+        prev, t = t, nb
+    else:
+        b0, b1, b2, s = project(srf, t, px, py, pz)  # walk budget spent: clamp where it ended
+    b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)
+    tot = b0 + b1 + b2
+    return t, b0 / tot, b1 / tot, b2 / tot, s
+
+
+def point(srf, t, b0, b1, b2):
+    """The surface point at barycentric b of triangle t."""
+    i0, i1, i2 = srf._idx[t]
+    P = srf._P
+    a, b, c = P[i0], P[i1], P[i2]
+    return (b0 * a[0] + b1 * b[0] + b2 * c[0], b0 * a[1] + b1 * b[1] + b2 * c[1],
+            b0 * a[2] + b1 * b[2] + b2 * c[2])
+
+
+def normal(srf, t, b0, b1, b2):
+    """Unit interpolated (shaded) normal at barycentric b of triangle t."""
+    i0, i1, i2 = srf._idx[t]
+    VN = srf._N
+    a, b, c = VN[i0], VN[i1], VN[i2]
+    x = b0 * a[0] + b1 * b[0] + b2 * c[0]
+    y = b0 * a[1] + b1 * b[1] + b2 * c[1]
+    z = b0 * a[2] + b1 * b[2] + b2 * c[2]
+    r = math.sqrt(x * x + y * y + z * z)
+    return x / r, y / r, z / r
+
+
+def move_proxy(c, st, tx, ty, tz, limit):
+    """Slide the proxy along the surface towards the point (tx, ty, tz), by a path of length at most
+    ``limit`` (a god-object step): in each triangle towards the target's flat projection on its plane,
+    across an edge into the neighbour when the straight path leaves the triangle."""
+    surf = c.surface
+    t, (b0, b1, b2) = st.tri, st.b
+    remaining = limit
+    for _ in range(c.max_walk):
+        ox, oy, oz, ax, ay, az, bx, by, bz, _, _, _ = surf._tri[t]
+        dx, dy, dz = tx - ox, ty - oy, tz - oz
+        q1 = ax * dx + ay * dy + az * dz  # the target's flat projection on t's plane, barycentric
+        q2 = bx * dx + by * dy + bz * dz
+        d0, d1, d2 = (1.0 - q1 - q2) - b0, q1 - b1, q2 - b2
+        i0, i1, i2 = surf._idx[t]
+        P = surf._P
+        v0, v1, v2 = P[i0], P[i1], P[i2]
+        ex = d0 * v0[0] + d1 * v1[0] + d2 * v2[0]
+        ey = d0 * v0[1] + d1 * v1[1] + d2 * v2[1]
+        ez = d0 * v0[2] + d1 * v1[2] + d2 * v2[2]
+        dist = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if dist <= 0.0 or remaining <= 0.0:
+            break
+        a = min(1.0, remaining / dist)  # how far along towards the target this step may go
+        exit_k, exit_a = -1, a
+        for k, (bk, dk) in enumerate(((b0, d0), (b1, d1), (b2, d2))):
+            if dk < 0.0 and bk + exit_a * dk < 0.0:
+                exit_a, exit_k = -bk / dk, k
+        b0, b1, b2 = b0 + exit_a * d0, b1 + exit_a * d1, b2 + exit_a * d2
+        remaining -= exit_a * dist
+        if exit_k < 0:
+            break
+        nb = surf._nb[t][exit_k]
+        if nb < 0:
+            break  # an open edge: stay on it
+        bs = [b0, b1, b2]
+        bs[exit_k] = 0.0
+        w = {surf._idx[t][k]: bs[k] for k in range(3)}
+        t = nb
+        b0, b1, b2 = (w.get(v, 0.0) for v in surf._idx[t])
+    b0, b1, b2 = max(b0, 0.0), max(b1, 0.0), max(b2, 0.0)
+    tot = b0 + b1 + b2
+    st.tri, st.b = t, (b0 / tot, b1 / tot, b2 / tot)
+
+
+#: what is never a coordinate, although float() converts it: text ("000" is 0.0) and truth values
+NOT_COORDINATES = (str, bytes, bytearray, bool, np.bool_)
+
+
+def coordinate(v) -> float:
+    """One coordinate of a probe sample: a real number, not text or a truth value (TypeError otherwise)."""
+    if isinstance(v, NOT_COORDINATES):
+        raise TypeError(f"not a coordinate: {type(v).__name__}")
+    return float(v)
+
+
+def prepare(c, st, sample):
+    """Step 1 of one contact: check the sample, track the probe, start or keep the contact.  Returns the probe
+    as a tuple and whether the contact is active (in contact this tick)."""
+    try:
+        if isinstance(sample, (str, bytes, bytearray)):  # iterable, but text is not a point
+            raise TypeError("text is not a probe sample")
+        px, py, pz = (coordinate(v) for v in sample)
+    except Exception:  # not three numbers (None, text, a bool, an object whose __float__ raises, 10**400)
+        hold(c, st, Status.BAD_SAMPLE)
+        return None, False
+    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+        hold(c, st, Status.BAD_SAMPLE)
+        return None, False
+    last = st.last
+    if last is not None:
+        dx, dy, dz = abs(px - last[0]), abs(py - last[1]), abs(pz - last[2])
+        mj = c.max_jump  # the per-axis test first: no overflow for absurd samples
+        if dx > mj or dy > mj or dz > mj or dx * dx + dy * dy + dz * dz > mj * mj:
+            st.bad += 1
+            if st.bad <= c.reset_after:
+                hold(c, st, Status.JUMP)
+                return None, False
+            st.reset()  # tracking restarts here: the jump is not a motion
+            last = None
+    st.bad = 0
+    s = c.surface
+    lo, hi = s.lo, s.hi
+    gx = max(lo[0] - px, px - hi[0], 0.0)
+    gy = max(lo[1] - py, py - hi[1], 0.0)
+    gz = max(lo[2] - pz, pz - hi[2], 0.0)
+    st.move = (px - last[0], py - last[1], pz - last[2]) if last is not None else (0.0, 0.0, 0.0)
+    a, v = VELOCITY_FILTER, st.vel
+    st.vel = (v[0] + a * (st.move[0] - v[0]), v[1] + a * (st.move[1] - v[1]), v[2] + a * (st.move[2] - v[2]))
+    st.last = (px, py, pz)
+    st.target = None
+    far = FAR_FACTOR * s.diag  # per axis first: no overflow for absurd samples
+    if gx > far or gy > far or gz > far or gx * gx + gy * gy + gz * gz > far * far:
+        if not c._far_warned:
+            log.warning("probe at (%.4g, %.4g, %.4g) is more than %g model sizes from the model (size %.3g): "
+                        "are the probe and the model in the same length unit?", px, py, pz, FAR_FACTOR, s.diag)
+            c._far_warned = True
+        st.tri, st.in_contact, st.above = -1, False, False
+        release(st, Status.FAR_OUTSIDE)
+        return None, False
+    m = c._margin
+    if gx > m or gy > m or gz > m:
+        st.tri, st.in_contact, st.above = -1, False, False
+        release(st)
+        return None, False
+    r = c.tool_radius
+    if st.tri < 0:  # (re)start tracking
+        t = s.grid.nearest((px, py, pz))
+        t, b0, b1, b2, h = locate(c, t, px, py, pz)
+        st.tri, st.b = t, (b0, b1, b2)
+        st.above = h >= r  # starting inside the body is not a contact
+        release(st)
+        return None, False
+    t, b0, b1, b2, h = locate(c, st.tri, px, py, pz)
+    if not st.in_contact:
+        st.tri, st.b = t, (b0, b1, b2)
+        if h >= r or not st.above:
+            st.above = st.above or h >= r
+            release(st)
+            return None, False
+        st.in_contact, st.sliding = True, False  # crossed the surface: the proxy is born at the projection
+        st.anchor, st.slip = None, 0.0
+        st.body_force = (0.0, 0.0, 0.0)
+        return (px, py, pz), True
+    st.target = (t, b0, b1, b2)  # the contact ends where the penetration at the proxy reaches zero
+    return (px, py, pz), True
+
+
+def follow(c, st) -> None:
+    """The proxy's move this tick: towards this tick's projection, at most ``proxy_speed`` |Δp|."""
+    if st.target is not None:
+        move_proxy(c, st, *point(c.surface, *st.target), c.proxy_speed * norm(st.move))
+
+
+def norm(v):
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])

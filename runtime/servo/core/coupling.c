@@ -1,0 +1,157 @@
+/* pmask servo core, step 3: several contacts solved together through the body (pmask.runtime.contact.coupling).
+ *
+ * Block Gauss-Seidel on the compliance whose diagonal blocks are the local laws' own and whose off-diagonal
+ * blocks C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i) come from the Green's functions; frictionless contacts start
+ * from the exact solution of the coupled normal problem (the Delassus system). */
+#include "pm_internal.h"
+
+void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tbi, const double *bb, double *C)
+{
+    const int64_t n3 = 3 * tb->nc;
+    for (int k = 0; k < 9; k++) C[k] = 0.0;
+    const int64_t *ia = tb->T + 3 * ta, *ib = tb->T + 3 * tbi;
+    for (int x = 0; x < 3; x++) {
+        double pi = ba[x];
+        int64_t ri = tb->row[ia[x]];
+        if (pi == 0.0 || ri < 0) continue;
+        for (int y = 0; y < 3; y++) {
+            double pm = bb[y];
+            int64_t rm = tb->row[ib[y]];
+            if (pm == 0.0 || rm < 0) continue;
+            double w = pi * pm;
+            const double *blk = tb->zeta + 3 * rm * n3 + 3 * ri;   /* blk[c][r] = blk[c * n3 + r] */
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) C[3 * r + c] += w * blk[c * n3 + r];
+        }
+    }
+}
+
+static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
+{
+    const pm_table *tb = S->tab;
+    const int32_t n = S->n;
+    for (int32_t x = 0; x < na; x++)
+        for (int32_t y = 0; y < na; y++) {
+            int32_t a = act[x], b = act[y];
+            if (a < b) {
+                double C[9], Ct[9];
+                pm__compliance(tb, S->st[a].tri, S->st[a].b, S->st[b].tri, S->st[b].b, C);
+                pm__compliance(tb, S->st[b].tri, S->st[b].b, S->st[a].tri, S->st[a].b, Ct);
+                double *Sab = S->cpl + 9 * ((size_t)a * n + b), *Sba = S->cpl + 9 * ((size_t)b * n + a);
+                for (int i = 0; i < 3; i++)
+                    for (int j = 0; j < 3; j++) Sab[3 * i + j] = 0.5 * (C[3 * i + j] + Ct[3 * j + i]);
+                for (int i = 0; i < 3; i++)
+                    for (int j = 0; j < 3; j++) Sba[3 * i + j] = Sab[3 * j + i];
+            }
+        }
+}
+
+/* x with A x = r, Gaussian elimination without pivoting (A s x s row-major, SPD), in place: 0, or -1 when a
+ * pivot is not positive (coupling.solve_spd) */
+static int solve_spd(double *A, double *r, double *x, int32_t s)
+{
+    for (int32_t k = 0; k < s; k++) {
+        double p = A[k * s + k];
+        if (!(p > 0.0)) return -1;
+        for (int32_t i = k + 1; i < s; i++) {
+            double q = A[i * s + k] / p;
+            for (int32_t j = k + 1; j < s; j++) A[i * s + j] = A[i * s + j] - q * A[k * s + j];
+            r[i] = r[i] - q * r[k];
+        }
+    }
+    for (int32_t i = s - 1; i >= 0; i--) {
+        double acc = r[i];
+        for (int32_t j = i + 1; j < s; j++) acc = acc - A[i * s + j] * x[j];
+        x[i] = acc / A[i * s + i];
+    }
+    return 0;
+}
+
+/* the frictionless start: the coupled normal problem with every active contact pressing (coupling.normal_start) */
+static void normal_start(pm_servo *S, const int32_t *act, int32_t na)
+{
+    const int32_t n = S->n;
+    double *A = S->nA, *r = S->nr, *x = S->nx;
+    for (int32_t a = 0; a < na; a++) {
+        int32_t l = act[a];
+        const geom *g = &S->geo[l];
+        const double Nx = g->N[0], Ny = g->N[1], Nz = g->N[2];
+        for (int32_t b = 0; b < na; b++) A[a * na + b] = 0.0;
+        A[a * na + a] = pm__nkn(g->N, g->Ki) / g->lam;
+        const double *u = S->ubar + 3 * l;
+        r[a] = -(Nx * u[0] + Ny * u[1] + Nz * u[2]);
+        for (int32_t b = 0; b < na; b++) {
+            int32_t k = act[b];
+            if (k == l) continue;
+            const double *C = S->cpl + 9 * ((size_t)l * n + k);
+            const double Mx = S->geo[k].N[0], My = S->geo[k].N[1], Mz = S->geo[k].N[2];
+            double cx = C[0] * Mx + C[1] * My + C[2] * Mz;
+            double cy = C[3] * Mx + C[4] * My + C[5] * Mz;
+            double cz = C[6] * Mx + C[7] * My + C[8] * Mz;
+            A[a * na + b] = Nx * cx + Ny * cy + Nz * cz;
+        }
+    }
+    int ok = solve_spd(A, r, x, na) == 0;
+    for (int32_t a = 0; a < na; a++) {
+        int32_t l = act[a];
+        double p = ok ? PYMAX(x[a], 0.0) : 0.0;
+        const double *N = S->geo[l].N;
+        S->gsf[3 * l] = -p * N[0];
+        S->gsf[3 * l + 1] = -p * N[1];
+        S->gsf[3 * l + 2] = -p * N[2];
+    }
+}
+
+int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
+{
+    const int coupled = S->o.coupled && na > 1;
+    const int32_t n = S->n;
+    if (coupled) coupling_blocks(S, act, na);
+    if (coupled && S->frictionless) {
+        normal_start(S, act, na);
+    } else {
+        for (int32_t x = 0; x < na; x++) {  /* warm start: last tick's forces */
+            int32_t l = act[x];
+            S->gsf[3 * l] = S->st[l].law_force[0];
+            S->gsf[3 * l + 1] = S->st[l].law_force[1];
+            S->gsf[3 * l + 2] = S->st[l].law_force[2];
+        }
+    }
+    int sweeps = coupled ? GS_SWEEPS : 1;
+    for (int sw = 0; sw < sweeps; sw++) {
+        double change = 0.0, size = 0.0;
+        for (int32_t x = 0; x < na; x++) {
+            int32_t l = act[x];
+            double ux = S->ubar[3 * l], uy = S->ubar[3 * l + 1], uz = S->ubar[3 * l + 2];
+            if (coupled) {
+                for (int32_t y = 0; y < na; y++) {
+                    int32_t k = act[y];
+                    if (k == l) continue;
+                    const double *C = S->cpl + 9 * ((size_t)l * n + k), *g = S->gsf + 3 * k;
+                    const double gx = g[0], gy = g[1], gz = g[2];
+                    ux -= C[0] * gx + C[1] * gy + C[2] * gz;
+                    uy -= C[3] * gx + C[4] * gy + C[5] * gz;
+                    uz -= C[6] * gx + C[7] * gy + C[8] * gz;
+                }
+            }
+            lres *R = &S->res[l];
+            if (pm__local_law(S, &S->st[l], &S->geo[l], ux, uy, uz, R)) return -1;
+            R->ueff[0] = ux;
+            R->ueff[1] = uy;
+            R->ueff[2] = uz;
+            double *old = S->gsf + 3 * l;
+            double c0 = fabs(R->f[0] - old[0]), c1 = fabs(R->f[1] - old[1]), c2 = fabs(R->f[2] - old[2]);
+            old[0] = R->f[0];
+            old[1] = R->f[1];
+            old[2] = R->f[2];
+            change = PYMAX(PYMAX(PYMAX(change, c0), c1), c2);
+            size = PYMAX(PYMAX(PYMAX(size, fabs(R->f[0])), fabs(R->f[1])), fabs(R->f[2]));
+        }
+        if (change <= 1e-13 * size) break;
+    }
+    for (int32_t x = 0; x < na; x++) {
+        int32_t l = act[x];
+        memcpy(S->st[l].law_force, S->gsf + 3 * l, sizeof S->st[l].law_force);
+    }
+    return 0;
+}

@@ -1,0 +1,113 @@
+/* pmask servo core: the surface displacement a display shows (eq. 16), with display forces that make the
+ * interpolated response meet every contact's displacement (Contacts.deformation). */
+#include "pm_internal.h"
+
+static int deformation(pm_servo *s, double *out)
+{
+    const pm_table *tb = s->tab;
+    if (!tb->zeta) return -1;
+    const int32_t n = s->n;
+    /* one consistent snapshot of the published contacts */
+    pm_contact_state *snap = s->dsnap;
+    pm__read_states(s, snap);
+    int32_t na = 0;
+    int64_t tri[64];
+    double b[64][3], u[64][3], f[64][3];
+    for (int32_t l = 0; l < n; l++) {
+        const pm_contact_state *one = &snap[l];
+        if (one->status == PM_CONTACT || one->status == PM_REGION_EDGE) {
+            tri[na] = one->triangle;
+            memcpy(b[na], one->bary, sizeof b[na]);
+            memcpy(u[na], one->u_bar, sizeof u[na]);
+            f[na][0] = -one->force[0];
+            f[na][1] = -one->force[1];
+            f[na][2] = -one->force[2];
+            na++;
+        }
+    }
+    const int64_t nv = tb->nv;
+    for (int64_t i = 0; i < 3 * nv; i++) out[i] = 0.0;
+    if (na == 0) return 0;
+    /* C_disp f = ū' (Gaussian elimination with partial pivoting), or the rendered forces if singular */
+    const int64_t m = 3 * (int64_t)na;
+    double *A = s->dC, *x = s->du;
+    for (int32_t i = 0; i < na; i++)
+        for (int32_t j = 0; j < na; j++) {
+            double C[9];
+            pm__compliance(tb, tri[i], b[i], tri[j], b[j], C);
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) A[(3 * i + r) * m + 3 * j + c] = C[3 * r + c];
+        }
+    for (int32_t i = 0; i < na; i++)
+        for (int r = 0; r < 3; r++) x[3 * i + r] = u[i][r];
+    int singular = 0;
+    for (int64_t k = 0; k < m && !singular; k++) {
+        int64_t piv = k;
+        for (int64_t i = k + 1; i < m; i++)
+            if (fabs(A[i * m + k]) > fabs(A[piv * m + k])) piv = i;
+        if (A[piv * m + k] == 0.0) {
+            singular = 1;
+            break;
+        }
+        if (piv != k) {
+            for (int64_t j = 0; j < m; j++) {
+                double tmp = A[k * m + j];
+                A[k * m + j] = A[piv * m + j];
+                A[piv * m + j] = tmp;
+            }
+            double tmp = x[k];
+            x[k] = x[piv];
+            x[piv] = tmp;
+        }
+        for (int64_t i = k + 1; i < m; i++) {
+            double q = A[i * m + k] / A[k * m + k];
+            for (int64_t j = k; j < m; j++) A[i * m + j] -= q * A[k * m + j];
+            x[i] -= q * x[k];
+        }
+    }
+    if (!singular)
+        for (int64_t i = m - 1; i >= 0; i--) {
+            double acc = x[i];
+            for (int64_t j = i + 1; j < m; j++) acc -= A[i * m + j] * x[j];
+            x[i] = acc / A[i * m + i];
+        }
+    for (int64_t i = 0; i < m; i++)
+        if (!isfinite(x[i])) singular = 1;
+    if (singular)
+        for (int32_t i = 0; i < na; i++)
+            for (int r = 0; r < 3; r++) x[3 * i + r] = f[i][r];
+    /* eq. 16: v(contact vertex) += Σ_loads Σ_k φ_k (f @ Zt[3 row_k : 3 row_k + 3]) */
+    const int64_t n3 = 3 * tb->nc;
+    for (int64_t v = 0; v < nv; v++) {
+        int64_t rv = tb->row[v];
+        if (rv < 0) continue;
+        double acc[3] = {0.0, 0.0, 0.0};
+        for (int32_t i = 0; i < na; i++) {
+            const int64_t *tv = tb->T + 3 * tri[i];
+            for (int k = 0; k < 3; k++) {
+                int64_t rm = tb->row[tv[k]];
+                double phi = b[i][k];
+                if (phi == 0.0 || rm < 0) continue;
+                const double *Z = tb->zeta + 3 * rm * n3 + 3 * rv;
+                double fx = phi * x[3 * i], fy = phi * x[3 * i + 1], fz = phi * x[3 * i + 2];
+                for (int c = 0; c < 3; c++) acc[c] += fx * Z[c] + fy * Z[n3 + c] + fz * Z[2 * n3 + c];
+            }
+        }
+        out[3 * v] = acc[0];
+        out[3 * v + 1] = acc[1];
+        out[3 * v + 2] = acc[2];
+    }
+    return 0;
+}
+
+int pm_servo_deformation(pm_servo *s, double *out)
+{
+#if PM_THREADS
+    pthread_mutex_lock(&s->display_lock);  /* its workspace serves one caller at a time */
+#endif
+    int rc = deformation(s, out);
+#if PM_THREADS
+    pthread_mutex_unlock(&s->display_lock);
+#endif
+    return rc;
+}

@@ -1,0 +1,232 @@
+/* pmask servo core: what its files share (not part of the public API; see pmask_servo.h).
+ *
+ * One file per step of the contact algorithm, as pmask.runtime.contact has one module per step:
+ *   table.c     loading and checking a runtime table        bvh.c       the nearest triangle (restarts tracking)
+ *   tracking.c  step 1: the probe's projection and the proxy law.c       step 2: the contact law at the proxy
+ *   coupling.c  step 3: several contacts solved together   output.c    step 4: zero-order hold, damping, passivity
+ *   servo.c     a servo's state, the tick, publishing       thread.c    thread mode, exchange, the clock
+ *   display.c   the deformation of eq. 16 for a display
+ *
+ * Written operation for operation like the Python (the same expressions in the same order, Python's min/max
+ * as PYMIN/PYMAX, and the divisions that raise ZeroDivisionError in Python turned into the same
+ * INTERNAL_ERROR hold).  Compile without contraction of multiply-adds (-ffp-contract=off), or the last bits
+ * of the forces differ from the Python step's.
+ *
+ * Sharing between threads (thread mode): every field another thread reads while the servo thread runs is
+ * either an atomic (running, stop_flag, the far warning, the ring indices) or inside a sequence lock whose
+ * payload is copied word by word with relaxed atomic loads and stores (publishing), or a triple buffer whose
+ * hand-over is an atomic exchange (the probes from pm_servo_set_probes).  ThreadSanitizer finds no race in the
+ * CI job that drives all of them beside a running thread.
+ */
+#ifndef PM_INTERNAL_H
+#define PM_INTERNAL_H
+
+#if !defined(_POSIX_C_SOURCE) || _POSIX_C_SOURCE < 200809L
+#undef _POSIX_C_SOURCE
+#define _POSIX_C_SOURCE 200809L
+#endif
+
+#include "../pmask_servo.h"
+
+#include <math.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#if !defined(_WIN32)
+#include <pthread.h>
+#define PM_THREADS 1
+#else
+#define PM_THREADS 0
+#endif
+
+#if defined(__GNUC__) && !defined(_WIN32)
+#define PM_HIDDEN __attribute__((visibility("hidden")))
+#else
+#define PM_HIDDEN
+#endif
+
+/* ------------------------------------------------------------------ constants (pmask.runtime.contact.state) */
+#define GS_SWEEPS 60
+#define FAR_FACTOR 10.0
+#define PASSIVITY_SLACK 0.10
+#define VELOCITY_FILTER 0.1
+#define PC_DAMPING_MAX 1.0
+#define PC_RAMP_TICKS 50.0
+/* samples the exchange ring holds (pm_servo_exchange): a Python loop may run this many ticks ahead */
+#define PM_RING 64
+
+/* Python's max(a, b) and min(a, b): the first argument unless the second is larger (smaller) */
+#define PYMAX(a, b) ((b) > (a) ? (b) : (a))
+#define PYMIN(a, b) ((b) < (a) ? (b) : (a))
+
+/* ------------------------------------------------------------------ the table (table.c, bvh.c) */
+struct pm_table {
+    int64_t nv, nt, nc;           /* surface vertices, triangles, contact vertices (ζ table rows / 3) */
+    const double *P, *frames, *N, *K, *taper, *grad;
+    const int64_t *T, *nb;
+    /* the bounding-volume hierarchy of the triangles, built at load (pm_table_nearest) */
+    double *box;                  /* per node: lower corner, upper corner */
+    int64_t *node;                /* per node: left child, or -1 - (first index into order) for a leaf */
+    int64_t *leaf_count;          /* per node: triangles in a leaf, 0 for an inner node */
+    int64_t *order;               /* triangles, leaves' runs */
+    int64_t nnodes;
+    double lo[3], hi[3], mean_edge, diag;
+    const int64_t *row;           /* surface vertex -> contact row, -1 (NULL without ζ) */
+    const double *zeta;           /* (3 nc, 3 nc): rows 3m..3m+2 = ζ_mᵀ (NULL without) */
+    char *meta;
+    unsigned char *blob;
+    size_t size;
+};
+
+PM_HIDDEN int pm__build_bvh(pm_table *t);
+PM_HIDDEN void pm__free_bvh(pm_table *t);
+
+/* ------------------------------------------------------------------ a contact's state (servo.c) */
+typedef struct {
+    int64_t tri;
+    double b[3];
+    int has_anchor;
+    double anchor[3];
+    int in_contact, above, sliding;
+    double slip;
+    int has_last;
+    double last[3], move[3], vel[3];
+    int has_target;
+    int64_t target_t;
+    double target_b[3];
+    int32_t bad;
+    double law_force[3];
+    double force[3], good_force[3], body_force[3], u_bar[3], depth, taper;
+    int32_t status;
+} cstate;
+
+typedef struct {   /* the law's inputs at the proxy (law.c's geometry) */
+    double N[3], K[9], Ki[9], lam, g[3];
+} geom;
+
+typedef struct {   /* the law's result and the displacement left to the contact */
+    double f[3], u2[3];
+    int sliding;
+    double delta;
+    double ueff[3];
+    double total[3];  /* the surface's displacement at the contact: u2 + (ū − ueff) */
+} lres;
+
+typedef struct {
+    int64_t t;
+    double b0, b1, b2, s;
+} located;
+
+/* the published results, as 64-bit words (copied with relaxed atomics under the sequence lock) */
+typedef struct {
+    uint64_t seq;       /* odd while the tick writes */
+    uint64_t *words;    /* stats (5), forces (3n), statuses (n, two per word), states (n x PUB_STATE_WORDS) */
+    size_t nwords;
+    uint64_t *stage;    /* the writer's staging copy */
+} published;
+#define PUB_STATE_WORDS (sizeof(pm_contact_state) / 8)
+
+struct pm_servo {
+    const pm_table *tab;
+    int32_t n;
+    pm_options o;
+    int frictionless;
+    double margin, energy, pc_damping;
+    int far_warned;
+    int32_t far_pending;    /* atomic: 1 once a far probe was seen, until taken */
+    double far_probe[3];    /* written once, before far_pending's release store */
+    cstate *st;
+    /* per-tick workspace, allocated at creation */
+    double *probe;
+    int *ok;
+    geom *geo;
+    double *ubar;     /* 3n */
+    int32_t *active;  /* n */
+    lres *res;        /* n */
+    double *gsf;      /* 3n: Gauss-Seidel forces */
+    double *cpl;      /* n*n*9 coupling blocks */
+    double *nA, *nr, *nx;  /* the frictionless start's normal system (n*n, n, n) */
+    /* display solve */
+    double *dC, *du;
+    int32_t *dact;
+    pm_contact_state *dsnap;
+    /* the published results */
+    published pub;
+    pm_tick_stats stats;    /* the servo thread's own copy (published with the state) */
+    /* pm_servo_set_probes -> the servo thread: a triple buffer (3 x 3n doubles); writers serialised by a mutex */
+    double *tb;
+    uint32_t tb_middle;     /* atomic: index of the middle buffer, | 4 when it holds a sample not yet taken */
+    uint32_t tb_back, tb_front;
+    int tb_seen;            /* the servo thread has taken a sample */
+    /* pm_servo_exchange: a ring of samples in and of results out (single producer, single consumer each) */
+    double *ring_in;        /* PM_RING x 3n */
+    double *ring_out;       /* PM_RING x 3n forces */
+    int32_t *ring_status;   /* PM_RING x n */
+    uint64_t ring_head, ring_tail, ring_done;  /* atomics: samples submitted, taken, answered */
+    int exchange;           /* the thread runs on the exchange ring */
+    /* thread mode */
+    double *tick_probes, *tick_forces;
+    int32_t *tick_status;
+    pm_io io;
+    int has_io;
+    double period, spin;
+    int32_t running;        /* atomic */
+    int32_t stop_flag;      /* atomic */
+#if PM_THREADS
+    pthread_t thread;
+    pthread_mutex_t in_lock;  /* serialises pm_servo_set_probes and pm_servo_exchange callers */
+    pthread_mutex_t display_lock;  /* pm_servo_deformation's workspace, one caller at a time */
+    int lock_ok;
+#endif
+};
+
+/* servo.c */
+PM_HIDDEN void pm__state_reset(cstate *s);
+PM_HIDDEN void pm__hold(const pm_servo *S, cstate *st, int32_t status);
+PM_HIDDEN void pm__release(cstate *st, int32_t status);
+PM_HIDDEN int pm__step_inner(pm_servo *S, const double *probes);
+PM_HIDDEN void pm__publish(pm_servo *s, const pm_tick_stats *stats);
+PM_HIDDEN void pm__read_states(pm_servo *s, pm_contact_state *out);
+PM_HIDDEN void pm__read_published(pm_servo *s, int32_t k, pm_contact_state *one, double *forces, int32_t *status,
+                                  pm_tick_stats *stats);
+/* tracking.c (step 1) */
+PM_HIDDEN int pm__locate(const pm_servo *S, int64_t t, const double *p, int retry, located *out);
+PM_HIDDEN int pm__move_proxy(const pm_servo *S, cstate *st, const double *target, double limit);
+PM_HIDDEN int pm__prepare(pm_servo *S, cstate *st, const double *sample, double *p);
+PM_HIDDEN int pm__follow(pm_servo *S, cstate *st);
+PM_HIDDEN int pm__normal_at(const pm_table *tb, int64_t t, const double *b, double *N);
+/* law.c (step 2) */
+PM_HIDDEN int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom *g, double *u);
+PM_HIDDEN int pm__local_law(const pm_servo *S, const cstate *st, const geom *g, double ux, double uy, double uz,
+                            lres *R);
+/* coupling.c (step 3) */
+PM_HIDDEN void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tbi, const double *bb,
+                              double *C);
+PM_HIDDEN int pm__solve(pm_servo *S, const int32_t *act, int32_t na);
+/* output.c (step 4) */
+PM_HIDDEN int pm__render(pm_servo *S, int32_t na);
+
+/* ------------------------------------------------------------------ small shared helpers */
+static inline double pm__norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+static inline void pm__point_at(const pm_table *tb, int64_t t, const double *b, double *x)
+{
+    const int64_t *v = tb->T + 3 * t;
+    const double *a = tb->P + 3 * v[0], *bb = tb->P + 3 * v[1], *c = tb->P + 3 * v[2];
+    x[0] = b[0] * a[0] + b[1] * bb[0] + b[2] * c[0];
+    x[1] = b[0] * a[1] + b[1] * bb[1] + b[2] * c[1];
+    x[2] = b[0] * a[2] + b[1] * bb[2] + b[2] * c[2];
+}
+
+/* Nᵀ K⁻¹ N (law.normal_compliance) */
+static inline double pm__nkn(const double *N, const double *Ki)
+{
+    const double Nx = N[0], Ny = N[1], Nz = N[2];
+    return (Nx * (Ki[0] * Nx + Ki[1] * Ny + Ki[2] * Nz) + Ny * (Ki[3] * Nx + Ki[4] * Ny + Ki[5] * Nz) +
+            Nz * (Ki[6] * Nx + Ki[7] * Ny + Ki[8] * Nz));
+}
+
+#endif

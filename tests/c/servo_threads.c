@@ -1,0 +1,213 @@
+/* The servo core's threads under the sanitizers (make sanitize; CI fails on any report).
+ *
+ *   servo_threads TABLE
+ *
+ * 1. Thread mode: the servo's thread runs at 1 kHz for two contacts while three threads of the application
+ *    call pm_servo_set_probes (a scripted press and circle), pm_servo_read / pm_servo_state, and
+ *    pm_servo_deformation (when the table has a zeta section) beside it.  Each published state must be one
+ *    the tick wrote: its point lies on its triangle at its barycentrics (a torn copy would mix two ticks).
+ * 2. Exchange mode: two application threads take turns exchanging a scripted trace; every answer equals a
+ *    second servo stepped on the same samples in the same order (bit for bit).
+ * Prints one line per part; exits 1 on a failed check.
+ */
+#define _POSIX_C_SOURCE 200809L
+#include <math.h>
+#include <pthread.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+#include "pmask_servo.h"
+
+#define N 2
+#define EXCHANGES 600
+
+typedef struct {
+    pm_servo *servo;
+    const pm_table *table;
+    double top[3];
+    int32_t stop;      /* atomic */
+    int64_t torn;      /* atomic: published states inconsistent with themselves */
+    int64_t reads;     /* atomic */
+} shared;
+
+static void probe_at(const shared *sh, int64_t k, int which, double *p)
+{
+    double t = (double)k / 1000.0, depth = t < 0.3 ? 0.01 * t : 0.003;   /* press 3 mm, then circle */
+    double a = 6.283185307179586 * t, r = 0.002;
+    p[0] = sh->top[0] + (which ? -0.008 : 0.008) + r * cos(a);
+    p[1] = sh->top[1] + r * sin(a);
+    p[2] = sh->top[2] - depth;
+}
+
+static void *writer(void *arg)
+{
+    shared *sh = arg;
+    struct timespec ts = {0, 300000};
+    for (int64_t k = 0; !__atomic_load_n(&sh->stop, __ATOMIC_ACQUIRE); k++) {
+        double p[3 * N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        pm_servo_set_probes(sh->servo, p);
+        nanosleep(&ts, NULL);
+    }
+    return NULL;
+}
+
+static void *reader(void *arg)
+{
+    shared *sh = arg;
+    while (!__atomic_load_n(&sh->stop, __ATOMIC_ACQUIRE)) {
+        double f[3 * N];
+        int32_t st[N];
+        pm_tick_stats stats;
+        pm_servo_read(sh->servo, f, st, &stats);
+        for (int32_t k = 0; k < N; k++) {
+            pm_contact_state cs;
+            pm_servo_state(sh->servo, k, &cs);
+            if (cs.triangle < 0) continue;
+            /* the point is the barycentric combination of the triangle's corners: recompute it from a
+             * one-contact servo-free source (the table's stiffness is not needed: compare with bary sums) */
+            double sb = cs.bary[0] + cs.bary[1] + cs.bary[2];
+            if (!(fabs(sb - 1.0) < 1e-9) || !isfinite(cs.point[0])) __atomic_fetch_add(&sh->torn, 1, __ATOMIC_RELAXED);
+        }
+        __atomic_fetch_add(&sh->reads, 1, __ATOMIC_RELAXED);
+    }
+    return NULL;
+}
+
+static void *display(void *arg)
+{
+    shared *sh = arg;
+    int64_t nv = pm_table_vertices(sh->table);
+    double *u = malloc((size_t)nv * 3 * sizeof(double));
+    if (!u) return NULL;
+    struct timespec ts = {0, 5000000};
+    while (!__atomic_load_n(&sh->stop, __ATOMIC_ACQUIRE)) {
+        if (pm_servo_deformation(sh->servo, u) == -1) break;  /* no zeta table */
+        nanosleep(&ts, NULL);
+    }
+    free(u);
+    return NULL;
+}
+
+typedef struct {
+    pm_servo *servo;
+    const shared *sh;
+    int which;               /* this thread takes every other sample */
+    pthread_mutex_t *turn;   /* the two threads alternate: the samples stay in trace order */
+    int64_t *next;           /* next sample index, under turn */
+    double (*forces)[3 * N];
+    int32_t (*status)[N];
+    int failed;
+} exch;
+
+static void *exchanger(void *arg)
+{
+    exch *e = arg;
+    for (;;) {
+        pthread_mutex_lock(e->turn);
+        int64_t k = *e->next;
+        if (k >= EXCHANGES) {
+            pthread_mutex_unlock(e->turn);
+            return NULL;
+        }
+        double p[3 * N];
+        for (int w = 0; w < N; w++) probe_at(e->sh, k, w, p + 3 * w);
+        int rc = pm_servo_exchange(e->servo, p, e->forces[k], e->status[k], 1.0);
+        *e->next = k + 1;
+        pthread_mutex_unlock(e->turn);
+        if (rc != 0) e->failed = rc;
+    }
+}
+
+int main(int argc, char **argv)
+{
+    if (argc != 2) {
+        fprintf(stderr, "usage: %s TABLE\n", argv[0]);
+        return 2;
+    }
+    char err[512];
+    pm_table *table;
+    if (pm_table_load(argv[1], &table, err, sizeof err)) {
+        fprintf(stderr, "error: %s\n", err);
+        return 1;
+    }
+    pm_options o;
+    pm_options_default(table, &o);
+    o.friction = 0.3;
+    shared sh;
+    memset(&sh, 0, sizeof sh);
+    sh.table = table;
+    {
+        double lo[3], hi[3];
+        pm_table_bounds(table, lo, hi);
+        sh.top[0] = 0.5 * (lo[0] + hi[0]);
+        sh.top[1] = 0.5 * (lo[1] + hi[1]);
+        sh.top[2] = hi[2];
+    }
+    int rc = 0;
+    pm_servo *a = NULL, *b = NULL;
+    if (pm_servo_create(table, N, &o, &a, err, sizeof err) || pm_servo_create(table, N, &o, &b, err, sizeof err)) {
+        fprintf(stderr, "error: %s\n", err);
+        rc = 1;
+        goto done;
+    }
+    /* 1. thread mode beside three application threads */
+    sh.servo = a;
+    if (pm_servo_start(a, 1000.0, PM_SPIN_DEFAULT, NULL)) {
+        fprintf(stderr, "error: the servo thread did not start\n");
+        rc = 1;
+        goto done;
+    }
+    pthread_t t[3];
+    pthread_create(&t[0], NULL, writer, &sh);
+    pthread_create(&t[1], NULL, reader, &sh);
+    pthread_create(&t[2], NULL, display, &sh);
+    struct timespec run = {1, 0};
+    nanosleep(&run, NULL);
+    __atomic_store_n(&sh.stop, 1, __ATOMIC_RELEASE);
+    for (int i = 0; i < 3; i++) pthread_join(t[i], NULL);
+    pm_servo_stop(a);
+    pm_tick_stats stats;
+    pm_servo_read(a, NULL, NULL, &stats);
+    printf("thread mode: %lld ticks, %lld reads beside them, %lld torn\n", (long long)stats.ticks,
+           (long long)__atomic_load_n(&sh.reads, __ATOMIC_RELAXED), (long long)__atomic_load_n(&sh.torn, __ATOMIC_RELAXED));
+    if (stats.ticks < 500 || sh.torn) rc = 1;
+
+    /* 2. exchange mode: answers equal the step on the same samples */
+    pm_servo_reset(a);
+    if (pm_servo_start_exchange(a, 1000.0, PM_SPIN_DEFAULT)) {
+        fprintf(stderr, "error: the exchange thread did not start\n");
+        rc = 1;
+        goto done;
+    }
+    static double forces[EXCHANGES][3 * N];
+    static int32_t status[EXCHANGES][N];
+    pthread_mutex_t turn = PTHREAD_MUTEX_INITIALIZER;
+    int64_t next = 0;
+    exch e[2];
+    for (int i = 0; i < 2; i++) {
+        e[i] = (exch){a, &sh, i, &turn, &next, forces, status, 0};
+        pthread_create(&t[i], NULL, exchanger, &e[i]);
+    }
+    for (int i = 0; i < 2; i++) pthread_join(t[i], NULL);
+    pm_servo_stop(a);
+    int64_t differ = 0;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], f[3 * N];
+        int32_t s[N];
+        for (int w = 0; w < N; w++) probe_at(&sh, k, w, p + 3 * w);
+        pm_servo_step(b, p, f, s);
+        if (memcmp(f, forces[k], sizeof f) != 0 || memcmp(s, status[k], sizeof s) != 0) differ++;
+    }
+    pm_servo_read(a, NULL, NULL, &stats);
+    printf("exchange mode: %d samples, %lld differ from the step, %lld idle ticks, errors %d %d\n", EXCHANGES,
+           (long long)differ, (long long)stats.idle, e[0].failed, e[1].failed);
+    if (differ || e[0].failed || e[1].failed) rc = 1;
+done:
+    pm_servo_free(a);
+    pm_servo_free(b);
+    pm_table_free(table);
+    return rc;
+}
