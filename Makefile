@@ -6,14 +6,19 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 MODEL  ?= kidney
 ARGS   ?=
-EXTRAS ?= precompute,figures,segmentation,repair,test
+EXTRAS ?= precompute,figures,segmentation,repair,test,docs
 PIP    := $(BIN)/pip install --quiet -c constraints.txt
+
+.PHONY: help view venv system-deps precompute test test-slow test-pip sanitize docs bench reference figures stroke clean distclean
+
+## make: this list
+help:
+	@echo "pmask: make TARGET (the first run creates .venv and installs pmask into it)"
+	@sed -n 's/^## make /  make /p' $(MAKEFILE_LIST)
 
 ## make view [MODEL=kidney]: the model in a browser (pmask view; Ctrl-C stops)
 view: venv
 	$(BIN)/pmask view artifacts/$(MODEL).h5 $(ARGS)
-
-.PHONY: view venv system-deps precompute test test-slow test-pip sanitize bench reference figures stroke clean distclean
 
 ## make system-deps: Debian packages for the native routes, the viewer's build (npm) and its browser tests
 ## (chromium + chromedriver) (root; prints what it installs)
@@ -29,8 +34,10 @@ venv: $(VENV)/.installed
 # the package in editable mode; the build backend (setup.py) compiles the C extensions in place
 $(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precompute/*.c runtime/servo/*.c runtime/servo/*.h runtime/servo/core/*.c runtime/servo/core/*.h viewer/src/*.js viewer/package-lock.json)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip "setuptools>=77" wheel
-	$(PIP) --no-build-isolation -e '.[$(EXTRAS)]'
+	$(BIN)/pip install --quiet --upgrade pip "setuptools>=77" wheel 2>&1 | grep -v "^WARNING: Location" || true
+	@# (setuptools warns that a folder named like the package may shadow an editable install; pmask/__init__.py
+	@# handles a checkout's root, so the warning is not shown)
+	PYTHONWARNINGS="ignore:Editable installation" $(PIP) --no-build-isolation -e '.[$(EXTRAS)]'
 	@$(BIN)/pmask --version
 	touch $@
 
@@ -54,23 +61,29 @@ test-pip: venv
 sanitize: venv
 	$(BIN)/python tests/c/sanitize.py
 
-## make bench: precompute and runtime benchmarks -> bench/results.json, bench/results.md, README table
+## make docs: the documentation from the code into docs/_build/html (warnings are errors; runs the examples)
+docs: venv
+	$(BIN)/pmask -q precompute kidney
+	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
+	@echo "open docs/_build/html/index.html"
+
+## make bench: precompute and runtime benchmarks -> bench/results.json and docs/generated/benchmarks.md
 bench: venv
 	$(BIN)/python bench/run.py
 
-## make reference: recompute tests/reference from the stored meshes and show the diff (REMESH=1: mesh anew)
+## make reference: recompute tests/reference from the stored meshes, show the diff, rewrite docs/generated/reference.md (REMESH=1: mesh anew)
 reference: venv
 	$(BIN)/pmask reference $(if $(REMESH),--remesh,)
 	git diff --stat -- tests/reference || true
 
 ## make figures: the paper's figures for the kidney and the stroke traces into docs/
-figures: venv
+figures: precompute
 	$(BIN)/pmask figures $(MODEL) --out docs
 	$(BIN)/python examples/stroke.py artifacts/$(MODEL).h5 --out docs
 
 ## make clean: build products and caches (keeps artifacts/); make distclean: also artifacts/ and .venv
 clean:
-	rm -rf build *.egg-info .pytest_cache .hypothesis
+	rm -rf build *.egg-info .pytest_cache .hypothesis docs/_build docs/auto_examples docs/api/generated
 	find precompute runtime -name '*.so' -delete
 	rm -f viewer/static/viewer.bundle.js
 distclean: clean

@@ -22,11 +22,14 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 from setuptools import Extension, setup
+from setuptools.command.build import build
 from setuptools.command.build_ext import build_ext
 from setuptools.command.build_py import build_py
+from setuptools.command.egg_info import egg_info
 
 REQUIRED = os.environ.get("PMASK_REQUIRE_NATIVE", "") not in ("", "0")
 SUITESPARSE = os.environ.get("PMASK_SUITESPARSE_INCLUDE", "/usr/include/suitesparse")
@@ -67,34 +70,77 @@ class BuildExt(build_ext):
 
 
 VIEWER = Path(__file__).resolve().parent / "viewer"
+#: what the page is built from (the lock file pins three.js and esbuild)
+VIEWER_SOURCES = ("package.json", "package-lock.json", "src")
 
 
-def build_viewer():
-    """npm ci + esbuild: the page's bundle, unless it is newer than its sources and the lock file."""
-    bundle = VIEWER / "static" / "viewer.bundle.js"
-    sources = [VIEWER / "package-lock.json", *sorted((VIEWER / "src").glob("*.js"))]
+def build_viewer(where: Path) -> Path | None:
+    """npm ci + esbuild in ``where`` (a copy of the viewer's sources, or the checkout's folder for an editable
+    install): the page's bundle, unless it is newer than its sources and the lock file.  Returns the bundle,
+    or None where it cannot be built (no npm: `pmask view` then says how to build it)."""
+    bundle = where / "static" / "viewer.bundle.js"
+    sources = [where / "package-lock.json", *sorted((where / "src").glob("*.js"))]
     if not sources[0].is_file():
-        return  # an sdist or checkout without the viewer's sources: nothing to build
+        return None  # an sdist or checkout without the viewer's sources: nothing to build
     if bundle.is_file() and all(bundle.stat().st_mtime >= s.stat().st_mtime for s in sources):
-        return
+        return bundle
     npm = shutil.which("npm")
     try:
         if npm is None:
             raise RuntimeError("npm is not installed")
-        if not (VIEWER / "node_modules" / "three").is_dir():
-            subprocess.run([npm, "ci", "--ignore-scripts", "--no-audit", "--no-fund"], cwd=VIEWER, check=True)
-        subprocess.run([npm, "run", "build"], cwd=VIEWER, check=True)
+        quiet = ["--silent"] if not REQUIRED else []
+        if not (where / "node_modules" / "three").is_dir():
+            subprocess.run([npm, "ci", "--ignore-scripts", "--no-audit", "--no-fund", *quiet], cwd=where, check=True)
+        subprocess.run([npm, "run", "build", *quiet], cwd=where, check=True)
+        return bundle
     except (RuntimeError, OSError, subprocess.CalledProcessError) as exc:
         if REQUIRED:
             raise SystemExit(f"PMASK_REQUIRE_NATIVE is set but the viewer's page did not build ({exc})")
         print(f"note: the viewer's page was not built ({exc}); `pmask view` will say how to build it",
               file=sys.stderr)
+        return None
 
 
 class BuildPy(build_py):
+    """The viewer's page: an editable install builds it in the checkout (the package is the checkout); any other
+    install builds it in a temporary copy of its sources and puts only the bundle into the build, so that
+    installing from a checkout leaves the checkout as it was (no node_modules, no bundle)."""
+
     def run(self):
-        build_viewer()
+        if getattr(self, "editable_mode", False):
+            build_viewer(VIEWER)
+            super().run()
+            return
         super().run()
+        if not (VIEWER / "package-lock.json").is_file():
+            return
+        with tempfile.TemporaryDirectory(prefix="pmask-viewer-") as tmp:
+            for name in VIEWER_SOURCES:
+                src = VIEWER / name
+                (shutil.copytree if src.is_dir() else shutil.copy2)(src, Path(tmp) / name)
+            (Path(tmp) / "static").mkdir()
+            bundle = build_viewer(Path(tmp))
+            if bundle is not None:
+                target = Path(self.build_lib) / "pmask" / "viewer" / "static"
+                target.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(bundle, target / bundle.name)
 
 
-setup(ext_modules=extensions(), cmdclass={"build_ext": BuildExt, "build_py": BuildPy})
+class Build(build):
+    """Build products in a temporary folder, not ``build/`` in the checkout (pip builds in place)."""
+
+    def initialize_options(self):
+        super().initialize_options()
+        self.build_base = tempfile.mkdtemp(prefix="pmask-build-")
+
+
+class EggInfo(egg_info):
+    """The package metadata in a temporary folder, not ``pmask.egg-info`` in the checkout."""
+
+    def initialize_options(self):
+        super().initialize_options()
+        self.egg_base = tempfile.mkdtemp(prefix="pmask-egg-")
+
+
+setup(ext_modules=extensions(), cmdclass={"build": Build, "build_ext": BuildExt, "build_py": BuildPy,
+                                          "egg_info": EggInfo})

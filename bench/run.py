@@ -1,6 +1,6 @@
 """`make bench`: precompute and runtime measured side by side in one run.
 
-Writes bench/results.json and bench/results.md (the table the README includes).
+Writes bench/results.json and the docs' benchmark page (docs/generated/benchmarks.md, bench/report.py).
 Benchmarks are measurements, not tests: nothing here asserts a time.
 """
 from __future__ import annotations
@@ -167,9 +167,9 @@ def main() -> None:
 
     shutil.rmtree(work, ignore_errors=True)
     (HERE / "results.json").write_text(json.dumps(res, indent=2))
-    (HERE / "results.md").write_text(markdown(res))
-    include_in_readme(markdown(res))
-    print((HERE / "results.md").read_text())
+    import report
+
+    print(f"wrote {report.write(res, res.get('compressed'))}")
 
 
 REMESH_SNIPPET = """
@@ -203,15 +203,6 @@ def remesh_bench(work: Path, runs: int = 2) -> dict:
            for _ in range(runs)]
     return {"runs": out, "remesh_s": [r["remesh_s"] for r in out], "read_s": [r["read_s"] for r in out]}
 
-
-def include_in_readme(table: str) -> None:
-    """Replace the text between the bench markers of README.md with the new table."""
-    readme = ROOT / "README.md"
-    text = readme.read_text()
-    start, end = "<!-- bench:start -->", "<!-- bench:end -->"
-    if start in text and end in text:
-        head, rest = text.split(start, 1)
-        readme.write_text(head + start + "\n" + table + end + rest.split(end, 1)[1])
 
 def float32_effect(p64: Path, p32: Path, r32: dict) -> dict:
     from pmask.runtime import Model

@@ -1,5 +1,9 @@
-"""A two-jaw grasp of the kidney at 1 kHz: two instruments coupled through the body, against the same two
-instruments rendered independently.
+"""
+A two-jaw grasp: instruments coupled through the body
+=====================================================
+
+A two-jaw grasp of the kidney at 1 kHz: two instruments coupled through the body, against the same two
+instruments rendered independently::
 
     python examples/grasp.py artifacts/kidney.h5 --out docs/
 
@@ -13,9 +17,14 @@ from __future__ import annotations
 
 import argparse
 import csv
+import tempfile
 from pathlib import Path
 
 import numpy as np
+
+#: the checkout's default kidney (`make precompute MODEL=kidney`), wherever the example runs from
+DEFAULT_ARTIFACT = ((Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd())  # (the docs' gallery
+                    .parent / "artifacts" / "kidney.h5")                                           # runs it from here)
 
 from pmask.runtime import Contacts, Model, Status
 
@@ -51,15 +60,16 @@ def run(contacts, path):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("artifact", nargs="?", default="artifacts/kidney.h5")
-    ap.add_argument("--out", default="docs")
+    ap = argparse.ArgumentParser(description="A two-jaw grasp of the kidney at 1 kHz")
+    ap.add_argument("artifact", nargs="?", default=str(DEFAULT_ARTIFACT),
+                    help="the artifact (default: the checkout's artifacts/kidney.h5, from `make precompute`)")
+    ap.add_argument("--out", default=None, help="folder for the CSV and PNG (default: a temporary folder)")
     ap.add_argument("--friction", type=float, default=0.3, help="jaw-tissue Coulomb coefficient")
     args = ap.parse_args(argv)
     model = Model.load(args.artifact)
-    out = Path(args.out)
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="pmask-example-"))
     out.mkdir(parents=True, exist_ok=True)
-    stiff = model.stiffness("linear", 2.0 * model.mean_edge_length)
+    stiff = model.stiffness("linear")
     jaws = jaw_points(model)
     path, n_close, n_hold = jaw_path(jaws)
     coupled = Contacts(stiff, 2, friction=args.friction)
@@ -111,9 +121,10 @@ def main(argv=None) -> int:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "grasp.png", dpi=120)
-    plt.close(fig)
+    if argv is not None:  # called from code (the tests); run as a script the figure stays for the docs' gallery
+        plt.close(fig)
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

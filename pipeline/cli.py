@@ -211,9 +211,16 @@ def add_reference(sub) -> None:
 
 def cmd_reference(args) -> int:
     require_extra("precompute")
-    from pmask.pipeline.reference import REFERENCE_DIR, regenerate
+    from pmask.pipeline.reference import DOCS_PAGE, REFERENCE_DIR, regenerate, write_docs_page
 
-    diffs = regenerate(Path(args.dir) if args.dir else REFERENCE_DIR, remesh=args.remesh)
+    ref_dir = Path(args.dir) if args.dir else REFERENCE_DIR
+    if not (ref_dir / "meshes").is_dir() and not args.remesh:
+        raise InputError(f"pmask reference recomputes the tables of a source checkout from the meshes stored beside "
+                         f"them ({ref_dir / 'meshes'} is missing): run it in a checkout, or give --remesh --dir FOLDER "
+                         "to mesh anew and write the tables there")
+    diffs = regenerate(ref_dir, remesh=args.remesh)
+    if ref_dir == REFERENCE_DIR and DOCS_PAGE.parent.parent.is_dir():
+        print(f"wrote {write_docs_page(ref_dir)}")
     for name, d in diffs.items():
         print(f"{name}: {'unchanged' if not d else f'{len(d)} changes'}")
         for line in d[:20]:
@@ -242,13 +249,14 @@ def cmd_figures(args) -> int:
     from pmask.runtime import Model
 
     path = Path(args.model)
-    if path.suffix != ".h5":
+    if path.suffix != ".h5":  # a model's name: its artifact from `pmask precompute`, never a silent precompute here
         from pmask.pipeline.models import get_model
-        from pmask.pipeline.stages import Spec, run
 
         get_model(args.model)
         path = Path("artifacts") / f"{args.model}.h5"
-        run(Spec(model=args.model), path)
+        if not path.exists():
+            raise InputError(f"{path} does not exist: run `pmask precompute {args.model}` first (or give an "
+                             "artifact's path)")
     model = Model.load(path)
     nums = figure6_numbers(model, args.radius_factor)
     out = figure6(model, Path(args.out) / f"figure6_{path.stem}.png", args.radius_factor, nums)
@@ -257,6 +265,7 @@ def cmd_figures(args) -> int:
         n = nums[name]
         print(f"  {name:6s} rank correlation with vertex area {n['rank_correlation_with_area']:+.3f}, "
               f"roughness {n['roughness']:.4f}, median ‖K‖₂ {n['median_norm']:.2f} N/m")
+    numbers = {"figure6": {"artifact": path.name, **nums}}
     if not args.no_loop:
         from pmask.pipeline.figures import loop_figures
 
@@ -265,6 +274,13 @@ def cmd_figures(args) -> int:
               + ", ".join(f"{p * 1e3:.2f}" for p in res["figure1_peaks"]) + " mm per N (finer to the right)")
         print(f"wrote {res['figure4']}: single-vertex {res['figure4_peaks']['single'] * 1e3:.2f}, cone mask "
               f"{res['figure4_peaks']['linear'] * 1e3:.2f} mm per N at the load")
+        numbers["figure1_peaks_mm_per_N"] = [1e3 * float(p) for p in res["figure1_peaks"]]
+        numbers["figure4_peaks_mm_per_N"] = {k: 1e3 * float(v) for k, v in res["figure4_peaks"].items()}
+    # the figures' numbers beside them, for the docs (the `measured` role reads docs/figures.json)
+    data = Path(args.out) / "figures.json"
+    old = json.loads(data.read_text()) if data.exists() else {}
+    data.write_text(json.dumps({**old, **numbers}, indent=1, default=float) + "\n")
+    print(f"wrote {data}")
     return 0
 
 
@@ -283,7 +299,7 @@ def add_export(sub) -> None:
     p.add_argument("artifact")
     p.add_argument("out", help="output file, e.g. kidney.vtu")
     p.add_argument("--mask", default="linear", help="mask for K_masked_norm (default linear)")
-    p.add_argument("--radius", type=float, help="mask radius [m] (default 2 x mean edge length)")
+    p.add_argument("--radius", type=float, help="mask radius in model units (default 2 mean edge lengths)")
     p.add_argument("--contact-vertex", type=int, help="add the deformation for a contact at this surface vertex")
     p.add_argument("--force", type=_vector, default=[0.0, 0.0, -0.1], help="contact force fx,fy,fz [N]")
     p.set_defaults(func=cmd_export)
@@ -308,7 +324,7 @@ def add_export_table(sub) -> None:
     p.add_argument("artifact")
     p.add_argument("-o", "--out", required=True, help="table file to write, e.g. kidney.tbl")
     p.add_argument("--mask", default="linear", help="pressure mask: linear, gaussian, wendland, disk or single")
-    p.add_argument("--radius", type=float, help="mask radius in model units (default 2 x mean edge length)")
+    p.add_argument("--radius", type=float, help="mask radius in model units (default 2 mean edge lengths)")
     p.add_argument("--k-rigid", type=float, help="stiffness the support ramps to [N/m] (default: see Model.stiffness)")
     p.add_argument("--normal-radius", type=float, help="crease-blending radius of the contact normals (default 3 mask radii)")
     p.add_argument("--no-zeta", action="store_true",
@@ -335,7 +351,7 @@ def add_view(sub) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only; 0.0.0.0 exposes it)")
     p.add_argument("--mask", default="linear", help="pressure mask: linear, gaussian, wendland, disk or single")
-    p.add_argument("--radius", type=float, help="initial mask radius in model units (default 2 x mean edge length)")
+    p.add_argument("--radius", type=float, help="initial mask radius in model units (default 2 mean edge lengths)")
     p.add_argument("--engine", choices=("native", "python"), help="servo engine (default: native if built)")
     p.set_defaults(func=cmd_view)
 

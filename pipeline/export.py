@@ -21,7 +21,6 @@ def export_surface(model, out: Path, *, mask: str = "linear", radius: float | No
     from pmask.pipeline.truth import vertex_norms
 
     n = len(model.points)
-    radius = 2.0 * model.mean_edge_length if radius is None else radius
     data = {"vertex_area": model.vertex_areas, "fixed": np.isin(np.arange(n), model.fixed).astype(np.int8),
             "in_greens": np.isin(np.arange(n), model.contact).astype(np.int8)}
     verts = model.contact[model.core]

@@ -47,21 +47,35 @@ UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6}
 class Spec:
     """Everything that determines an artifact.
 
-    model : registered model name, or a label for a user's geometry.
-    params : keyword arguments of the model builder.
-    surface, volume : a user's geometry file (at most one), instead of a registered model.
-    fixed, contact : region selectors (None: the model's defaults).
-    E, nu : material (None: the model's defaults).  units : length unit of the input geometry (None:
+    Attributes
+    ----------
+    model
+        registered model name, or a label for a user's geometry.
+    params
+        keyword arguments of the model builder.
+    surface, volume
+        a user's geometry file (at most one), instead of a registered model.
+    fixed, contact
+        region selectors (None: the model's defaults).
+    E, nu
+        material (None: the model's defaults).  units : length unit of the input geometry (None:
         metres, and a user's file more than 2 m across is refused as probably in mm).
-    r_max : largest mask radius the runtime may use, in the input's units (None: model default).
-    edge_length : target edge length when remeshing a --surface, in the input's units.
-    dtype : storage precision of Ξ, "float64" or "float32" (half the size; see README).
-    element : a name from :data:`pmask.precompute.elements.ELEMENTS`.
-    reactions : store the support reactions; None: when they cost no more than Ξ (see
+    r_max
+        largest mask radius the runtime may use, in the input's units (None: model default).
+    edge_length
+        target edge length when remeshing a --surface, in the input's units.
+    dtype
+        storage precision of Ξ, "float64" or "float32" (half the size; see README).
+    element
+        a name from :data:`pmask.precompute.elements.ELEMENTS`.
+    reactions
+        store the support reactions; None: when they cost no more than Ξ (see
         :func:`pmask.precompute.greens.factorise`).
-    mesh_timeout, solve_timeout : seconds allowed to the gmsh worker, and to the factorisation and
+    mesh_timeout, solve_timeout
+        seconds allowed to the gmsh worker, and to the factorisation and
         Green's functions together (native route: Ctrl-C and the budget stop them between supernodes).
-    compress : store Ξ compressed, far-field blocks within this relative tolerance (None: dense;
+    compress
+        store Ξ compressed, far-field blocks within this relative tolerance (None: dense;
         :mod:`pmask.precompute.compress`); scheduler : a Dask scheduler's address for its tiles (None: a
         LocalCluster); workers : local worker processes (None: one per core); worker_memory : each local
         worker's memory limit ('4G'; None: dask's share of the machine).  solver : 'factor' (the sparse

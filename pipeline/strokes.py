@@ -6,9 +6,9 @@ The stroke: the probe comes down 3 mm above the upper face at x = -45 mm, y = 12
 keeping that depth: 2.77 s of samples at 1 kHz.  The path crosses the large flat-face triangles and
 the smaller ones towards both poles.  Two smoothness figures per run:
 
-- ``rms_step``: RMS over the sliding phase of |f(k+1) − f(k)| [N per 1 ms step];
-- ``roughness``: RMS of |f| minus its 301 ms moving average (10.5 mm of path, about two triangles of
-  the kidney's flat face), over the mean |f|: mesh artefacts are the part of the force that varies
+- ``rms_step``: RMS over the sliding phase of ‖f(k+1) − f(k)‖ [N per 1 ms step];
+- ``roughness``: RMS of ‖f‖ minus its 301 ms moving average (10.5 mm of path, about two triangles of
+  the kidney's flat face), over the mean ‖f‖: mesh artefacts are the part of the force that varies
   faster than the organ.
 """
 from __future__ import annotations
@@ -51,7 +51,7 @@ def run_stroke(stiffness, path: np.ndarray, **contact_options):
 
 
 def smoothness(forces: np.ndarray, status: np.ndarray, start: int = 200) -> dict:
-    """Contact fraction, mean |f|, RMS step and roughness of the sliding phase (from tick ``start``)."""
+    """Contact fraction, mean ‖f‖, RMS step and roughness of the sliding phase (from tick ``start``)."""
     from pmask.runtime import Status
 
     f = forces[start:]
@@ -69,7 +69,7 @@ def smoothness(forces: np.ndarray, status: np.ndarray, start: int = 200) -> dict
 # ------------------------------------------------------------------------------------------ the tour
 def kidney_sdf(p: np.ndarray) -> np.ndarray:
     """Approximate signed distance to the kidney's analytic surface (negative inside): the ellipsoid's
-    first-order distance (F − 1)/|∇F| intersected with the outside of the hilum ball."""
+    first-order distance (F − 1)/‖∇F‖ intersected with the outside of the hilum ball."""
     from pmask.meshes.kidney import HILUM_CENTRE, HILUM_RADIUS
 
     p = np.atleast_2d(p)
@@ -243,7 +243,7 @@ def tour_metrics(run: dict, probes: np.ndarray, segments: list[dict]) -> dict:
 
     ``given``: the energy the body gives the hand over a closed loop, Σ f_user,k · (p_k+1 − p_k) (the
     force the device holds during each tick), over the loop's peak stored energy; ``given_trapezoid`` the
-    same with the mean force of each tick.  ``max_step``: the largest |f_k+1 − f_k|; ``ratio`` that over the
+    same with the mean force of each tick.  ``max_step``: the largest ‖f_k+1 − f_k‖; ``ratio`` that over the
     reference, the largest on smooth free surface at the same speed (the ``reference`` segments).
     ``proxy``: the largest proxy motion per tick over the probe's, while in contact.
     """

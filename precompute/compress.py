@@ -6,7 +6,7 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
 1. **Cluster tree** of the contact vertices: recursive bisection at the median of the longest side of
    the bounding box, down to :data:`LEAF` vertices.  Its order puts nearby vertices together.
 2. **Block partition** (a hierarchical matrix): a pair of clusters (I, J) is *admissible*, stored as
-   U Vᵀ, when the boxes are more than r_max apart (so no pair a mask can reach, |x_i − x_j| ≤ r_max, is
+   U Vᵀ, when the boxes are more than r_max apart (so no pair a mask can reach, ‖x_i − x_j‖ ≤ r_max, is
    ever approximated: the near field stays exact) and more than half the larger box's diagonal apart
    (η = 2: Ξ_IJ is then smooth, the Green's function's 1/r far from its pole; the rank adapts to the
    tolerance, so η trades block count for rank, not accuracy).
@@ -16,7 +16,7 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    holds and compresses each of the panel's blocks: a randomized range finder grown until
    :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of :math:`Q^TB` truncated to the
    smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is computed, not estimated: B is
-   at hand).  A block whose factors would not be smaller stays dense.  Only one panel, 3n x 3|J|
+   at hand).  A block whose factors would not be smaller stays dense.  Only one panel, 3n x 3 #J
    numbers, exists at a time on a worker.
 
    The columns come from the selected inversion's W (:mod:`pmask.precompute.selinv`): with P1's load

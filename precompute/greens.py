@@ -54,13 +54,20 @@ class CondensationError(InputError):
 class SparseFactor:
     """The supernodal Cholesky factor of K_FF and what the selected inversion needs from it.
 
-    L : the factor's arrays (:data:`pmask.precompute.selinv.FACTOR_ARRAYS`, CHOLMOD's layout).
-    rows : dofs of K_FF whose rows of K_FF⁻¹B are needed: the observed dofs (the first
+    Attributes
+    ----------
+    L
+        the factor's arrays (:data:`pmask.precompute.selinv.FACTOR_ARRAYS`, CHOLMOD's layout).
+    rows
+        dofs of K_FF whose rows of K_FF⁻¹B are needed: the observed dofs (the first
         ``n_observed``, the contact vertices' dofs in order), then the free dofs the support touches.
-    load : B_F, the load columns on the free dofs (sparse, n_F x k); for P1 None, with ``scale``:
+    load
+        B_F, the load columns on the free dofs (sparse, n_F x k); for P1 None, with ``scale``:
         the load is then the unit columns of the first ``n_observed`` rows times ``scale``.
-    coupling : K_DF restricted to the ``rows`` (|D| x len(rows)), None without reactions;
-    load_on_support : B_D (|D| x k).
+    coupling
+        K_DF restricted to the ``rows`` (#D x len(rows)), None without reactions;
+    load_on_support
+        B_D (#D x k).
     """
 
     L: dict
@@ -209,13 +216,20 @@ def factorise(K: sp.spmatrix, dirichlet: np.ndarray, observed: np.ndarray, load=
               backend: str | None = None) -> SparseFactor:
     """Factorise K_FF for the Green's functions.
 
-    K : the assembled stiffness (dof 3·node + component); dirichlet : its fixed dofs (non-empty).
-    observed : dofs whose displacements Ξ holds (the contact vertices' dofs, in order).
-    load : the consistent load of the unit tractions (n_dofs x k, sparse); or None with ``scale``
+    Parameters
+    ----------
+    K
+        the assembled stiffness (dof 3·node + component); dirichlet : its fixed dofs (non-empty).
+    observed
+        dofs whose displacements Ξ holds (the contact vertices' dofs, in order).
+    load
+        the consistent load of the unit tractions (n_dofs x k, sparse); or None with ``scale``
         (P1): the load is then the observed dofs' unit columns times ``scale``.
-    graph_elements : element connectivity over nodes, for the pip-only route's AMD order of the node
+    graph_elements
+        element connectivity over nodes, for the pip-only route's AMD order of the node
         graph (the three dofs of a node stay together).
-    reactions : also prepare the support reactions (their rows join the selected set); None: when
+    reactions
+        also prepare the support reactions (their rows join the selected set); None: when
         those rows are no more than the observed ones (a kidney's hilum, not a half-space's far
         hemisphere, whose ~10^4 rows would cost more than Ξ itself).
     """
@@ -363,7 +377,7 @@ def greens_functions(factor: SparseFactor, *, backend: str | None = None):
         the contact vertices' unit tractions: block (i, j) is the displacement of vertex i per unit
         traction at vertex j).  P1: a view of a slightly larger array that also holds the rows the
         reactions need.
-    reactions : (|D|, k), the nodal forces the support exerts per load column, on the Dirichlet dofs
+    reactions : (#D, k), the nodal forces the support exerts per load column, on the Dirichlet dofs
         (equilibrium: with the load they sum to zero force and moment); None if not prepared.
     """
     nobs = factor.n_observed

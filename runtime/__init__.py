@@ -4,7 +4,7 @@ Imports numpy and h5py only, so it can live inside a haptic application::
 
     from pmask.runtime import Model
     model = Model.load("artifacts/kidney.h5")
-    stiff = model.stiffness(mask="linear", radius=2.0 * model.mean_edge_length)
+    stiff = model.stiffness()                    # cone masks of the default radius
     K = stiff.at(triangle, barycentric)          # 3x3 surface stiffness K(x), eq. 15
     f = K @ u_bar                                # force on the body for displacement ū
     v = stiff.deformation(triangle, barycentric, f)   # surface displacement, eq. 16

@@ -139,7 +139,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS, verify: bool =
 
     path = Path(path)
     if not path.is_file():
-        raise ArtifactError(f"{path}: no such file; run 'make precompute MODEL=...' to create it")
+        raise ArtifactError(f"{path}: no such file; write it with `pmask precompute MODEL -o {path}` (needs the precompute extra)")
     try:
         if not h5py.is_hdf5(path):
             raise ArtifactError(f"{path}: not an HDF5 file (truncated, or not a pmask artifact)")

@@ -17,7 +17,7 @@ farther apart than ``r_max`` and than η times the larger box's diagonal is *adm
 exactly as the dense route computes it.  Every block's rows and columns are whole leaf clusters, so a
 block is found from two leaf indices (``owner``).  Built by :mod:`pmask.precompute.compress`.
 
-Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in vertices):
+Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in vertices)::
 
     perm           (n,)     contact index of each position
     leaves         (L+1,)   first position of each leaf cluster, and n

@@ -129,7 +129,7 @@ def pairs_within(points: np.ndarray, radius: float):
 
 
 def smoothed_normals(points: np.ndarray, triangles: np.ndarray, radius: float) -> np.ndarray:
-    """Unit vertex normals averaged over a ball: Σ_j w(|x_i − x_j| / radius) n_j, with n_j the
+    """Unit vertex normals averaged over a ball: Σ_j w(‖x_i − x_j‖ / radius) n_j, with n_j the
     area-weighted vertex normal times its vertex area and w the Wendland C2 profile.  The contact normal
     at the scale of the probe: a tip of size r does not feel a crease sharper than r."""
     n = vertex_normals(points, triangles) * vertex_areas(points, triangles)[:, None]

@@ -55,27 +55,43 @@ def _int(name, v, lo=1):
 class Contacts:
     """s instruments in contact with one body, coupled through its Green's functions.
 
-    stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``; without Green's
+    Parameters
+    ----------
+    stiffness
+        a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``; without Green's
         functions the contacts are solved independently).
-    n : how many instruments.
-    friction : static Coulomb coefficient μ_s (0: frictionless); dynamic_friction : μ_d (default μ_s).
-    damping : viscous damping b_v [N·s/m] on the probe's velocity while in contact.
-    tool_radius : the radius of the spherical tool tip r_tool [model units]: it rests on the surface.
-    slip_length : friction weakens from μ_s to μ_d over this much slip after breakaway [model units]
+    n
+        how many instruments.
+    friction
+        static Coulomb coefficient μ_s (0: frictionless); dynamic_friction : μ_d (default μ_s).
+    damping
+        viscous damping b_v [N·s/m] on the probe's velocity while in contact.
+    tool_radius
+        the radius of the spherical tool tip r_tool [model units]: it rests on the surface.
+    slip_length
+        friction weakens from μ_s to μ_d over this much slip after breakaway [model units]
         (default a quarter of the mean edge length), so that breaking away is continuous.
-    device : a :class:`pmask.runtime.Device` (servo rate for velocities; default 1 kHz).
-    passivity : the passivity observer/controller (default on).
-    max_jump : largest plausible probe move per tick [model units]; default 5 mean edge lengths.
-    decay : factor per tick on the last good force while samples are bad; reset_after : after this many
+    device
+        a :class:`pmask.runtime.Device` (servo rate for velocities; default 1 kHz).
+    passivity
+        the passivity observer/controller (default on).
+    max_jump
+        largest plausible probe move per tick [model units]; default 5 mean edge lengths.
+    decay
+        factor per tick on the last good force while samples are bad; reset_after : after this many
         implausible samples in a row, tracking restarts.
-    proxy_speed : the proxy moves at most this many times the probe's own motion per tick.
-    normal_radius : near a crease sharper than 30°, the contact normal blends into the normal averaged over
+    proxy_speed
+        the proxy moves at most this many times the probe's own motion per tick.
+    normal_radius
+        near a crease sharper than 30°, the contact normal blends into the normal averaged over
         a ball of this radius (default: 3 mask radii; :func:`pmask.runtime.geometry.contact_normals`).  The
         Phong projection is well conditioned only above the crease's focal depth (~ radius / angle); at the
         kidney's hilum lip, probed 5 mm deep, 1 mask radius left the force turning 7x faster than pressing
         on free tissue does, 3 radii brought it in line.
-    coupled : solve several contacts together (default: when the stiffness has Green's functions).
-    engine : "native" (the C core; refused if it is not built), "python", or None (native if built).
+    coupled
+        solve several contacts together (default: when the stiffness has Green's functions).
+    engine
+        "native" (the C core; refused if it is not built), "python", or None (native if built).
     """
 
     def __init__(self, stiffness, n: int = 1, *, friction=0.0, dynamic_friction=None, damping=0.0,

@@ -9,7 +9,7 @@ Masks live on the free boundary only; every profile below is 1 at the centre,
 so vertex i is always in its own mask, and a mask that reaches no neighbour
 is the single-vertex mask :math:`\rho^i = e_i / a_i` (a point force).
 
-Profiles of s = |x - x_i| / r on s < 1 (zero outside):
+Profiles of s = ‖x − x_i‖ / r on s < 1 (zero outside):
 
 =============  ====================================  ===========================
 ``linear``     1 - s                                 the paper's cone (§3.1.3)
@@ -87,9 +87,13 @@ def pressure_masks(points: np.ndarray, areas: np.ndarray, centres: np.ndarray, k
                    radius: float | None = None, *, chunk: int = 1024) -> Masks:
     """Collocated, normalised masks around each of ``centres``.
 
-    points, areas : positions and vertex areas of the candidate vertices (the free
+    Parameters
+    ----------
+    points, areas
+        positions and vertex areas of the candidate vertices (the free
         vertices that have Green's functions).
-    centres : indices into ``points`` of the vertices to build masks for.
+    centres
+        indices into ``points`` of the vertices to build masks for.
     """
     r = check_radius(kind, radius)
     centres = np.asarray(centres, dtype=np.int64)

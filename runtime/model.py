@@ -70,9 +70,22 @@ class Model:
         artifact was written without them.  Read on demand."""
         return read_artifact(self.path, datasets=REACTIONS, verify=getattr(self, "verify", True))["greens/reactions"]
 
+    #: the default mask radius, in mean edge lengths: a cone over the vertex's neighbours and theirs (smaller
+    #: masks reach no neighbour on much of a mesh and fall back to single vertices)
+    DEFAULT_RADIUS_EDGES = 2.0
+
+    @property
+    def default_radius(self) -> float:
+        """The mask radius used when none is given: 2 mean edge lengths, at most r_max (the one place this
+        default is set)."""
+        return float(min(self.DEFAULT_RADIUS_EDGES * self.mean_edge_length, self.r_max))
+
     def masks(self, mask: str = "linear", radius: float | None = None, *, band: bool = False):
         """Pressure masks of the touchable contact vertices (``band``: of the contact vertices outside
-        the region, whose masks the region's edge truncates), over the contact vertices."""
+        the region, whose masks the region's edge truncates), over the contact vertices.  ``radius=None``:
+        :attr:`default_radius`."""
+        if radius is None and mask != "single":
+            radius = self.default_radius
         r = check_radius(mask, radius, self.r_max)
         pts = self.points[self.contact]
         centres = np.flatnonzero(~self.core if band else self.core)
@@ -83,15 +96,24 @@ class Model:
                   support_blend: float | None = None) -> Stiffness:
         """Vertex stiffnesses for a mask (eq. 12, 14) and the surface stiffness built from them (eq. 15).
 
-        mask : 'linear' (paper's cone), 'gaussian', 'wendland', 'disk' or 'single'.
-        radius : mask radius r in model units (the probe tip size), 0 < r <= r_max.
-        device : the haptic device (:class:`pmask.runtime.Device`); its stable stiffness bound
+        Parameters
+        ----------
+        mask
+            'linear' (paper's cone), 'gaussian', 'wendland', 'disk' or 'single'.
+        radius
+            mask radius r in model units (the probe tip size), 0 < r <= r_max; default
+            :attr:`default_radius` (2 mean edge lengths).
+        device
+            the haptic device (:class:`pmask.runtime.Device`); its stable stiffness bound
             2 b / T caps the default k_rigid.
-        k_rigid : stiffness the support ramps to [N/m]; default min(10 x the median free ‖K_i‖₂,
+        k_rigid
+            stiffness the support ramps to [N/m]; default min(10 x the median free ‖K_i‖₂,
             half the device's stable bound).
-        support_blend : distance [model units] over which a fixed vertex's stiffness ramps from the
+        support_blend
+            distance [model units] over which a fixed vertex's stiffness ramps from the
             tissue's next to it to k_rigid; default 4 mask radii (at least 4 mean edges).
-        symmetric : render (K + Kᵀ)/2 (passive when sticking); False renders the full K_i.
+        symmetric
+            render (K + Kᵀ)/2 (passive when sticking); False renders the full K_i.
 
         Refuses (:class:`pmask.runtime.stiffness.StiffnessError`, naming the vertices) Green's functions
         whose vertex stiffnesses are not positive definite.

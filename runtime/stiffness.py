@@ -148,6 +148,28 @@ class SurfaceStiffness:
     def n_triangles(self) -> int:
         return len(self.triangles)
 
+    def locate(self, point) -> tuple[int, np.ndarray]:
+        """The surface point nearest ``point`` (3 numbers, model units): (triangle, barycentrics), what
+        :meth:`at` and :meth:`deformation` take.  A spatial grid built on first use makes it O(1) expected
+        (:class:`pmask.runtime.spatial.TriangleGrid`; the contact tracking uses the same grid)."""
+        p = np.asarray(point, dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise InputError(f"point must be 3 finite numbers, got {point!r}")
+        grid = getattr(self, "_grid", None)
+        if grid is None:
+            from pmask.runtime.spatial import TriangleGrid
+
+            grid = self._grid = TriangleGrid(self.points, self.triangles)
+        t = grid.nearest(tuple(p))
+        v = self.points[self.triangles[t]]
+        # the closest point of the triangle (not only of its plane): minimise over the face and its edges
+        best = None
+        for b in _closest_barycentrics(v, p):
+            d = np.linalg.norm(b @ v - p)
+            if best is None or d < best[0]:
+                best = (d, b)
+        return int(t), best[1]
+
     def at(self, triangle, bary) -> np.ndarray:
         """K(x) (3x3) at barycentric ``bary`` of ``triangle`` (eq. 15); validates its input."""
         t, b = _check_query(triangle, bary, self.n_triangles)
@@ -457,6 +479,25 @@ def zeta_deformation(Zt, row, triangles, loads) -> np.ndarray:
     has = row >= 0
     v[has] = v_contact.reshape(-1, 3)[row[has]]
     return v
+
+
+def _closest_barycentrics(v: np.ndarray, p: np.ndarray):
+    """Candidate barycentrics of the point of triangle v (3x3) closest to p: the face's (if inside) and each
+    edge's clamped projection."""
+    e1, e2 = v[1] - v[0], v[2] - v[0]
+    G = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
+    try:
+        b1, b2 = np.linalg.solve(G, [e1 @ (p - v[0]), e2 @ (p - v[0])])
+        if b1 >= 0 and b2 >= 0 and b1 + b2 <= 1:
+            yield np.array([1 - b1 - b2, b1, b2])
+    except np.linalg.LinAlgError:
+        pass
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        d = v[j] - v[i]
+        s = float(np.clip((p - v[i]) @ d / max(d @ d, 1e-300), 0.0, 1.0))
+        b = np.zeros(3)
+        b[i], b[j] = 1.0 - s, s
+        yield b
 
 
 def _sq_dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -17,22 +17,22 @@ Format 1.0, little-endian::
 
 Sections (n_s surface vertices, n_t triangles, n_c contact vertices):
 
-=============== ========== ==========================================================================
-points          n_s x 3    vertex positions [model units]
-triangles       n_t x 3    vertex indices, counter-clockwise seen from outside
-neighbours      n_t x 3    triangle across the edge opposite each vertex, -1 on an open edge
-frames          n_t x 12   v0, duals a and b of the edges, unit normal (:func:`~pmask.runtime.geometry.triangle_frames`)
-normals         n_s x 3    contact normals (crease-blended, :func:`~pmask.runtime.geometry.contact_normals`)
-stiffness       n_s x 9    rendered K_i [N/m], row-major
-taper           n_s x 1    λ: 1 in the contact region, falling to 0 across the band beyond it
-gradient        n_s x 3    ∇k_n per vertex (:func:`~pmask.runtime.haptics.normal_stiffness_gradient`)
-bounds          2 x 3      bounding box (lower, upper corner)
-lengths         1 x 2      mean edge length, bounding-box diagonal
+=============== ============ ==========================================================================
+points          n_s x 3      vertex positions [model units]
+triangles       n_t x 3      vertex indices, counter-clockwise seen from outside
+neighbours      n_t x 3      triangle across the edge opposite each vertex, -1 on an open edge
+frames          n_t x 12     v0, duals a and b of the edges, unit normal (:func:`~pmask.runtime.geometry.triangle_frames`)
+normals         n_s x 3      contact normals (crease-blended, :func:`~pmask.runtime.geometry.contact_normals`)
+stiffness       n_s x 9      rendered K_i [N/m], row-major
+taper           n_s x 1      λ: 1 in the contact region, falling to 0 across the band beyond it
+gradient        n_s x 3      ∇k_n per vertex (:func:`~pmask.runtime.contact.surface.normal_stiffness_gradient`)
+bounds          2 x 3        bounding box (lower, upper corner)
+lengths         1 x 2        mean edge length, bounding-box diagonal
 zeta            3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
-                           the deformation of eq. 16
-contact_row     n_s x 1    with zeta: each surface vertex's row block, -1 for none
-meta            bytes      JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
-=============== ========== ==========================================================================
+                             the deformation of eq. 16
+contact_row     n_s x 1      with zeta: each surface vertex's row block, -1 for none
+meta            bytes        JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
+=============== ============ ==========================================================================
 
 The spatial index that restarts contact tracking is built by each reader at load (the Python engine a
 uniform grid, :class:`~pmask.runtime.spatial.TriangleGrid`; the C core a bounding-volume hierarchy,
@@ -226,13 +226,11 @@ def export_table(artifact, out, *, mask: str = "linear", radius: float | None = 
     """Export a runtime table from an artifact: :meth:`pmask.runtime.Model.stiffness` for the mask and
     radius, the contact surface of :class:`pmask.runtime.contact.ContactSurface`, and (``zeta``) the ζ table
     for several coupled contacts and the deformation (3n_c x 3n_c doubles: 150 MB at the default
-    kidney's 1,446 contact vertices).  radius : default 2 mean edge lengths."""
+    kidney's 1,446 contact vertices).  radius : default :attr:`pmask.runtime.Model.default_radius`."""
     from pmask.runtime.contact import ContactSurface
     from pmask.runtime.model import Model
 
     model = artifact if isinstance(artifact, Model) else Model.load(artifact)
-    if radius is None and mask != "single":
-        radius = 2.0 * model.mean_edge_length
     stiff = model.stiffness(mask, radius, k_rigid=k_rigid, device=device)
     surface = ContactSurface(stiff, normal_radius)
     meta = {"format": f"{TABLE_MAJOR}.{TABLE_MINOR}", "mask": stiff.masks.kind, "radius": stiff.masks.radius,

@@ -78,7 +78,7 @@ class ViewerSession:
     """One model on the server: its stiffness for the current mask radius and the contacts' servo thread.
 
     model : a loaded :class:`pmask.runtime.Model`; mask : the pressure mask kind; radius : the initial
-    mask radius (default 2 mean edge lengths); engine : the servo engine (None: native if built).
+    mask radius (default :attr:`pmask.runtime.Model.default_radius`); engine : the servo engine (None: native if built).
     """
 
     def __init__(self, model: Model, *, mask: str = "linear", radius: float | None = None, engine: str | None = None,
@@ -96,7 +96,7 @@ class ViewerSession:
         self.park = (hi + 0.25 * self.diag).tolist()
         h = model.mean_edge_length
         self.radius_range = (0.5 * h, float(min(model.r_max, 0.25 * self.diag)))
-        radius = 2.0 * h if radius is None else float(radius)
+        radius = model.default_radius if radius is None else float(radius)
         single = model.stiffness("single")
         self.fields = {"single": _norms(single.K_vertex), "area": model.vertex_areas.astype(float),
                        "fixed": np.isin(np.arange(len(P)), model.fixed).astype(float),

@@ -8,12 +8,12 @@ material point the tool holds) and the penetration δ = −N·ū:
   under the tool (the Schur complement of K's tangential block).  f = K ū pushed the hand sideways by
   0.5–0.8 x the normal force through K's normal–tangential coupling and did net work round closed loops;
 - friction is a spring on the held point's tangential offset w with the tangential stiffness
-  k_t = 2λ / (tr K⁻¹ − Nᵀ K⁻¹ N), kept while |k_t w| ≤ μ λ k_n δ and otherwise held on the cone's edge
+  k_t = 2λ / (tr K⁻¹ − Nᵀ K⁻¹ N), kept while ‖k_t w‖ ≤ μ λ k_n δ and otherwise held on the cone's edge
   while the point slides; μ weakens from μ_s to μ_d over ``slip_length`` of slip, so breaking away is
   continuous.  Bounding the cone by the penetration's own normal force keeps K's coupling from locking it
   (a tangential offset raised the normal force, which widened the cone: a wedge);
 - the tangential term ½ δ² ∇k_n (∇k_n averaged per vertex, interpolated) makes the force the gradient of
-  the stored energy ½ λ k_n δ² + ½ k_t |w|² (added in step 4, :mod:`pmask.runtime.contact.output`).
+  the stored energy ½ λ k_n δ² + ½ k_t ‖w‖² (added in step 4, :mod:`pmask.runtime.contact.output`).
 
 The native core's ``core/law.c`` is the same code operation for operation.
 """

@@ -231,7 +231,7 @@ def prepare(c, st, sample):
 
 
 def follow(c, st) -> None:
-    """The proxy's move this tick: towards this tick's projection, at most ``proxy_speed`` |Δp|."""
+    """The proxy's move this tick: towards this tick's projection, at most ``proxy_speed`` ‖Δp‖."""
     if st.target is not None:
         move_proxy(c, st, *point(c.surface, *st.target), c.proxy_speed * norm(st.move))
 
