@@ -90,9 +90,10 @@ def add_precompute(sub) -> None:
     p.add_argument("--workers", type=int, help="with --compress: local worker processes (default: one per core)")
     p.add_argument("--worker-memory", metavar="BYTES",
                    help="with --compress: each local worker's memory limit, e.g. 4G (default: dask's share)")
-    p.add_argument("--element", choices=("P1", "P2"), default="P1",
-                   help="tetrahedra: P1 (linear; locks for nearly incompressible tissue) or P2 (quadratic, with the "
-                        "volumetric term at the centroid: accurate in bending and up to nu = 0.499)")
+    p.add_argument("--element", choices=("auto", "P1", "P2"), default="auto",
+                   help="tetrahedra: auto (the default: P2 where P1 would lock, nu >= 0.4, P1 otherwise), P2 "
+                        "(quadratic, with the volumetric term at the centroid: accurate in bending and up to nu = "
+                        "0.499) or P1 (linear: 4-5x faster, locks for nearly incompressible tissue)")
     p.add_argument("--reactions", action=argparse.BooleanOptionalAction, default=None,
                    help="store the support reactions (default: when they cost no more than Ξ)")
     p.add_argument("-o", "--out", help="artifact path (default artifacts/MODEL.h5)")

@@ -6,10 +6,11 @@ from pathlib import Path
 import numpy as np
 
 
-def _save(fig, out) -> Path:
+def _save(fig, out, tight: bool = True) -> Path:
     import matplotlib.pyplot as plt
 
-    fig.tight_layout()
+    if tight:
+        fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
@@ -54,6 +55,7 @@ def figure6(model, out: Path, radius_factor: float = 2.0, numbers: dict | None =
             ax.set_aspect("equal")
             ax.set_title(f"{title}\n{view}" if row == 0 else view, fontsize=9)
             ax.set_xlabel("x [mm]", fontsize=8)
+            ax.set_ylabel("y [mm]" if sign > 0 else "−y [mm] (mirrored: seen from below)", fontsize=8)
     if numbers:
         s, m = numbers["single"], numbers["masked"]
         fig.suptitle(f"{Path(model.path).name}: rank correlation with a: single {s['rank_correlation_with_area']:.2f}, "
@@ -100,17 +102,16 @@ def _deformed_panel(ax, model, u, scale, vertex, title, vmax):
     pc = Poly3DCollection(P[model.triangles], facecolors=cmap(np.clip(face / vmax, 0, 1)), edgecolors="0.25",
                           linewidths=0.15)
     ax.add_collection3d(pc)
-    lo, hi = model.points.min(axis=0) * 1e3, model.points.max(axis=0) * 1e3
-    c = 0.5 * (lo + hi)
-    half = 0.38 * (hi - lo).max()
-    ax.set_xlim(c[0] - half, c[0] + half); ax.set_ylim(c[1] - half, c[1] + half); ax.set_zlim(c[2] - half, c[2] + half)
+    lo, hi = P.min(axis=0), P.max(axis=0)  # the deformed body fills its box: no empty margin around it
+    pad = 0.04 * (hi - lo).max()
+    ax.set_xlim(lo[0] - pad, hi[0] + pad); ax.set_ylim(lo[1] - pad, hi[1] + pad); ax.set_zlim(lo[2] - pad, hi[2] + pad)
     # look across the pull (perpendicular to the normal and the long axis): the pull shows in the outline
     n = vertex_normals(model.points, model.triangles)[vertex]
     d = np.cross(n, [1.0, 0.0, 0.0])
     d = d / np.linalg.norm(d) + 0.35 * n  # and a little from the pulled side
     d /= np.linalg.norm(d)
     ax.view_init(elev=float(np.degrees(np.arcsin(np.clip(d[2], -1, 1)))), azim=float(np.degrees(np.arctan2(d[1], d[0]))))
-    ax.set_box_aspect((1, 1, 1))
+    ax.set_box_aspect(tuple(hi - lo + 2 * pad), zoom=1.25)
     ax.set_axis_off()
     ax.set_title(title, fontsize=9)
 
@@ -139,7 +140,7 @@ def figure1(models, out: Path) -> tuple[Path, list[float]]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig = plt.figure(figsize=(13, 4.6))
+    fig = plt.figure(figsize=(13, 3.9))
     us = [vertex_pull(m, _base_vertex(m)) for m in models]
     peaks = [float(np.linalg.norm(u[_base_vertex(m)])) for m, u in zip(models, us)]
     scale = 0.008 / peaks[0]  # the coarsest pull drawn 8 mm long; the same exaggeration in every panel
@@ -148,9 +149,9 @@ def figure1(models, out: Path) -> tuple[Path, list[float]]:
         _deformed_panel(ax, m, u, scale, _base_vertex(m),
                         f"{len(m.points)} vertices: |u| at the load = {p * 1e3:.2f} mm per N", peaks[0])
     fig.suptitle("Figure 1: a unit vertex force on three refinements of one body: the point load's displacement "
-                 f"grows with refinement\n(same exaggeration {scale:.3g}x; colour |u| up to the coarsest load's)",
-                 fontsize=10)
-    out = _save(fig, out)
+                 f"grows with refinement (same exaggeration {scale:.3g}x)", fontsize=10)
+    _colour_bar(fig, peaks[0])
+    out = _save(fig, out, tight=False)
     return out, peaks
 
 
@@ -167,7 +168,7 @@ def figure4(model, radius: float, out: Path) -> tuple[Path, dict]:
     peaks = {k: float(np.linalg.norm(u[v])) for k, u in us.items()}
     scale = 0.008 / peaks["linear"]
     vmax = max(peaks.values())
-    fig = plt.figure(figsize=(9.5, 4.6))
+    fig = plt.figure(figsize=(9.5, 3.9))
     titles = {"single": f"single-vertex mask: {peaks['single'] * 1e3:.2f} mm per N at the load",
               "linear": f"cone mask, r = {radius * 1e3:.1f} mm: {peaks['linear'] * 1e3:.2f} mm per N"}
     for k, name in enumerate(us):
@@ -175,8 +176,22 @@ def figure4(model, radius: float, out: Path) -> tuple[Path, dict]:
         _deformed_panel(ax, model, us[name], scale, v, titles[name], vmax)
     fig.suptitle(f"Figure 4: pulling deformations on a once-refined mesh ({len(model.points)} vertices), "
                  f"same force, same exaggeration {scale:.3g}x", fontsize=10)
-    out = _save(fig, out)
+    _colour_bar(fig, vmax)
+    out = _save(fig, out, tight=False)
     return out, peaks
+
+
+def _colour_bar(fig, vmax: float) -> None:
+    """The panels' colour scale: |u| per newton of force [mm/N] from 0 to ``vmax`` [m/N] (clipped above)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    fig.subplots_adjust(left=0.0, right=0.9, bottom=0.02, top=0.86, wspace=0.0)
+    cax = fig.add_axes([0.92, 0.15, 0.012, 0.62])
+    bar = fig.colorbar(ScalarMappable(Normalize(0.0, vmax * 1e3), plt.get_cmap("viridis")), cax=cax, extend="max")
+    bar.set_label("|u| [mm per N]", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
 
 
 def loop_figures(out_dir: Path, work: Path) -> dict:

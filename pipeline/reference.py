@@ -48,8 +48,9 @@ def ensure_meshes(mesh_dir: Path, remesh: bool = False) -> None:
             save_model_mesh(p, build())
 
 
-def artifact_for(name: str, mesh_dir: Path, work: Path, nu: float | None = None, element: str = "P1") -> Path:
-    """Precompute (or reuse) the artifact of a stored mesh."""
+def artifact_for(name: str, mesh_dir: Path, work: Path, nu: float | None = None, element: str = "auto") -> Path:
+    """Precompute (or reuse) the artifact of a stored mesh (``auto``: the element pmask chooses for its material,
+    as ``pmask precompute`` does)."""
     from pmask.pipeline.stages import Spec, run
 
     out = work / (f"{name}_{element}" + ("" if nu is None else f"_nu{nu:g}") + ".h5")
@@ -149,7 +150,8 @@ def kidney_tables(mesh_dir: Path, work: Path):
              "median_norm_N_per_m": f6[name]["median_norm"],
              "stroke_roughness": smooth[name]["roughness"], "stroke_rms_step_N": smooth[name]["rms_step"],
              "stroke_mean_force_N": smooth[name]["mean_force"]} for name in ("single", "masked")]
-    meta6 = {"table": "paper Figure 6: what the stiffness maps show", "model": "kidney (default resolution)",
+    meta6 = {"table": "paper Figure 6: what the stiffness maps show",
+             "model": f"kidney (default resolution, default element: {m.attrs.get('element', 'P1')})",
              "resolution": f"{len(m.points)} surface vertices, {len(m.free)} free",
              "mask": f"single vertex; linear cone r = 2 x mean edge = {f6['radius']:.6e} m",
              "stroke": "pmask.pipeline.strokes: y = 12 mm, x = -45..45 mm, 1.5 mm deep, 35 mm/s, 1 kHz",
@@ -161,7 +163,8 @@ def kidney_tables(mesh_dir: Path, work: Path):
     vrows = [{"vertex": int(v), "x_m": small.points[v, 0], "y_m": small.points[v, 1], "z_m": small.points[v, 2],
               "area_m2": small.vertex_areas[v], "single_norm_N_per_m": s, "masked_norm_N_per_m": k}
              for v, s, k in zip(verts, single, masked)]
-    metav = {"table": "per-vertex stiffness of a small kidney", "model": f"kidney size = {KIDNEY_SMALL_SIZE} m",
+    metav = {"table": "per-vertex stiffness of a small kidney",
+             "model": f"kidney size = {KIDNEY_SMALL_SIZE} m, element {small.attrs.get('element', 'P1')}",
              "resolution": f"{len(small.points)} surface vertices", "mask": f"single; linear cone r = {r:.6e} m",
              "units": "m, m^2, N/m"}
     return (meta6, rows), (metav, vrows)

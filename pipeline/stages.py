@@ -94,7 +94,7 @@ class Spec:
     r_max: float | None = None
     edge_length: float | None = None
     dtype: str = "float64"
-    element: str = "P1"
+    element: str = "auto"
     reactions: bool | None = None
     mesh_timeout: float = 600.0
     solve_timeout: float = 3600.0
@@ -158,6 +158,7 @@ def _without_docstrings(source: str) -> str:
     return ast.dump(tree)
 
 
+@functools.lru_cache(maxsize=1)  # the files do not change during a run (0.2 s per computation)
 def code_digest() -> str:
     """Hash of the code that produces an artifact's numbers (:data:`RESULT_CODE`): editing a help
     text, a docstring or a comment does not invalidate artifacts, changing what runs does."""
@@ -244,7 +245,8 @@ def validate(spec: Spec, out: Path) -> None:
     """Everything that can be checked before any work, each with one line that says what to change."""
     from pmask.precompute import elasticity, elements, selectors
 
-    elements.get_element(spec.element)
+    if spec.element != elements.AUTO:
+        elements.get_element(spec.element)
     if spec.dtype not in ("float64", "float32"):
         raise InputError(f"dtype must be float64 or float32, got {spec.dtype!r}")
     if spec.units is not None and spec.units not in UNITS:
@@ -301,7 +303,7 @@ def validate(spec: Spec, out: Path) -> None:
     if spec.E is not None or spec.nu is not None:
         elasticity.check_material(spec.E if spec.E is not None else 1.0, spec.nu if spec.nu is not None else 0.3)
     if spec.nu is not None:  # a locking element is refused (or warned about) before any meshing
-        _warn_once(elements.get_element(spec.element).locking(spec.nu))
+        _warn_once(elements.get_element(elements.element_name(spec.element, spec.nu)).locking(spec.nu))
     for sel in (spec.fixed, spec.contact):
         if sel is not None:
             selectors.parse(sel)
@@ -445,8 +447,16 @@ def material(spec: Spec, mesh: ModelMesh) -> tuple[float, float]:
     E = spec.E if spec.E is not None else mesh.material["E"]
     nu = spec.nu if spec.nu is not None else mesh.material["nu"]
     check_material(E, nu)
-    _warn_once(get_element(spec.element).locking(nu))
+    _warn_once(get_element(element_name(spec, mesh)).locking(nu))
     return float(E), float(nu)
+
+
+def element_name(spec: Spec, mesh: ModelMesh) -> str:
+    """The element this run uses: ``spec.element``, or for ``auto`` the one the material asks for."""
+    from pmask.precompute.elements import element_name as resolve
+
+    nu = spec.nu if spec.nu is not None else mesh.material["nu"]
+    return resolve(spec.element, float(nu))
 
 
 def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | None = None) -> dict:
@@ -490,7 +500,7 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
     """Stage 3: assemble the element's stiffness and load, factorise K_FF.  Returns (factor, timings)."""
     from pmask.precompute import elements, greens
 
-    element = elements.get_element(spec.element)
+    element = elements.get_element(element_name(spec, mesh))
     E, nu = material(spec, mesh)
     t0 = time.perf_counter()
     d = element.discretise(mesh.points, mesh.tets)
@@ -535,7 +545,7 @@ def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor, *, work: Pa
     Xi, R = greens.greens_functions(factor)
     if R is None:
         return Xi, None
-    element = elements.get_element(spec.element)
+    element = elements.get_element(element_name(spec, mesh))
     d = element.discretise(mesh.points, mesh.tets) if element.name != "P1" else None
     return Xi, element.lump_reactions(d, surf.vertices[surf.regions.fixed], surf.held_facets(), R)
 
@@ -549,7 +559,7 @@ def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, react
     meta = {
         "model": spec.model, "input_hash": keys["artifact"], "E": E, "nu": nu, "r_max": surf.r_max,
         "tolerance": spec.compress,
-        "fixed_selector": surf.fixed_selector, "contact_selector": surf.contact_selector, "element": spec.element,
+        "fixed_selector": surf.fixed_selector, "contact_selector": surf.contact_selector, "element": element_name(spec, mesh),
         "parameters": {**asdict(spec), "model_info": mesh.info},
         "provenance": {"libraries": library_versions(), "code_sha256": code_digest(), "stage_keys": keys,
                        "created_unix": time.time(), "host": platform.node(), "resumed_stages": resumed,
@@ -566,12 +576,31 @@ def _bytes(n: float) -> str:
     return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
-def _checkpoint_reached(stage: str) -> None:
-    """Test hook: ``PMASK_PAUSE_AFTER=<stage>`` sleeps after that stage's checkpoint, so that a test
-    can kill a real run mid-way and check that the next run resumes from there."""
-    if os.environ.get("PMASK_PAUSE_AFTER") == stage:
-        log.warning("pausing after stage %s (PMASK_PAUSE_AFTER)", stage)
-        time.sleep(float(os.environ.get("PMASK_PAUSE_SECONDS", "600")))
+class _Background:
+    """``fn(*args, **kw)`` on a thread of its own; :meth:`join` waits for it and raises what it raised."""
+
+    def __init__(self, fn, *args, **kw):
+        import threading
+
+        self._error = None
+
+        def target():
+            try:
+                fn(*args, **kw)
+            except BaseException as exc:  # handed to the caller by join()
+                self._error = exc
+
+        self._thread = threading.Thread(target=target, name="pmask-checkpoint", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        self._thread.join()
+
+    def join(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
 
 
 class _Stages:
@@ -664,14 +693,13 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
                 mesh = mesh_stage(spec)
                 save_model_mesh(ck, mesh)
             mesh = support_stage(spec, mesh)
-        _checkpoint_reached("mesh")
         with st.timed("regions", f"{spec.model}: assemble + factorise"):
             surf = surface_stage(spec, mesh)
-            element = elements.get_element(spec.element)
+            element = elements.get_element(element_name(spec, mesh))
             check_memory(element, len(mesh.points), len(surf.regions.contact), spec)
         solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
-        factor = None
+        factor, saving = None, None
         if ck.exists():
             t0 = time.perf_counter()
             try:
@@ -688,11 +716,14 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             factor, t = factor_stage(spec, mesh, surf)
             st.timings.update(t)
             if spec.solver == "factor":  # (AMG: nothing worth keeping; the tile store is the checkpoint)
-                with st.timed("checkpoint", f"{spec.model}: Green's functions"):
-                    atomic_write(ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)), suffix=".npz")
-        _checkpoint_reached("factor")
+                saving = _Background(atomic_write, ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)),
+                                     suffix=".npz")  # written while the Green's functions are computed
+                solve.callback(saving.wait)  # a run that fails meanwhile still lets the write finish
         with st.timed("greens", f"{spec.model}: write"):
             Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])
+        if saving is not None:
+            with st.timed("checkpoint"):  # what is left of the factor checkpoint's write (usually nothing)
+                saving.join()
         with st.timed("write"):
             write_stage(spec, out, mesh, surf, Xi, reactions, keys=keys, factor_stats=factor.stats,
                         timings=st.timings, resumed=st.resumed)
@@ -705,5 +736,5 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             "resumed": st.resumed, "volume_vertices": len(mesh.points), "tets": len(mesh.tets),
             "surface_vertices": len(surf.vertices), "free": len(reg.free), "fixed": len(reg.fixed),
             "contact": len(reg.contact), "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs"),
-            "backend": factor.stats.get("backend"), "element": spec.element, "factor_stats": factor.stats,
+            "backend": factor.stats.get("backend"), "element": element_name(spec, mesh), "factor_stats": factor.stats,
             "remesh": mesh.info.get("remesh")}

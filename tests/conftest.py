@@ -21,8 +21,15 @@ def build(tmp_path_factory, name: str, spec: Spec) -> Path:
 
 @pytest.fixture(scope="session")
 def kidney_small(tmp_path_factory) -> Path:
-    """A coarse kidney (about 300 surface vertices): the default model at a CI-friendly size."""
+    """A coarse kidney (about 500 surface vertices): the default model (P2, as --element auto makes it at the
+    kidney's ν = 0.45) at a CI-friendly size."""
     return build(tmp_path_factory, "kidney_small", Spec(model="kidney", params={"size": 0.009}))
+
+
+@pytest.fixture(scope="session")
+def kidney_small_p1(tmp_path_factory) -> Path:
+    """The coarse kidney with linear tetrahedra (P1, as --element P1 makes it): the routes of the P1 load."""
+    return build(tmp_path_factory, "kidney_small_p1", Spec(model="kidney", params={"size": 0.009}, element="P1"))
 
 
 @pytest.fixture(scope="session")
@@ -32,7 +39,8 @@ def halfspace_small(tmp_path_factory) -> Path:
 
 
 def full_solve(points, tets, E, nu, fixed_vertices, loads):
-    """Independent route: the whole free system K_FF u = f by SuperLU (no condensation).
+    """Independent route for P1: the whole free system K_FF u = f by SuperLU (no condensation), the stiffness by
+    scikit-fem.
 
     loads : (3N, k) nodal forces.  Returns (u (3N, k) with zeros on fixed dofs, reactions (3N, k) = K u
     restricted to fixed dofs, i.e. the forces the support exerts).
@@ -47,6 +55,103 @@ def full_solve(points, tets, E, nu, fixed_vertices, loads):
     r = np.zeros_like(u)
     r[fixed] = (K @ u)[fixed] - loads[fixed]
     return u, r
+
+
+class FullSystem:
+    """The independent route for an artifact, P1 or P2 as it was made: the whole free system of its volume mesh,
+    the stiffness assembled by scikit-fem (``ElementVector(ElementTetP1/P2)``; P2 with the volumetric term at the
+    centroid, the P2-P0 element), the traction's load as pmask defines it (P1: the lumped a_j p_j; P2: the
+    consistent load of the piecewise-linear traction, scikit-fem's mixed P1 x P2 facet mass), the support held
+    (P1: the fixed vertices; P2: also the edge nodes of the facets it holds), factorised once by SuperLU.  No
+    pmask assembly, load, factorisation or condensation takes part."""
+
+    def __init__(self, path):
+        from skfem import (Basis, BilinearForm, ElementTetP1, ElementTetP2, ElementVector, FacetBasis, MeshTet,
+                           asm)
+        from skfem.helpers import ddot, div, sym_grad
+
+        from pmask.runtime.artifact import read_artifact
+
+        d = read_artifact(path)
+        self.element = d["attrs"].get("element", "P1")
+        P, T = d["volume/points"], d["volume/tets"]
+        vi, fixed, tris = d["surface/volume_index"], d["surface/fixed"], d["surface/triangles"]
+        self.vi, self.areas, self.fixed_volume = vi, d["surface/vertex_areas"], vi[fixed]
+        E, nu = d["attrs"]["material"]["E"], d["attrs"]["material"]["nu"]
+        N = len(P)
+        mesh = MeshTet(np.ascontiguousarray(P.T), np.ascontiguousarray(T.T))
+        if self.element == "P1":
+            K = stiffness_matrix(P, T, E, nu)
+            held = dofs(self.fixed_volume)
+            self.B = None
+        else:
+            lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+            el = ElementVector(ElementTetP2())
+            full, centroid = Basis(mesh, el, intorder=2), Basis(mesh, el, intorder=1)
+            assert np.array_equal(full.nodal_dofs, 3 * np.arange(N) + np.arange(3)[:, None])
+            assert full.edge_dofs[0, 0] == 3 * N
+
+            @BilinearForm
+            def dev(u, v, w):
+                return 2.0 * mu * ddot(sym_grad(u), sym_grad(v))
+
+            @BilinearForm
+            def vol(u, v, w):
+                return lam * div(u) * div(v)
+
+            @BilinearForm
+            def mass(u, v, w):
+                return u * v
+
+            K = (asm(dev, full) + asm(vol, centroid)).tocsr()
+            self.B = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4), FacetBasis(mesh, ElementTetP2(), intorder=4))
+            fixed_mask = np.zeros(len(d["surface/points"]), bool)
+            fixed_mask[fixed] = True
+            facets = vi[tris[np.all(fixed_mask[tris], axis=1)]]
+            e = np.sort(np.concatenate([facets[:, [0, 1]], facets[:, [1, 2]], facets[:, [2, 0]]]), axis=1)
+            edges = np.sort(mesh.edges.T, axis=1)
+            self.held_edges = np.flatnonzero(np.isin(edges[:, 0] * N + edges[:, 1], e[:, 0] * N + e[:, 1]))
+            self.edges = edges
+            held = np.concatenate([dofs(self.fixed_volume), 3 * (N + self.held_edges)[:, None].repeat(3, 1).ravel()
+                                   + np.tile(np.arange(3), len(self.held_edges))])
+        self.K = K.tocsc()
+        self.N, self.n = N, K.shape[0]
+        self.held = np.sort(held)
+        self.free = np.setdiff1d(np.arange(self.n), self.held)
+        self.lu = spla.splu(self.K[self.free][:, self.free].tocsc())
+
+    def loads(self, tractions):
+        """Nodal forces (n_dofs, k) of nodal traction values (n_surface, 3, k) at the surface vertices."""
+        tr = np.asarray(tractions, float)
+        tr = tr.reshape(tr.shape[0], 3, -1)
+        k = tr.shape[2]
+        f = np.zeros((self.n, k))
+        if self.B is None:
+            f[dofs(self.vi)] = (self.areas[:, None, None] * tr).reshape(-1, k)
+        else:
+            pv = np.zeros((self.N, 3, k))
+            pv[self.vi] = tr
+            for c in range(3):
+                f[c::3] = self.B @ pv[:, c, :]
+        return f
+
+    def solve(self, tractions):
+        """(u at the volume vertices (N, 3, k), support reactions per fixed vertex (n_fixed, 3, k)) for the
+        tractions (n_surface, 3, k); P2's edge-node reactions go half to each end of their edge."""
+        f = self.loads(tractions)
+        u = np.zeros_like(f)
+        u[self.free] = self.lu.solve(f[self.free])
+        r = np.zeros_like(f)
+        r[self.held] = (self.K @ u)[self.held] - f[self.held]
+        k = f.shape[1]
+        react = r[dofs(self.fixed_volume)].reshape(-1, 3, k)
+        if self.B is not None:
+            pos = {int(v): i for i, v in enumerate(self.fixed_volume)}
+            for e in self.held_edges:
+                re = r[3 * (self.N + e):3 * (self.N + e) + 3]
+                for v in self.edges[e]:
+                    react[pos[int(v)]] += 0.5 * re
+        return u[:3 * self.N].reshape(self.N, 3, k), react
 
 
 def relerr(a, b) -> float:

@@ -141,7 +141,7 @@ def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
 def test_a_rerun_reuses_the_finished_tiles(tmp_path):
     from pmask.pipeline import stages
 
-    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1)
+    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1, element="P1")  # the W-store route
 
     keys = stages.stage_keys(spec)
     mesh = stages.support_stage(spec, stages.mesh_stage(spec))
@@ -264,7 +264,7 @@ def test_amg_route_agrees_with_the_factor_and_rigid_modes_are_the_null_space():
     from pmask.pipeline import stages
     from pmask.precompute import amg, elements
 
-    spec = Spec(model="kidney", params={"size": 0.0085}, r_max=R_MAX)
+    spec = Spec(model="kidney", params={"size": 0.0085}, r_max=R_MAX, element="P1")  # the P1 system this test builds
     mesh = stages.support_stage(spec, stages.mesh_stage(spec))
     surf = stages.surface_stage(spec, mesh)
     factor, _ = stages.factor_stage(spec, mesh, surf)

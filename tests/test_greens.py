@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import full_solve, relerr
+from conftest import FullSystem, relerr
 from pmask.precompute.elasticity import dofs, rigid_body_modes, stiffness_matrix
 from pmask.runtime.artifact import read_artifact
 
@@ -17,48 +17,61 @@ def load_case(path):
 
 @pytest.fixture(scope="module", params=["kidney_small", "halfspace_small"])
 def solved(request):
-    """Artifact plus full-system solves for point loads at three sampled contact vertices."""
+    """Artifact (the kidney P2, the half-space P1, as --element auto makes them) plus independent full-system
+    solves (conftest.FullSystem) for unit tractions at three sampled contact vertices: u at the volume vertices
+    (N, 3, 9) and the support reactions per fixed vertex (n_fixed, 3, 9)."""
     path = request.getfixturevalue(request.param)
     d, vi = load_case(path)
-    mat = d["attrs"]["material"]
-    P, T = d["volume/points"], d["volume/tets"]
     contact = d["surface/contact"]
     rng = np.random.default_rng(7)
     cols = np.sort(rng.choice(len(contact), 3, replace=False))
-    loads = np.zeros((3 * len(P), 9))
-    a = d["surface/vertex_areas"]
+    tractions = np.zeros((len(d["surface/points"]), 3, 9))
     for k, c in enumerate(cols):
-        v = vi[contact[c]]
         for comp in range(3):
-            loads[3 * v + comp, 3 * k + comp] = a[contact[c]]  # unit traction -> nodal force a_j
-    u, r = full_solve(P, T, mat["E"], mat["nu"], vi[d["surface/fixed"]], loads)
-    return d, vi, cols, loads, u, r
+            tractions[contact[c], comp, 3 * k + comp] = 1.0  # a unit traction p_j (the paper's hat)
+    system = FullSystem(path)
+    u, r = system.solve(tractions)
+    return d, vi, cols, system, u, r
 
 
 def test_columns_match_full_solve(solved):
     d, vi, cols, _, u, _ = solved
     Xi = d["greens/Xi"]
-    rows = dofs(vi[d["surface/contact"]])
+    U = u[vi[d["surface/contact"]]]  # (n_c, 3, 9)
     for k, c in enumerate(cols):
-        assert relerr(Xi[:, 3 * c:3 * c + 3], u[rows, 3 * k:3 * k + 3]) < 1e-8
+        assert relerr(Xi[:, 3 * c:3 * c + 3], U[:, :, 3 * k:3 * k + 3].reshape(-1, 3)) < 1e-8
 
 
 def test_reciprocity_on_separate_solves(solved):
-    """a_i Ξ_ij = a_j Ξ_jiᵀ, with each side taken from a different full solve (not Ξ's mirror)."""
-    d, vi, cols, _, u, _ = solved
-    a = d["surface/vertex_areas"][d["surface/contact"]]
-    cv = vi[d["surface/contact"]]
+    """a_i Ξ_ij = a_j Ξ_jiᵀ, with each side taken from a different full solve (not Ξ's mirror).  (For P2 the
+    reciprocal pair is the consistent load's: B_jᵀ u_i = B_iᵀ u_j, with B the load of the unit hat tractions;
+    with the lumped load of P1 that is a_i Ξ_ij = a_j Ξ_jiᵀ.)"""
+    d, vi, cols, system, u, _ = solved
+    contact = d["surface/contact"]
+    n_s = len(d["surface/points"])
+    U = u.reshape(-1, 9)  # volume-vertex dofs only: the loads' work needs every node for P2
     for p in range(3):
         for q in range(p + 1, 3):
             i, j = cols[p], cols[q]
-            Xi_ij = u[dofs([cv[i]])][:, 3 * q:3 * q + 3]  # displacement at i, load at j
-            Xi_ji = u[dofs([cv[j]])][:, 3 * p:3 * p + 3]
-            assert relerr(a[i] * Xi_ij, a[j] * Xi_ji.T) < 1e-9
+            ti, tj = np.zeros((n_s, 3, 3)), np.zeros((n_s, 3, 3))
+            ti[contact[i]] = np.eye(3)
+            tj[contact[j]] = np.eye(3)
+            fi, fj = system.loads(ti), system.loads(tj)
+            ui = np.zeros((system.n, 3))
+            uj = np.zeros((system.n, 3))
+            ui[system.free] = system.lu.solve(fi[system.free])
+            uj[system.free] = system.lu.solve(fj[system.free])
+            assert relerr(fj.T @ ui, (fi.T @ uj).T) < 1e-9
+            if system.B is None:  # P1: the same statement on Ξ's blocks, as the docs state it
+                a = d["surface/vertex_areas"][contact]
+                Xi_ij = U[3 * vi[contact[i]]:3 * vi[contact[i]] + 3, 3 * q:3 * q + 3]
+                Xi_ji = U[3 * vi[contact[j]]:3 * vi[contact[j]] + 3, 3 * p:3 * p + 3]
+                assert relerr(a[i] * Xi_ij, a[j] * Xi_ji.T) < 1e-9
 
 
 def test_masked_load_matches_full_solve(solved):
     """Σ_j ρ_j Ξ_ij is the displacement under the traction ρ f (a cone around a vertex)."""
-    d, vi, cols, _, _, _ = solved
+    d, vi, cols, system, _, _ = solved
     contact, a = d["surface/contact"], d["surface/vertex_areas"]
     x = d["surface/points"][contact]
     i = cols[0]
@@ -68,35 +81,37 @@ def test_masked_load_matches_full_solve(solved):
     rho /= a[contact] @ rho
     assert np.count_nonzero(rho) > 1
     f = np.array([0.3, -1.0, 0.5])
-    P, T = d["volume/points"], d["volume/tets"]
-    load = np.zeros((3 * len(P), 1))
-    for j in np.flatnonzero(rho):
-        load[dofs([vi[contact[j]]]), 0] = a[contact[j]] * rho[j] * f
-    mat = d["attrs"]["material"]
-    u, _ = full_solve(P, T, mat["E"], mat["nu"], vi[d["surface/fixed"]], load)
+    tractions = np.zeros((len(d["surface/points"]), 3, 1))
+    tractions[contact, :, 0] = rho[:, None] * f
+    u, _ = system.solve(tractions)
     Xi = d["greens/Xi"]
     v = sum(rho[j] * Xi[:, 3 * j:3 * j + 3] @ f for j in np.flatnonzero(rho))
-    assert relerr(v, u[dofs(vi[contact]), 0]) < 1e-8
+    assert relerr(v, u[vi[contact], :, 0].ravel()) < 1e-8
 
 
 def test_equilibrium_of_forces_and_moments(solved):
-    """Applied load and its moment equal minus those of the stored support reactions."""
-    d, vi, cols, _, _, r_full = solved
-    a = d["surface/vertex_areas"]
+    """The stored support reactions balance the applied load's force and moment, and are the reactions the
+    independent solve finds (P2's edge-node reactions split half to each end in both)."""
+    d, vi, cols, system, _, r_full = solved
     contact, fixed = d["surface/contact"], d["surface/fixed"]
     xs = d["surface/points"]
     R = d["greens/reactions"]
+    n_s = len(xs)
     for k, c in enumerate(cols):
         for comp in range(3):
-            load = np.zeros(3)
-            load[comp] = a[contact[c]]
+            t = np.zeros((n_s, 3, 1))
+            t[contact[c], comp, 0] = 1.0
+            f = system.loads(t)[:, 0]
+            nodes = np.vstack([d["volume/points"], d["volume/points"][system.edges].mean(axis=1)]) \
+                if system.B is not None else d["volume/points"]
+            F = f.reshape(-1, 3)
+            load, load_moment = F.sum(axis=0), np.cross(nodes, F).sum(axis=0)
             react = R[:, 3 * c + comp].reshape(-1, 3)
-            scale = np.abs(load).sum()
+            scale = np.abs(F).sum()
             np.testing.assert_allclose(react.sum(axis=0), -load, atol=1e-9 * scale)
-            moment = np.cross(xs[contact[c]], load) + np.cross(xs[fixed], react).sum(axis=0)
+            moment = load_moment + np.cross(xs[fixed], react).sum(axis=0)
             assert np.linalg.norm(moment) < 1e-9 * scale * np.linalg.norm(xs, axis=1).max()
-            # and they are the reactions the independent solve finds
-            assert relerr(react.ravel(), r_full[dofs(vi[fixed]), 3 * k + comp]) < 1e-8
+            assert relerr(react.ravel(), r_full[:, :, 3 * k + comp].ravel()) < 1e-8
 
 
 def test_stiffness_annihilates_rigid_modes(kidney_small):
@@ -128,7 +143,7 @@ def test_patch_test_linear_field_reproduced(kidney_small):
     assert relerr(u_inner, exact[Id]) < 1e-9
 
 
-def test_cholmod_backends_agree(kidney_small):
+def test_cholmod_backends_agree(kidney_small_p1):
     """The native backend (CHOLMOD with METIS, the inverse in C) and the pip-only one (cvxopt's
     CHOLMOD with AMD, the inverse in numpy) factorise in different orders: they give the same Ξ and
     reactions to rounding, and so do the two inverses on the same factor."""
@@ -138,7 +153,7 @@ def test_cholmod_backends_agree(kidney_small):
     if not native.available():
         pytest.skip("native CHOLMOD library not built (needs libsuitesparse-dev)")
 
-    d = read_artifact(kidney_small)
+    d = read_artifact(kidney_small_p1)
     P, T, vi = d["volume/points"], d["volume/tets"], d["surface/volume_index"]
     K = stiffness_matrix(P, T, d["attrs"]["material"]["E"], d["attrs"]["material"]["nu"])
     contact, fixed = vi[d["surface/contact"]], vi[d["surface/fixed"]]

@@ -139,12 +139,16 @@ def test_user_surface_stl_end_to_end(tmp_path):
     assert np.allclose(r, 0.02, rtol=0.02)  # remeshed in metres on the same sphere
     assert 100 < s["surface_vertices"] < len(sphere.vertices)  # coarser than the input
     assert np.all(d["surface/points"][d["surface/fixed"]][:, 2] < -0.015 + 1e-12)
-    # a pull on the top vertex moves it up, and Ξ's diagonal blocks are symmetric positive definite
+    # ν = 0.4: --element auto takes P2 (P1 would warn); a pull on the top vertex moves it up, and Ξ's diagonal
+    # blocks have a positive definite symmetric part.  (P2's consistent load spreads a vertex's hat traction onto
+    # its edges' nodes, so Ξ_ii is symmetric only up to that spread, a few per cent here; the exact reciprocity
+    # of the consistent load is tests/test_greens.py's.)
+    assert d["attrs"]["element"] == "P2"
     Xi = d["greens/Xi"]
     top = int(np.argmax(d["surface/points"][d["surface/contact"], 2]))
     block = Xi[3 * top:3 * top + 3, 3 * top:3 * top + 3]
     assert block[2, 2] > 0 and np.all(np.linalg.eigvalsh(0.5 * (block + block.T)) > 0)
-    assert relerr(block, block.T) < 1e-12
+    assert relerr(block, block.T) < 0.05
 
 
 def test_halfspace_contact_region_is_widened_by_r_max(halfspace_small):
@@ -162,21 +166,26 @@ def test_halfspace_contact_region_is_widened_by_r_max(halfspace_small):
 
 def test_p1_is_refused_where_it_locks_and_warned_about_where_it_stiffens(tmp_path, caplog):
     """ν = 0.499 with P1 (2.1x Boussinesq on the half-space) is one line before any meshing, naming the
-    element that does not lock; ν = 0.45 with P1 warns with the measured excess; P2 at 0.499 is accepted."""
+    element that does not lock; ν = 0.45 with P1 warns with the measured excess; P2 at 0.499 is accepted; and
+    --element auto (the default) takes P2 wherever P1 would warn, P1 below, without a word."""
     import logging
 
     from pmask.pipeline.stages import _warn_once, validate
+    from pmask.precompute.elements import default_element
 
     out = tmp_path / "x.h5"
     with pytest.raises(InputError, match=r"P1 tetrahedra lock at nu = 0.499.*--element P2"):
-        run(Spec(model="kidney", nu=0.499), out)
+        run(Spec(model="kidney", nu=0.499, element="P1"), out)
     assert not out.exists() and not (tmp_path / ".work").exists()
     _warn_once.cache_clear()
     with caplog.at_level(logging.WARNING, logger="pmask.pipeline.stages"):
-        validate(Spec(model="kidney", nu=0.45), out)
+        validate(Spec(model="kidney", nu=0.45, element="P1"), out)
         validate(Spec(model="kidney", nu=0.499, element="P2"), out)
+        validate(Spec(model="kidney", nu=0.499), out)
+        validate(Spec(model="kidney", nu=0.45), out)
     warned = [r.getMessage() for r in caplog.records]
     assert len(warned) == 1 and "nu = 0.45" in warned[0] and "17 %" in warned[0]
+    assert [default_element(nu) for nu in (0.3, 0.39, 0.4, 0.45, 0.499)] == ["P1", "P1", "P2", "P2", "P2"]
 
 
 def test_the_remesh_reports_how_far_it_moved_the_surface(tmp_path, caplog):

@@ -99,14 +99,17 @@ def test_p2_matches_at_coarser_meshes_and_locks_less():
 
 
 def test_figure6_masks_remove_mesh_artefacts():
-    """The paper's Figure 6 in numbers: single-vertex stiffness follows the vertex area and is rough (mesh
-    artefacts), the masked one much less; the normal stiffness a frictionless contact renders is smoother
-    with masks too (less so: most of the artefacts are in the tangential and coupling parts)."""
+    """The paper's Figure 6 in numbers (the default kidney, P2): single-vertex stiffness follows the vertex area
+    and is rough (mesh artefacts), the masked one much less.  The normal stiffness a frictionless contact
+    renders: with P2 the single-vertex load is already the hat traction's consistent load spread over its one
+    ring, so its normal stiffness is about as smooth as the mask's (with P1's point loads it was rougher); what
+    the table must show is that the masked one varies from vertex to vertex by well under what a hand tells
+    apart (stiffness discrimination thresholds are 15-25 %: a 5 % bound)."""
     single, masked = table("figure6")
     assert float(masked["vertex_roughness"]) <= 0.5 * float(single["vertex_roughness"])
-    assert float(masked["rank_correlation_with_area"]) < float(single["rank_correlation_with_area"])
+    assert float(masked["rank_correlation_with_area"]) < 0.5 * float(single["rank_correlation_with_area"])
     assert float(single["rank_correlation_with_area"]) > 0.5  # single-vertex stiffness follows vertex area
-    assert float(masked["normal_stiffness_roughness"]) < float(single["normal_stiffness_roughness"])
+    assert float(masked["normal_stiffness_roughness"]) <= 0.05
 
 
 @pytest.mark.slow

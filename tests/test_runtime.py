@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ROOT, full_solve, relerr
+from conftest import ROOT, FullSystem, relerr
 from pmask.precompute.elasticity import dofs
 from pmask.runtime import MASK_KINDS, Model, pressure_masks
 from pmask.runtime.geometry import vertex_areas
@@ -72,55 +72,63 @@ def test_radius_validation(model):
 
 
 @pytest.fixture(scope="module")
-def probe_solve(model):
-    """Full FE solves (outside the runtime) of a cone-masked load at one free vertex, f = e_x, e_y, e_z."""
-    r = 2.0 * model.mean_edge_length
-    stiff = model.stiffness("linear", r, symmetric=False)
+def small(kidney_small):
+    """The coarse kidney: its whole free system is small enough for SuperLU (the default kidney's P2 system
+    took SuperLU 27 s)."""
+    return Model.load(kidney_small)
+
+
+@pytest.fixture(scope="module")
+def small_probe(small):
+    """A cone mask of the default radius around one free vertex with at least five mask vertices."""
+    model = small
+    stiff = model.stiffness("linear", symmetric=False)
     k = int(np.flatnonzero(np.diff(stiff.masks.indptr) >= 5)[3])
     cols, rho = stiff.masks.row(k)
     return stiff, k, cols, rho
 
 
 def _full_displacements(model, cols, rho):
-    from pmask.runtime.artifact import read_artifact
-
-    d = read_artifact(model.path)
-    vi = d["surface/volume_index"]
-    P, T = d["volume/points"], d["volume/tets"]
-    loads = np.zeros((3 * len(P), 3))
+    """The independent route (conftest.FullSystem): tractions ρ_j e_c at the mask's contact vertices, for c =
+    x, y, z; returns u at the volume vertices (N, 3, 3) and the surface's volume indices."""
+    tractions = np.zeros((len(model.points), 3, 3))
     for j, w in zip(cols, rho):
-        v = vi[model.contact[j]]
-        loads[dofs([v]), :] += model.vertex_areas[model.contact[j]] * w * np.eye(3)  # nodal force a_j ρ_j f
-    u, _ = full_solve(P, T, model.E, model.nu, vi[model.fixed], loads)
-    return u, vi
+        tractions[model.contact[j]] += w * np.eye(3)
+    system = FullSystem(model.path)
+    u, _ = system.solve(tractions)
+    return u, system.vi
 
 
-def test_masked_vertex_stiffness_is_inverse_of_full_solve(model, probe_solve):
-    stiff, k, cols, rho = probe_solve
+def test_masked_vertex_stiffness_is_inverse_of_full_solve(small, small_probe):
+    """K_i (eq. 12) is the inverse of vertex i's displacement under its mask's traction, from an independent
+    full solve of the default element (P2 on the kidney), masked and single-vertex."""
+    model = small
+    stiff, k, cols, rho = small_probe
     u, vi = _full_displacements(model, cols, rho)
     i_surface = model.contact[stiff.masks.centres[k]]
-    U = u[dofs([vi[i_surface]])]  # 3x3: column c = displacement of vertex i for f = e_c
+    U = u[vi[i_surface]]  # 3x3: column c = displacement of vertex i for f = e_c
     assert relerr(stiff.K_full[k], np.linalg.inv(U)) < 1e-8
     # and the single-vertex stiffness is the inverse of the point-load response
     single = model.stiffness("single")
     u1, _ = _full_displacements(model, [stiff.masks.centres[k]], [1.0 / model.vertex_areas[i_surface]])
-    assert relerr(single.K_full[k], np.linalg.inv(u1[dofs([vi[i_surface]])])) < 1e-8
+    assert relerr(single.K_full[k], np.linalg.inv(u1[vi[i_surface]])) < 1e-8
     # the mask spreads the load: the masked vertex is stiffer than the single one
     assert np.linalg.norm(stiff.K_full[k], 2) > 1.2 * np.linalg.norm(single.K_full[k], 2)
 
 
-def test_zeta_reproduces_full_displacement_field(model, probe_solve):
-    stiff, k, cols, rho = probe_solve
+def test_zeta_reproduces_full_displacement_field(small, small_probe):
+    model = small
+    stiff, k, cols, rho = small_probe
     u, vi = _full_displacements(model, cols, rho)
     i_surface = model.contact[stiff.masks.centres[k]]
     Z = stiff.zeta(i_surface)
-    assert relerr(Z, u[dofs(vi[model.contact])]) < 1e-8
+    assert relerr(Z, u[vi[model.contact]].reshape(-1, 3)) < 1e-8
     # eq. 16 at a vertex (b = e_k) is ζ_i f
     t = int(np.flatnonzero(np.any(model.triangles == i_surface, axis=1))[0])
     b = (model.triangles[t] == i_surface).astype(float)
     f = np.array([0.1, -0.2, 0.3])
     v = stiff.deformation(t, b, f)
-    assert relerr(v[model.contact].ravel(), u[dofs(vi[model.contact])] @ f) < 1e-8
+    assert relerr(v[model.contact].ravel(), u[vi[model.contact]].reshape(-1, 3) @ f) < 1e-8
     assert np.all(v[model.fixed] == 0)
 
 
