@@ -57,7 +57,7 @@ sphinx_gallery_conf = {
 
 html_theme = "pydata_sphinx_theme"
 html_title = f"pmask {release}"
-html_static_path = ["_static"]
+html_static_path: list = []  # no static files of our own (an empty _static is not kept by git)
 html_theme_options = {"navigation_depth": 2, "show_toc_level": 2, "secondary_sidebar_items": ["page-toc"],
                       "footer_start": ["copyright"], "footer_end": []}
 html_show_sourcelink = False
