@@ -29,7 +29,7 @@ class SelectorError(InputError):
 
 def select(selector: str, points: np.ndarray, groups: dict | None = None) -> np.ndarray:
     """Boolean mask of the ``points`` that ``selector`` matches."""
-    groups = groups or {}
+    groups = {} if groups is None else groups  # an empty mapping (or parse()'s any-group placeholder) is kept
     if not isinstance(selector, str) or not selector.strip():
         raise SelectorError("empty selector; use e.g. 'z<-0.9', 'box:...', 'sphere:...' or 'group:NAME'")
     mask = np.zeros(len(points), bool)
