@@ -535,7 +535,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     try:
         try:
             if todo:
-                if getattr(factor, "load", True) is None:  # P1 factor: W once, tiles read it (module docstring)
+                if getattr(factor, "load", True) is None and hasattr(factor, "L"):  # a P1 factor: W once, tiles
+                    # read it (module docstring); the AMG system (--solver amg, no factor) solves per panel
                     t1 = time.perf_counter()
                     source = sweep(factor, w_path, key)
                     stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1,

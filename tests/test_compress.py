@@ -284,3 +284,21 @@ def test_amg_route_agrees_with_the_factor_and_rigid_modes_are_the_null_space():
     Xa = compress.panel_columns(system, perm, 0, 48)
     # CG stops at a relative residual of 1e-10; measured 3.6e-12 here
     assert np.linalg.norm(Xa - Xf) <= 1e-9 * np.linalg.norm(Xf)
+
+
+def test_the_amg_route_runs_from_the_command_line_with_p1(tmp_path):
+    """#27: `pmask precompute kidney --element P1 --solver amg --compress` ended in "'AmgSystem' object has no
+    attribute 'L'" (exit 3): the P1 route swept the factor's W, which the AMG system does not have.  It now
+    solves per panel, and its artifact's K_i equal the factor route's to the compression tolerance (1e-4
+    per block; CG's 1e-10 is far below)."""
+    from pmask.pipeline.cli import main
+    from pmask.runtime import Model
+
+    amg_path, dense = tmp_path / "amg.h5", tmp_path / "dense.h5"
+    common = ["-q", "precompute", "kidney", "--size", "0.012", "--element", "P1"]
+    assert main(common + ["--solver", "amg", "--compress", "-o", str(amg_path)]) == 0
+    assert main(common + ["-o", str(dense)]) == 0
+    a, d = Model.load(amg_path), Model.load(dense)
+    r = 2 * d.mean_edge_length
+    Ka, Kd = a.stiffness("linear", r).K_vertex, d.stiffness("linear", r).K_vertex
+    assert np.abs(Ka - Kd).max() <= 1e-3 * np.abs(Kd).max()
