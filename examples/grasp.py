@@ -26,7 +26,8 @@ import numpy as np
 DEFAULT_ARTIFACT = ((Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd())  # (the docs' gallery
                     .parent / "artifacts" / "kidney.h5")                                           # runs it from here)
 
-from pmask.runtime import Contacts, Model, Status
+from pmask.runtime import Contacts, Model
+from pmask.runtime.contact.state import TOUCHING
 
 
 def jaw_points(model):
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
         runs[name] = (np.concatenate([forces, rest]), np.concatenate([status, rest_status]))
     hold = slice(n_close, n_close + n_hold)
     squeeze = {name: np.linalg.norm(f[hold], axis=2).mean(axis=0) for name, (f, _) in runs.items()}
-    in_contact = {name: float(np.mean(s[hold] == Status.CONTACT)) for name, (_, s) in runs.items()}
+    in_contact = {name: float(np.mean(np.isin(s[hold], TOUCHING))) for name, (_, s) in runs.items()}
     for name in runs:
         print(f"{name:11s} jaw forces during the hold: upper {squeeze[name][0]:.4f} N, lower {squeeze[name][1]:.4f} N "
               f"(in contact {100 * in_contact[name]:.0f} % of the hold)")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from pmask.meshes.kidney import SEMI_AXES
+from pmask.runtime.contact.state import TOUCHING
 
 RATE = 1000.0  # Hz
 DEPTH = 1.5e-3  # m
@@ -52,10 +53,8 @@ def run_stroke(stiffness, path: np.ndarray, **contact_options):
 
 def smoothness(forces: np.ndarray, status: np.ndarray, start: int = 200) -> dict:
     """Contact fraction, mean ‖f‖, RMS step and roughness of the sliding phase (from tick ``start``)."""
-    from pmask.runtime import Status
-
     f = forces[start:]
-    ok = status[start:] == Status.CONTACT
+    ok = np.isin(status[start:], TOUCHING)
     mag = np.linalg.norm(f, axis=1)
     step = np.linalg.norm(np.diff(f, axis=0), axis=1)
     w = 301
@@ -233,7 +232,7 @@ def run_contact(contact, probes: np.ndarray) -> dict:
         if contact.triangle >= 0:
             out["proxy"][k] = np.asarray(contact.bary) @ P[T[contact.triangle]]
         out["depth"][k] = contact.depth
-        if s in (1, 6):
+        if s in TOUCHING:
             out["stored"][k] = 0.5 * float(np.dot(-np.asarray(f), contact.u_bar))
     return out
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from pmask.errors import InputError
 from pmask.runtime.contact import coupling, law, output, tracking
-from pmask.runtime.contact.state import SPIN, ContactState, Status, hold, release
+from pmask.runtime.contact.state import SPIN, TOUCHING, ContactState, Status, hold, release
 from pmask.runtime.contact.surface import ContactSurface
 from pmask.runtime.device import Device
 
@@ -279,7 +279,7 @@ class Contacts:
             if not frictionless and st.anchor is None:  # contact begins: the tool holds the point under it
                 st.anchor = tracking.point(self.surface, st.tri, *st.b)
             g, u = law.geometry(self, st, p)
-            if g[5] <= 0.0:  # λ = 0 here: outside the precomputed region, no force; the proxy follows the probe
+            if g[law.GEO_LAM] <= 0.0:  # λ = 0 here: outside the precomputed region, no force; the proxy follows the probe
                 if not frictionless:
                     tracking.follow(self, st)
                 release(st, Status.OUTSIDE_REGION)
@@ -291,9 +291,9 @@ class Contacts:
             return
         result = coupling.solve(self, states, active, geo, ubar)  # steps 2 and 3
         for l in list(active):
-            (f, u2, sliding, delta), ueff = result[l]
-            if delta <= 0.0:  # the tool is out at the proxy: the contact ends, with zero force already
-                st = states[l]
+            g, (ux, uy, uz) = geo[l], ubar[l]
+            if g[0] * ux + g[1] * uy + g[2] * uz >= 0.0:  # the tool is out at the proxy: the contact ends (a
+                st = states[l]  # contact the others' pushes carried away from its tool stays, with no force)
                 if st.target is not None:
                     st.tri, st.b = st.target[0], st.target[1:]
                 st.in_contact, st.above = False, True
@@ -321,7 +321,7 @@ class Contacts:
 
     def display_loads(self):
         """[(triangle, barycentrics, display force), ...] for the active contacts (see :meth:`deformation`)."""
-        act = [st for st in self.states if st.status in (Status.CONTACT, Status.REGION_EDGE)]
+        act = [st for st in self.states if st.status in TOUCHING]
         if not act:
             return []
         s = len(act)

@@ -6,7 +6,8 @@ linear --radius R -o FILE``, or :func:`export_table`); the native servo core
 the rendered per-vertex stiffness K_i (eq. 12 with the support blend and the region taper of
 :mod:`pmask.runtime.stiffness`), so an application needs neither Ξ nor the masks.
 
-Format 1.0, little-endian::
+Format 1.1, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
+contact law needs; a 1.0 table is refused with the advice to export it again)::
 
     header (64 bytes)   "PMASKTBL", u32 major, u32 minor, u64 file size, u64 directory offset (64),
                         u32 section count, u32 CRC-32 of the header (this field zero) and the directory,
@@ -17,22 +18,25 @@ Format 1.0, little-endian::
 
 Sections (n_s surface vertices, n_t triangles, n_c contact vertices):
 
-=============== ============ ==========================================================================
-points          n_s x 3      vertex positions [model units]
-triangles       n_t x 3      vertex indices, counter-clockwise seen from outside
-neighbours      n_t x 3      triangle across the edge opposite each vertex, -1 on an open edge
-frames          n_t x 12     v0, duals a and b of the edges, unit normal (:func:`~pmask.runtime.geometry.triangle_frames`)
-normals         n_s x 3      contact normals (crease-blended, :func:`~pmask.runtime.geometry.contact_normals`)
-stiffness       n_s x 9      rendered K_i [N/m], row-major
-taper           n_s x 1      λ: 1 in the contact region, falling to 0 across the band beyond it
-gradient        n_s x 3      ∇k_n per vertex (:func:`~pmask.runtime.contact.surface.normal_stiffness_gradient`)
-bounds          2 x 3        bounding box (lower, upper corner)
-lengths         1 x 2        mean edge length, bounding-box diagonal
-zeta            3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
-                             the deformation of eq. 16
-contact_row     n_s x 1      with zeta: each surface vertex's row block, -1 for none
-meta            bytes        JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
-=============== ============ ==========================================================================
+================= ============ ==========================================================================
+points            n_s x 3      vertex positions [model units]
+triangles         n_t x 3      vertex indices, counter-clockwise seen from outside
+neighbours        n_t x 3      triangle across the edge opposite each vertex, -1 on an open edge
+frames            n_t x 12     v0, duals a and b of the edges, unit normal (:func:`~pmask.runtime.geometry.triangle_frames`)
+normals           n_s x 3      contact normals (crease-blended, :func:`~pmask.runtime.geometry.contact_normals`)
+stiffness         n_s x 9      rendered K_i [N/m], row-major
+taper             n_s x 1      λ: 1 in the contact region, falling to 0 across the band beyond it
+normal_stiffness  n_s x 1      k: the tapered normal stiffness [N/m] (:func:`~pmask.runtime.contact.surface.normal_stiffness`)
+gradient          n_s x 3      ∇k per vertex (:func:`~pmask.runtime.contact.surface.normal_stiffness_gradient`)
+shape             n_s x 9      the contact normals' shape operator S [1/model unit] (:func:`~pmask.runtime.contact.surface.shape_operators`)
+linear_depth      n_s x 1      δ_lin: the depth past which the status is DEEP (:func:`~pmask.runtime.contact.surface.linear_depths`)
+bounds            2 x 3        bounding box (lower, upper corner)
+lengths           1 x 2        mean edge length, bounding-box diagonal
+zeta              3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
+                               the deformation of eq. 16
+contact_row       n_s x 1      with zeta: each surface vertex's row block, -1 for none
+meta              bytes        JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
+================= ============ ==========================================================================
 
 The spatial index that restarts contact tracking is built by each reader at load (the Python engine a
 uniform grid, :class:`~pmask.runtime.spatial.TriangleGrid`; the C core a bounding-volume hierarchy,
@@ -55,7 +59,7 @@ from pmask.errors import InputError
 from pmask.runtime.files import atomic_write
 
 MAGIC = b"PMASKTBL"
-TABLE_MAJOR, TABLE_MINOR = 1, 0
+TABLE_MAJOR, TABLE_MINOR = 1, 1
 HEADER, ENTRY, NAME = 64, 64, 32
 F64, I64, BYTES = 1, 2, 3
 
@@ -69,7 +73,9 @@ def surface_sections(surface, zeta: bool = True) -> dict:
     s = surface
     out = {
         "points": s.P, "triangles": s.T, "neighbours": s.neighbours, "frames": s.tri_geom,
-        "normals": s.vertex_normals, "stiffness": s.K, "taper": s.taper[:, None], "gradient": s.gradient,
+        "normals": s.vertex_normals, "stiffness": s.K, "taper": s.taper[:, None],
+        "normal_stiffness": s.normal_stiffness[:, None], "gradient": s.gradient, "shape": s.shape,
+        "linear_depth": s.linear_depth[:, None],
         "bounds": np.stack([s.lo, s.hi]), "lengths": np.array([[s.mean_edge, s.diag]]),
     }
     coupling = s.coupling() if zeta else None
@@ -174,15 +180,16 @@ def read_table(source) -> dict:
 
 #: (rows, columns) of each required section; 'v' n_s, 't' n_t, None any
 _SHAPES = {"points": (None, 3), "triangles": (None, 3), "neighbours": ("t", 3), "frames": ("t", 12),
-           "normals": ("v", 3), "stiffness": ("v", 9), "taper": ("v", 1), "gradient": ("v", 3), "bounds": (2, 3),
-           "lengths": (1, 2)}
+           "normals": ("v", 3), "stiffness": ("v", 9), "taper": ("v", 1), "normal_stiffness": ("v", 1),
+           "gradient": ("v", 3), "shape": ("v", 9), "linear_depth": ("v", 1), "bounds": (2, 3), "lengths": (1, 2)}
 _INTS = {"triangles", "neighbours", "contact_row"}
 
 
 def _check(t: dict, where: str) -> None:
     for name in _SHAPES:
         if name not in t:
-            raise TableError(f"{where}: not a complete runtime table: section '{name}' is missing (export it again)")
+            raise TableError(f"{where}: not a complete runtime table: section '{name}' is missing (a table from an "
+                             "older pmask, or a damaged one: export it again with `pmask export-table`)")
     nv, nt = len(t["points"]), len(t["triangles"])
     for name, (r, c) in _SHAPES.items():
         a = t[name]
@@ -201,6 +208,10 @@ def _check(t: dict, where: str) -> None:
     if lam.min() < 0 or lam.max() > 1:
         raise TableError(f"{where}: corrupt runtime table: taper outside [0, 1] at vertex "
                          f"{int(np.flatnonzero((lam < 0) | (lam > 1))[0])}")
+    k, dlin = t["normal_stiffness"][:, 0], t["linear_depth"][:, 0]
+    if k.min() < 0 or dlin.min() <= 0:
+        raise TableError(f"{where}: corrupt runtime table: a negative normal stiffness or a linear depth that is not "
+                         "positive")
     K = t["stiffness"].reshape(-1, 3, 3)
     bad = np.flatnonzero(~(np.linalg.eigvalsh(0.5 * (K + K.transpose(0, 2, 1)))[:, 0] > 0))
     if len(bad):

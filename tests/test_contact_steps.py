@@ -81,43 +81,88 @@ def test_the_proxy_moves_along_the_surface_by_at_most_its_limit(flat):
     np.testing.assert_allclose(x, target, atol=1e-12)
 
 
-def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0):
-    Ki = law.inverse3(list(np.ravel(K)))
-    return (*N, list(np.ravel(K)), Ki, lam, (0.0, 0.0, 0.0))
+def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dlin=math.inf):
+    """The law's inputs (law.GEO_K ...) for a vertex stiffness K: K̃ scaled to the normal stiffness k (by
+    default the Schur complement 1/(Nᵀ K⁻¹ N) times λ, as the surface's k_j)."""
+    K = list(np.ravel(K))
+    Ki = law.inverse3(K)
+    if k is None:
+        k = lam / law.normal_compliance(*N, Ki)
+    Kt, Kti = law.scaled(K, Ki, k, *N)
+    return (*N, Kt, Kti, k, lam, g, [0.0] * 9 if S is None else list(np.ravel(S)), dlin)
+
+
+def random_spd(rng):
+    A = rng.standard_normal((3, 3))
+    return A @ A.T + 3 * np.eye(3)
+
+
+def test_the_law_stiffness_has_the_normal_stiffness_k(flat):
+    """K̃ = c K with c = k Nᵀ K⁻¹ N: with the tangential directions free its stiffness along N is k exactly,
+    1/(Nᵀ K̃⁻¹ N) = k, and it is symmetric positive definite like K."""
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        K = random_spd(rng)
+        N = rng.standard_normal(3)
+        N /= np.linalg.norm(N)
+        k = rng.uniform(10, 100)
+        g = geo_of(K, tuple(N), k=k)
+        Kt = np.reshape(g[law.GEO_K], (3, 3))
+        assert 1.0 / (N @ np.linalg.solve(Kt, N)) == pytest.approx(k, rel=1e-13)
+        np.testing.assert_allclose(np.reshape(g[law.GEO_KI], (3, 3)), np.linalg.inv(Kt), rtol=1e-11)
+        assert np.linalg.eigvalsh(0.5 * (Kt + Kt.T)).min() > 0
 
 
 def test_the_frictionless_law_is_the_normal_stiffness_times_depth(flat):
-    """f = −λ k_n δ N with k_n = 1/(Nᵀ K⁻¹ N) for a full (coupled) SPD K, and ū' = −δ N: no sideways push."""
+    """f = −k δ N for a full (coupled) SPD K, and the surface's own displacement is ū' = K̃⁻¹ f: no sideways
+    push on the hand, and the tangential directions relaxed."""
     rng = np.random.default_rng(2)
-    A = rng.standard_normal((3, 3))
-    K = A @ A.T + 3 * np.eye(3)
+    K = random_spd(rng)
     N = np.array([0.3, -0.2, 0.9])
     N /= np.linalg.norm(N)
     u = -1.5e-3 * N + [2e-4, 1e-4, 3e-5]
-    f, u2, sliding, delta = law.local_law(flat, ContactState(), geo_of(K, N, 0.7), *u)
-    kn = 1.0 / (N @ np.linalg.solve(K, N))
+    geo = geo_of(K, tuple(N), 0.7, k=42.0)
+    f, u2, sliding, delta = law.local_law(flat, ContactState(), geo, *u)
     assert delta == pytest.approx(-(N @ u))
-    np.testing.assert_allclose(f, -0.7 * kn * delta * N, rtol=1e-14)
-    np.testing.assert_allclose(u2, -delta * N, rtol=1e-14)
+    np.testing.assert_allclose(f, -42.0 * delta * N, rtol=1e-14)
+    np.testing.assert_allclose(u2, np.reshape(geo[law.GEO_KI], (3, 3)) @ f, rtol=1e-12)
+    assert N @ u2 == pytest.approx(-delta, rel=1e-12)  # the surface under the tool moves exactly δ along N
     assert sliding
-    assert law.local_law(flat, ContactState(), geo_of(K, N), *(1e-3 * N))[3] == 0.0  # out of the body: no force
+    assert law.local_law(flat, ContactState(), geo, *(1e-3 * N))[3] == 0.0  # out of the body: no force
 
 
 def test_friction_sticks_inside_the_cone_and_slides_on_its_edge():
-    """The tangential spring k_t = 2λ/(tr K⁻¹ − Nᵀ K⁻¹ N) holds while |k_t w| ≤ μ λ k_n δ; beyond, the force
-    lies on the cone's edge (its tangential part exactly μ times the normal force).  Forces on the body: along
-    the displacement the tool imposes."""
+    """Stuck: f = K̃ ū while its tangential part is within μ of its normal part; beyond, the force lies on the
+    cone's edge exactly, between the stuck and the frictionless force (f = (1 − τ) f_stuck + τ f_free), and
+    the slip it implies, s = ū − K̃⁻¹ f, dissipates: f · s ≥ 0 (random K, N and ū)."""
     c = Contacts(sheet(), 1, engine="python", friction=0.5, normal_radius=0.0)
-    K = np.diag([40.0, 50.0, 100.0])
-    geo = geo_of(K)
-    kt = 2.0 / (1 / 40 + 1 / 50)
-    small = (1e-5, 0.0, -1e-3)  # |k_t w| = 0.00044 N < 0.5 * 0.1 N
-    f, u2, sliding, delta = law.local_law(c, ContactState(), geo, *small)
-    assert not sliding and f[0] == pytest.approx(kt * 1e-5) and f[2] == pytest.approx(-0.1)
-    big = (2e-3, 1e-3, -1e-3)
-    f, u2, sliding, delta = law.local_law(c, ContactState(), geo, *big)
-    assert sliding and math.hypot(f[0], f[1]) == pytest.approx(-0.5 * f[2], rel=1e-14)
-    assert math.atan2(f[1], f[0]) == pytest.approx(math.atan2(1e-3, 2e-3))
+    rng = np.random.default_rng(4)
+    stuck = slid = 0
+    for _ in range(200):
+        K = random_spd(rng)
+        N = rng.standard_normal(3)
+        N /= np.linalg.norm(N)
+        geo = geo_of(K, tuple(N))
+        Kt = np.reshape(geo[law.GEO_K], (3, 3))
+        u = -1e-3 * N + rng.uniform(-1.5e-3, 1.5e-3) * np.cross(N, rng.standard_normal(3))
+        f, u2, sliding, delta = law.local_law(c, ContactState(), geo, *u)
+        f = np.array(f)
+        fs = Kt @ u
+        phi = -(N @ f)
+        ft = np.linalg.norm(f + phi * N)
+        if not sliding:
+            stuck += 1
+            np.testing.assert_allclose(f, fs, rtol=1e-14)
+            assert ft <= 0.5 * phi * (1 + 1e-12)
+            continue
+        slid += 1
+        assert ft == pytest.approx(0.5 * phi, rel=1e-12)  # on the cone's edge
+        ff = -geo[law.GEO_k] * delta * N
+        tau = np.linalg.lstsq(np.column_stack([ff - fs]), f - fs, rcond=None)[0][0]
+        assert 0.0 < tau <= 1.0
+        np.testing.assert_allclose(f, (1 - tau) * fs + tau * ff, rtol=1e-9, atol=1e-12 * np.linalg.norm(fs))
+        assert f @ (u - np.asarray(u2)) >= -1e-15 * np.linalg.norm(f) * np.linalg.norm(u)
+    assert stuck > 20 and slid > 20  # both branches exercised
 
 
 def test_the_coupled_normal_start_solves_the_delassus_system():
@@ -131,13 +176,13 @@ def test_the_coupled_normal_start_solves_the_delassus_system():
     assert coupling.solve_spd([[1.0, 2.0], [2.0, 1.0]], [1.0, 1.0]) is None  # not positive definite
     K1, K2 = np.diag([40.0, 50.0, 100.0]), np.diag([60.0, 60.0, 80.0])
     N1, N2 = (0.0, 0.0, 1.0), (0.0, 0.6, 0.8)
-    geo = {0: geo_of(K1, N1), 1: geo_of(K2, N2)}
+    geo = {0: geo_of(K1, N1, k=30.0), 1: geo_of(K2, N2, k=45.0)}
     C = 0.002 * np.array([[0.5, 0.1, 0.0], [0.1, 0.4, 0.05], [0.0, 0.05, 0.6]])
     cpl = {(0, 1): list(C.ravel()), (1, 0): list(C.T.ravel())}
     ubar = {0: (0.0, 0.0, -1e-3), 1: (0.0, -0.6e-3, -0.8e-3)}
     out = coupling.normal_start([0, 1], geo, ubar, cpl)
     n1, n2 = np.array(N1), np.array(N2)
-    M = np.array([[n1 @ np.linalg.solve(K1, n1), n1 @ C @ n2], [n2 @ C.T @ n1, n2 @ np.linalg.solve(K2, n2)]])
+    M = np.array([[1 / 30.0, n1 @ C @ n2], [n2 @ C.T @ n1, 1 / 45.0]])  # the laws' own normal compliances 1/k
     phi = np.linalg.solve(M, [1e-3, 1e-3])
     np.testing.assert_allclose(out[0], -phi[0] * n1, rtol=1e-12)
     np.testing.assert_allclose(out[1], -phi[1] * n2, rtol=1e-12)
@@ -145,14 +190,62 @@ def test_the_coupled_normal_start_solves_the_delassus_system():
 
 def test_at_rest_the_output_adds_only_the_energy_gradient_term():
     """output.render with no motion (no velocity terms, nothing for the controller to do): the force on the body
-    is the law's plus ½ δ² ∇k_n, and the user feels its negative."""
+    is the law's plus ψ(δ) (I − δ_f S)⁻¹ ∇k and the user feels its negative, with ψ = ½ δ² until the
+    penetration reaches δ_t = min(δ_lin, k / (8 |∇k|)), where the contact remembers δ* = δ_t and k* = k, then
+    ψ = δ* δ − ½ δ*² while δ ≥ δ*; δ_f = min(δ, R/2) (R = 1/κ_max = 20 mm here).  The status is DEEP while
+    δ ≥ δ_lin under the proxy."""
     c = Contacts(sheet(), 1, engine="python", normal_radius=0.0)
     st = c._states[0]
-    geo = {0: (0.0, 0.0, 1.0, [40.0, 0, 0, 0, 50.0, 0, 0, 0, 100.0], law.inverse3([40.0, 0, 0, 0, 50.0, 0, 0, 0, 100.0]),
-               1.0, (3.0, -2.0, 0.0))}
+    S = np.diag([50.0, 20.0, 0.0])  # curvature radii 20 and 50 mm, on the tangent plane of N = z
+    g = np.array([3.0, -2.0, 0.0])  # k = 100 N/m: k / (8 |∇k|) = 3.5 m, δ_lin binds
     f = (0.0, 0.0, -0.1)
-    result = {0: ((f, (0.0, 0.0, -1e-3), True, 1e-3), (0.0, 0.0, -1e-3))}
-    output.render(c, c._states, [0], geo, {0: (0.0, 0.0, -1e-3)}, result)
-    np.testing.assert_allclose(st.body_force, (0.5e-6 * 3.0, -0.5e-6 * 2.0, -0.1), rtol=1e-14)
-    np.testing.assert_allclose(st.force, -np.array(st.body_force))
-    assert st.status == Status.CONTACT and st.depth == 1e-3
+    d0 = 5e-3
+    # (δ, δ_lin under the proxy, status, ψ, δ_f): the third row reads another δ_lin (the proxy moved): δ* stays
+    rows = ((1e-3, d0, Status.CONTACT, 0.5e-6, 1e-3), (7e-3, d0, Status.DEEP, d0 * 7e-3 - 0.5 * d0 * d0, 7e-3),
+            (12e-3, 6.5e-3, Status.DEEP, d0 * 12e-3 - 0.5 * d0 * d0, 10e-3), (4e-3, d0, Status.CONTACT, 8e-6, 4e-3))
+    for delta, here, status, psi, df in rows:
+        geo = {0: geo_of(np.diag([40.0, 50.0, 100.0]), g=tuple(g), S=S, dlin=here)}
+        u = (0.0, 0.0, -delta)
+        output.render(c, c._states, [0], geo, {0: u}, {0: ((f, u, True, delta), u)})
+        want = np.array(f) + psi * np.linalg.solve(np.eye(3) - df * S, g)
+        np.testing.assert_allclose(st.body_force, want, rtol=1e-13)
+        np.testing.assert_allclose(st.force, -np.array(st.body_force))
+        assert st.status == status and st.depth == delta and st.frozen == (delta > d0)
+        if st.frozen:
+            assert st.frozen_depth == d0 and st.frozen_stiffness == pytest.approx(100.0)
+
+
+def test_past_the_increment_depth_the_law_keeps_the_stiffness_where_it_began():
+    """With δ* = 2 mm and k* = 60 N/m remembered and k = 80 N/m under the proxy: the frictionless normal force
+    is k δ* + k* (δ − δ*) and the surface's own displacement K̃⁻¹ f scaled by k δ / φ (the law's stiffness
+    scaled to the secant φ / δ); shallower than δ* the linear law; δ_t = min(δ_lin, k / (8 |∇k|))."""
+    c = Contacts(sheet(), 1, engine="python", normal_radius=0.0)
+    st = ContactState()
+    st.frozen, st.frozen_depth, st.frozen_stiffness = True, 2e-3, 60.0
+    geo = geo_of(np.diag([40.0, 50.0, 100.0]), k=80.0)
+    f, u2, sliding, delta = law.local_law(c, st, geo, 1e-4, 0.0, -3e-3)
+    phi = 80.0 * 2e-3 + 60.0 * 1e-3
+    np.testing.assert_allclose(f, (0.0, 0.0, -phi), rtol=1e-14)
+    np.testing.assert_allclose(u2, np.reshape(geo[law.GEO_KI], (3, 3)) @ f * (80.0 * 3e-3 / phi), rtol=1e-13)
+    f, _, _, _ = law.local_law(c, st, geo, 0.0, 0.0, -1.5e-3)  # shallower than δ*: the linear law
+    np.testing.assert_allclose(f, (0.0, 0.0, -80.0 * 1.5e-3), rtol=1e-14)
+    assert law.increment_depth(5e-3, 80.0, 3e3, 4e3, 0.0) == pytest.approx(80.0 / 8 / 5e3)
+    assert law.increment_depth(5e-3, 80.0, 3.0, 4.0, 0.0) == 5e-3
+
+
+def test_a_deep_contact_moves_with_the_probe_along_the_surface():
+    """Deeper than half the radius of curvature (dead reckoning): on a flat sheet (R infinite) the proxy
+    follows the projection at any depth; on a sphere of radius R = 10 mm, 8 mm deep, it moves by
+    (I − δ_f S)⁻¹ P Δp = 2 P Δp (δ_f = R/2), so a press along the normal leaves it where it is."""
+    c = Contacts(sheet(), 1, engine="python", normal_radius=0.0)
+    st = c._states[0]
+    st.tri, st.b, st.depth = 10, (0.2, 0.3, 0.5), 8e-3
+    st.move = (1e-4, -5e-5, -2e-4)
+    st.target = (10, 0.1, 0.4, 0.5)  # the projection: followed (flat: never focal)
+    tracking.follow(c, st)
+    assert st.tri == 10 and st.b == pytest.approx((0.1, 0.4, 0.5), abs=1e-12)
+    from pmask.runtime.contact import linalg3
+    S = [100.0, 0, 0, 0, 100.0, 0, 0, 0, 0.0]  # R = 10 mm
+    assert linalg3.largest_curvature(S) == pytest.approx(100.0)
+    assert linalg3.tracking_depth(S, 8e-3) == pytest.approx(5e-3) and linalg3.tracking_depth(S, 3e-3) == 3e-3
+    np.testing.assert_allclose(linalg3.speed_up(S, 5e-3), np.diag([2.0, 2.0, 1.0]).ravel(), rtol=1e-14)

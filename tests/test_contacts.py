@@ -159,8 +159,6 @@ def test_two_instruments_press_through_each_other(model, stiff):
     assert np.linalg.norm(fc[0]) < np.linalg.norm(fa[0]) and np.linalg.norm(fc[1]) < np.linalg.norm(fa[1])
 
 
-@pytest.mark.xfail(strict=True, reason="#24: on the P2 kidney the coupled friction solve releases the second contact "
-                   "while its probe is still inside (the hands issue's item 4); fixed with the coupled friction solve")
 def test_the_displayed_surface_meets_the_tool(model, stiff):
     """The display deformation (eq. 16 with the display forces) moves the surface point under each
     contact exactly by that contact's displacement ū': within 1 % of |ū'| (here to round-off)."""
@@ -177,3 +175,69 @@ def test_the_displayed_surface_meets_the_tool(model, stiff):
             assert st.status == Status.CONTACT
             moved = np.asarray(st.b) @ v[model.triangles[st.tri]]
             assert np.linalg.norm(moved - st.u_bar) <= 1e-8 * np.linalg.norm(st.u_bar)
+
+
+def fe_compliance(model, stiff, points):
+    """The compliance (3s x 3s, symmetrised) between masked loads at ``points`` from full FE solves
+    (conftest.FullSystem), interpolated at each point as eq. 16: the independent C of the coupled solve."""
+    row_of = {int(v): k for k, v in enumerate(model.contact[stiff.masks.centres])}
+    s = len(points)
+    tractions = np.zeros((len(model.points), 3, 3 * s))
+    for l, (t, b) in enumerate(points):
+        for m_vertex, phi in zip(model.triangles[t], b):
+            cols, rho = stiff.masks.row(row_of[int(m_vertex)])
+            for j, w in zip(cols, rho):
+                for a in range(3):
+                    tractions[model.contact[j], a, 3 * l + a] += phi * w
+    system = FullSystem(model.path)
+    u, _ = system.solve(tractions)
+    us = u[system.vi]
+    C = np.vstack([np.einsum("i,iak->ak", b, us[model.triangles[t]]) for t, b in points])
+    return 0.5 * (C + C.T)
+
+
+def test_a_grasp_with_friction_lies_between_the_sliding_and_the_stuck_solve(model, stiff):
+    """The hands issue's item 4: two jaws squeeze the kidney's middle from above and below (2 mm outside to
+    2.5 mm in, then held).  Against full FE solves at the jaws' contact points (the compliance C between their
+    masked loads, conftest.FullSystem): frictionless, the normal forces solve Nᵀ C N φ = δ̄; with friction
+    that holds (μ = 0.1, 0.3, 1, 10), the forces are the stuck solve f = C⁻¹ ū.  The law's forces (before the
+    output's velocity and energy-gradient terms) meet them within 1 % (k(x) interpolates the vertices' normal
+    stiffness where FE interpolates the compliance: measured 0.1 %); the grasp force never exceeds the larger
+    of the two (it was 1.7x the frictionless at μ = 0.3 and 5.3x at μ = 1 when the cone was bounded by a
+    normal force the tangential offset raised)."""
+    from pmask.runtime.contact.tracking import normal, point
+
+    free = model.contact[model.core]
+    P = model.points
+    middle = free[np.abs(P[free, 0]) < 0.3 * np.abs(P[free, 0]).max()]
+    n = vertex_normals(P, model.triangles)
+    jaws = [(P[v], n[v]) for v in (middle[np.argmax(P[middle, 2])], middle[np.argmin(P[middle, 2])])]
+    depth = np.concatenate([np.linspace(-2e-3, 2.5e-3, 600), np.full(100, 2.5e-3)])
+    path = np.stack([p - depth[:, None] * nv for p, nv in jaws], axis=1)
+    law_forces, where = {}, None
+    for mu in (0.0, 0.1, 0.3, 1.0, 10.0):
+        c = Contacts(stiff, 2, friction=mu, dynamic_friction=mu, engine="python")
+        for probes in path:
+            _, status = c.step(list(probes))
+        assert all(s in (Status.CONTACT, Status.DEEP) for s in status), (mu, status)
+        law_forces[mu] = np.array([st.law_force for st in c._states])
+        if mu == 0.0:
+            where = [(st.tri, np.array(st.b)) for st in c._states]
+            srf = c.surface
+            x = [np.array(point(srf, t, *b)) for t, b in where]
+            N = [np.array(normal(srf, t, *b)) for t, b in where]
+        else:
+            assert not any(st.sliding for st in c._states)  # a squeeze without sideways motion holds
+    C = fe_compliance(model, stiff, where)
+    ubar = np.concatenate([path[-1][l] - x[l] for l in range(2)])
+    NN = np.zeros((6, 2))
+    NN[0:3, 0], NN[3:6, 1] = N[0], N[1]
+    phi_free = np.linalg.solve(NN.T @ C @ NN, -NN.T @ ubar)
+    f_stuck = np.linalg.solve(C, ubar).reshape(2, 3)
+    phi_law = -np.einsum("la,la->l", law_forces[0.0], np.array(N))
+    np.testing.assert_allclose(phi_law, phi_free, rtol=0.01)
+    for mu in (0.1, 0.3, 1.0, 10.0):
+        f = law_forces[mu]
+        assert np.linalg.norm(f - f_stuck) <= 0.01 * np.linalg.norm(f_stuck), (mu, f, f_stuck)
+        phi = -np.einsum("la,la->l", f, np.array(N))
+        assert np.all(phi <= 1.01 * np.maximum(phi_free, -np.einsum("la,la->l", f_stuck, np.array(N))))

@@ -215,10 +215,13 @@ def test_the_native_grid_finds_the_nearest_triangle(table_path, surface):
         assert surface.grid.nearest(p) == scan == native.nearest(p)
 
 
-def _rewrite(buf: bytes, *, major=None, flip_section=None, extra=None, negate_stiffness=False) -> bytes:
-    """A table rewritten with valid checksums (a newer major, a negated K), or with one flipped byte."""
+def _rewrite(buf: bytes, *, major=None, flip_section=None, extra=None, negate_stiffness=False, drop=None) -> bytes:
+    """A table rewritten with valid checksums (a newer major, a negated K, a section dropped as a 1.0 table
+    lacks the 1.1 law's), or with one flipped byte."""
     t = read_table(buf)
     meta = t.pop("meta")
+    if drop:
+        del t[drop]
     if negate_stiffness:
         t["stiffness"] = -t["stiffness"]
     if extra:
@@ -242,8 +245,9 @@ def _rewrite(buf: bytes, *, major=None, flip_section=None, extra=None, negate_st
     ("foreign", "not a pmask runtime table"),
     ("truncated", "truncated"),
     ("corrupt", "section 'stiffness' fails its checksum"),
-    ("newer", "format 2.0 is not one this"),
+    ("newer", r"format 2\.\d+ is not one this"),
     ("negated", "not positive definite"),
+    ("older", "section 'normal_stiffness' is missing .* export it again"),
 ])
 def test_both_loaders_refuse_bad_tables(table_path, kidney_default, tmp_path, case, match):
     good = table_path.read_bytes()
@@ -251,7 +255,8 @@ def test_both_loaders_refuse_bad_tables(table_path, kidney_default, tmp_path, ca
             "truncated": lambda: good[:len(good) // 2],
             "corrupt": lambda: _rewrite(good, flip_section="stiffness"),
             "newer": lambda: _rewrite(good, major=2),
-            "negated": lambda: _rewrite(good, negate_stiffness=True)}[case]()
+            "negated": lambda: _rewrite(good, negate_stiffness=True),
+            "older": lambda: _rewrite(good, drop="normal_stiffness")}[case]()
     p = tmp_path / "bad.tbl"
     p.write_bytes(data)
     with pytest.raises(TableError, match=match):

@@ -138,14 +138,29 @@ def _drag(browser, xy, shift=False, slide=(24, 10)):
         ActionChains(browser).key_up(Keys.SHIFT).perform()
 
 
+def _shallow(browser, session, v):
+    """Set the page's press depth to 80 % of the least δ_t near vertex v (the depth past which a contact's
+    increments keep the stiffness where they began, pmask.runtime.contact.law): shallower, a frictionless
+    held probe's force depends on where it is, not on the path that brought it there."""
+    from pmask.runtime.contact import ContactSurface, law
+
+    srf = ContactSurface(session.stiffness)
+    P = session.model.points
+    near = np.flatnonzero(np.linalg.norm(P - P[v], axis=1) < 3 * session.model.mean_edge_length)
+    dt = min(law.increment_depth(srf._dlin[i], srf._k[i], *srf._G[i]) for i in near)
+    browser.execute_script(f"document.getElementById('depth').value = {0.8 * dt!r};")
+
+
 def test_the_force_the_page_shows_is_the_runtimes_for_that_probe(browser, server, session):
     """Drag a probe onto the body and slide, hold, and read the force the panel shows: it equals the force
     a fresh runtime contact gives for the probe position the page reports, to the 6 digits shown (the
-    servo is frictionless, so a held probe's force depends on where it is, not on the path)."""
+    servo is frictionless and the press shallower than δ_t, so a held probe's force depends on where it is,
+    not on the path)."""
     url, _ = server
     _open(browser, url)
     m = session.model
     (v,) = _screen_vertices(browser, m, 1, 0.0)
+    _shallow(browser, session, v)
     _drag(browser, browser.execute_script(f"return window.pmaskView.screenOf({v})"))
     try:
         f_page, status = _displayed_force(browser, 0)

@@ -219,7 +219,7 @@ int main(int argc, char **argv)
             if (trace)
                 fprintf(trace, "%lld,%.17g,%.17g,%.17g,%.17g,%.17g,%.17g,%d\n", (long long)k, probe[0], probe[1],
                         probe[2], s.force[0], s.force[1], s.force[2], (int)s.status);
-            if (s.status == PM_CONTACT || s.status == PM_REGION_EDGE) contact++;
+            if (s.status == PM_CONTACT || s.status == PM_REGION_EDGE || s.status == PM_DEEP) contact++;
             double fm = sqrt(s.force[0] * s.force[0] + s.force[1] * s.force[1] + s.force[2] * s.force[2]);
             if (fm > fmax) fmax = fm;
             if (k == 3999) {   /* the end of the last hold */

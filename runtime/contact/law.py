@@ -1,19 +1,49 @@
 r"""Step 2, the contact law: the force a contact exerts for the displacement the tool imposes.
 
-At the proxy, with N = N(x), K = K(x) (eq. 15, rendered: symmetric, the support blended, the region tapered
-by λ), the displacement the tool imposes ū = p − r_tool N − x_a (x_a: the proxy, or with friction the
-material point the tool holds) and the penetration δ = −N·ū:
+At the proxy x (the surface point under the probe), with N = N(x), the rendered stiffness K = K(x) (eq. 15:
+symmetric, the support blended) and the normal stiffness k(x) = Σ_j φ_j(x) k_j (k_j = λ_j / (n_jᵀ K_j⁻¹ n_j),
+the stiffness along the normal with the surface free to slide under the tool, tapered by λ), the
+displacement the tool imposes is ū = p − r_tool N − x_a (x_a: the proxy, or with friction the material point
+the tool holds, the anchor) and the penetration δ = −N·ū.  The law's stiffness is K̃ = c K with
+c = k Nᵀ K⁻¹ N, the rendered K scaled so that its normal stiffness with the tangential directions free is
+exactly k: one compliance D = K̃⁻¹ serves the frictionless, the stuck and the coupled contacts alike.
 
-- the normal force is λ k_n δ with k_n = 1/(Nᵀ K⁻¹ N), the normal stiffness when the surface may slide
-  under the tool (the Schur complement of K's tangential block).  f = K ū pushed the hand sideways by
-  0.5–0.8 x the normal force through K's normal–tangential coupling and did net work round closed loops;
-- friction is a spring on the held point's tangential offset w with the tangential stiffness
-  k_t = 2λ / (tr K⁻¹ − Nᵀ K⁻¹ N), kept while ‖k_t w‖ ≤ μ λ k_n δ and otherwise held on the cone's edge
-  while the point slides; μ weakens from μ_s to μ_d over ``slip_length`` of slip, so breaking away is
-  continuous.  Bounding the cone by the penetration's own normal force keeps K's coupling from locking it
-  (a tangential offset raised the normal force, which widened the cone: a wedge);
-- the tangential term ½ δ² ∇k_n (∇k_n averaged per vertex, interpolated) makes the force the gradient of
-  the stored energy ½ λ k_n δ² + ½ k_t ‖w‖² (added in step 4, :mod:`pmask.runtime.contact.output`).
+- **Frictionless** (and the limit of every sliding contact): f_free = −k δ N.  f = K ū pushed the hand
+  sideways by 0.5–0.8 x the normal force through K's normal–tangential coupling and did net work round closed
+  loops.
+- **Stuck**: the tool holds the anchor, f_stuck = K̃ ū: the full stiffness, tangential coupling included,
+  while its tangential part |P f_stuck| ≤ μ (−N·f_stuck).
+- **Sliding**: f = (1 − τ) f_stuck + τ f_free with the smallest τ ∈ (0, 1] that puts f on the friction cone,
+  τ = (|t_0| − μ φ_0) / (|t_0| − μ φ_0 + μ k δ) (φ_0, t_0: f_stuck's normal and tangential parts).  The anchor
+  slips by τ s with s = ū − K̃⁻¹ f_free (tangential: the slip that frees the contact), so the force stays the
+  stiffness of the surface's own displacement, f = K̃ (ū − τ s).  Every force lies between the frictionless
+  and the stuck one; the normal force never depends on a tangential offset in a way that can wedge (a cone
+  bounded by a normal force that the tangential offset raises locked grasps before), and the slip dissipates:
+  f · s = tᵀDt − (NᵀDt)² / (NᵀDN) ≥ 0 (Cauchy–Schwarz in D's inner product).  μ weakens from μ_s to μ_d over
+  ``slip_length`` of slip, so breaking away is continuous.
+- The tangential term ½ δ² (I − δ S)⁻¹ ∇k (∇k averaged per vertex and interpolated, S the contact normals'
+  shape operator, :mod:`pmask.runtime.contact.surface`) makes the frictionless force the gradient of the
+  stored energy ½ k δ² as the probe moves: the proxy under a probe δ deep moves (I − δ S)⁻¹ as fast as the
+  probe (added in step 4, :mod:`pmask.runtime.contact.output`).
+
+**Deep presses.**  Two consequences of the linear model on the undeformed surface would be felt deep in the
+body: the probe's projection runs off sideways near the surface's focal point (at the kidney's pole the force
+turned 45-65° and fell), and the tangential term ½ δ² ∇k outgrows the normal force (turning the force more
+than 10° off the normal on the flat top).  The first is step 1's (the proxy moves by dead reckoning past half
+the radius of curvature, :func:`pmask.runtime.contact.tracking.follow`); for the second, past the depth
+δ_t = min(δ_lin, k / (8 |∇k|)) (where k changes by an eighth of itself; only inside the full contact
+region, λ = 1) the contact remembers δ* = δ_t and k* = k there, and while δ ≥ δ* its stored energy is
+
+    E = k(x) (δ* δ − ½ δ*²) + ½ k* (δ − δ*)²,
+
+which is ½ k δ² where it begins: the normal force k(x) δ* + k* (δ − δ*) keeps growing, and equals k δ* where
+it ends again (δ < δ*, or leaving λ = 1), so entering and leaving are continuous and loops through it stay
+conservative; the tangential term (δ* δ − ½ δ*²) ∇k grows only as fast as the normal force, so the force
+stays within atan(2 x 1/16 x 2) = 14° of the normal at most, and within 10° where the curvature factor is
+below 1.41 (measured ≤ 9° in normal pushes to 15 mm at the pole, top, sides, hilum and support rim).  The law
+is the same with the secant stiffness k_s = φ / δ in place of k (:func:`secant`).  The status ``DEEP``
+says when δ ≥ δ_lin (:func:`pmask.runtime.contact.surface.linear_depths`: 0.29 x the smallest radius of
+curvature or 1.5 mask radii), where the linear model stops being meaningful.
 
 The native core's ``core/law.c`` is the same code operation for operation.
 """
@@ -21,49 +51,31 @@ from __future__ import annotations
 
 import math
 
+from pmask.runtime.contact.linalg3 import inverse3, mul3, normal_compliance, tangent_part
+from pmask.runtime.contact.surface import at
 from pmask.runtime.contact.tracking import normal, point
 
-
-def stiffness_at(srf, t, b0, b1, b2):
-    """K(x) (eq. 15, 9 floats row-major), λ(x) and the interpolated ∇k_n at barycentric b of triangle t."""
-    i0, i1, i2 = srf._idx[t]
-    KK, G = srf._K, srf._G
-    k0, k1, k2 = KK[i0], KK[i1], KK[i2]
-    lam = srf._lam
-    K = [b0 * k0[i] + b1 * k1[i] + b2 * k2[i] for i in range(9)]
-    g0, g1, g2 = G[i0], G[i1], G[i2]
-    g = (b0 * g0[0] + b1 * g1[0] + b2 * g2[0], b0 * g0[1] + b1 * g1[1] + b2 * g2[1],
-         b0 * g0[2] + b1 * g1[2] + b2 * g2[2])
-    return K, b0 * lam[i0] + b1 * lam[i1] + b2 * lam[i2], g
+#: where the law's inputs sit in :func:`geometry`'s first result, after N's three components: K̃ (9), K̃⁻¹ (9),
+#: k, λ, the energy gradient ∇k on the tangent plane (3), the shape operator on the tangent plane (9), δ_lin
+GEO_K, GEO_KI, GEO_k, GEO_LAM, GEO_G, GEO_S, GEO_DLIN = range(3, 10)
 
 
-def inverse3(K):
-    """Inverse of a 3x3 matrix (9 floats row-major) by cofactors; a singular one gives zeros."""
-    a, b, c, d, e, f, g, h, i = K
-    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
-    det = a * A + b * B + c * C
-    if det == 0.0 or not math.isfinite(det):
-        return [0.0] * 9
-    r = 1.0 / det
-    return [A * r, -(b * i - c * h) * r, (b * f - c * e) * r,
-            B * r, (a * i - c * g) * r, -(a * f - c * d) * r,
-            C * r, -(a * h - b * g) * r, (a * e - b * d) * r]
-
-
-def normal_compliance(Nx, Ny, Nz, Ki):
-    """Nᵀ K⁻¹ N: the compliance along N with the tangential directions free (1/k_n)."""
-    return (Nx * (Ki[0] * Nx + Ki[1] * Ny + Ki[2] * Nz) + Ny * (Ki[3] * Nx + Ki[4] * Ny + Ki[5] * Nz)
-            + Nz * (Ki[6] * Nx + Ki[7] * Ny + Ki[8] * Nz))
+def scaled(K, Ki, k, Nx, Ny, Nz):
+    """K̃ = c K and K̃⁻¹ = K⁻¹ / c with c = k Nᵀ K⁻¹ N: normal stiffness k with the tangential directions free."""
+    c = k * normal_compliance(Nx, Ny, Nz, Ki)
+    return [c * v for v in K], [v / c for v in Ki]
 
 
 def geometry(c, st, p):
-    """N, K, K⁻¹, λ, ∇k_n at the proxy, and ū = p − r_tool N − x_a with x_a the proxy (frictionless) or the
-    anchor the tool holds (the law's inputs)."""
+    """The law's inputs at the proxy (see :data:`GEO_K` ...: N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane,
+    δ_lin) and ū = p − r_tool N − x_a with x_a the proxy (frictionless) or the anchor the tool holds."""
     srf = c.surface
     t, (b0, b1, b2) = st.tri, st.b
+    r = c.tool_radius
     Nx, Ny, Nz = normal(srf, t, b0, b1, b2)
-    K, lam, (gx, gy, gz) = stiffness_at(srf, t, b0, b1, b2)
+    K, lam, k, (gx, gy, gz), S, dlin = at(srf, t, b0, b1, b2)
     Ki = inverse3(K)
+    Kt, Kti = scaled(K, Ki, k, Nx, Ny, Nz) if k > 0.0 else ([0.0] * 9, [0.0] * 9)
     gn = gx * Nx + gy * Ny + gz * Nz  # on the tangent plane
     cx, cy, cz = point(srf, t, b0, b1, b2)
     if st.anchor is not None:  # the anchor, kept on the tangent plane at the proxy (it would drift off a
@@ -71,36 +83,58 @@ def geometry(c, st, p):
         an = Nx * (ax - cx) + Ny * (ay - cy) + Nz * (az - cz)
         cx, cy, cz = ax - an * Nx, ay - an * Ny, az - an * Nz
         st.anchor = (cx, cy, cz)
-    r = c.tool_radius
-    return ((Nx, Ny, Nz, K, Ki, lam, (gx - gn * Nx, gy - gn * Ny, gz - gn * Nz)),
+    return ((Nx, Ny, Nz, Kt, Kti, k, lam, (gx - gn * Nx, gy - gn * Ny, gz - gn * Nz), tangent_part(Nx, Ny, Nz, S),
+             dlin),
             (p[0] - r * Nx - cx, p[1] - r * Ny - cy, p[2] - r * Nz - cz))
+
+
+#: past δ_t = min(δ_lin, FROZEN_CHANGE k / |∇k|) increments of depth keep the stiffness where they began
+FROZEN_CHANGE = 0.125
+
+
+def increment_depth(dlin, k, gx, gy, gz):
+    """δ_t = min(δ_lin, FROZEN_CHANGE k / |∇k|): the depth over which k changes by an eighth of itself."""
+    gm = math.sqrt(gx * gx + gy * gy + gz * gz)
+    if FROZEN_CHANGE * k < dlin * gm:
+        return FROZEN_CHANGE * k / gm
+    return dlin
+
+
+def secant(st, k, delta):
+    """The frictionless normal force φ(δ) and its ratio q = φ / (k δ): k δ, or past δ*
+    k δ* + k* (δ − δ*)."""
+    d0 = st.frozen_depth
+    if st.frozen and delta > d0:
+        fc = k * d0 + st.frozen_stiffness * (delta - d0)
+        return fc, fc / (k * delta)
+    return k * delta, 1.0
 
 
 def local_law(c, st, geo, ux, uy, uz):
     """The contact law for the displacement (ux, uy, uz) left to this contact.
-    Returns (f on the body, ū' after the law, sliding, penetration δ)."""
-    Nx, Ny, Nz, K, Ki, lam, _ = geo
+    Returns (f on the body, ū' the surface's own displacement K̃⁻¹ f, sliding, penetration δ)."""
+    Nx, Ny, Nz, Kt, Kti, k, lam = geo[:7]
     delta = -(Nx * ux + Ny * uy + Nz * uz)
-    if delta <= 0.0 or lam <= 0.0:
+    if delta <= 0.0 or lam <= 0.0 or k <= 0.0:
         return (0.0, 0.0, 0.0), (ux, uy, uz), False, 0.0
-    nkn = normal_compliance(Nx, Ny, Nz, Ki)
-    fc = lam * delta / nkn  # the normal force: λ k_n δ, k_n = 1/(Nᵀ K⁻¹ N)
-    fx, fy, fz = -fc * Nx, -fc * Ny, -fc * Nz
+    fc, q = secant(st, k, delta)  # the frictionless normal force; q scales K̃ to the secant stiffness
     if c._frictionless:
-        return (fx, fy, fz), (-delta * Nx, -delta * Ny, -delta * Nz), True, delta
-    # friction: a tangential spring on the anchor's offset w, stiffness k_t = 2λ / (tr K⁻¹ − Nᵀ K⁻¹ N)
-    # (the tangential stiffness with the normal force free), bounded by μ f_c; the tool drags the point
-    # it holds, so the force on the body is along w, as the normal part is along ū's normal part
-    wx, wy, wz = ux + delta * Nx, uy + delta * Ny, uz + delta * Nz
-    kt = 2.0 * lam / (Ki[0] + Ki[4] + Ki[8] - nkn)
-    tx, ty, tz = kt * wx, kt * wy, kt * wz
+        fx, fy, fz = -fc * Nx, -fc * Ny, -fc * Nz
+        u2x, u2y, u2z = mul3(Kti, fx, fy, fz)
+        return (fx, fy, fz), (u2x / q, u2y / q, u2z / q), True, delta
+    sx, sy, sz = mul3(Kt, ux, uy, uz)  # stuck: the full stiffness on ū
+    sx, sy, sz = q * sx, q * sy, q * sz
+    phi = -(Nx * sx + Ny * sy + Nz * sz)
+    tx, ty, tz = sx + phi * Nx, sy + phi * Ny, sz + phi * Nz
     ft = math.sqrt(tx * tx + ty * ty + tz * tz)
     # friction weakens with slip from μ_s to μ_d: a continuous breakaway
     mu = (c.dynamic_friction + (c.friction - c.dynamic_friction) * math.exp(-st.slip / c.slip_length)
           if st.sliding else c.friction)
-    if ft <= mu * fc:  # stick: inside the cone
-        return (fx + tx, fy + ty, fz + tz), (ux, uy, uz), False, delta
-    s = mu * fc / ft  # slide: on the cone's edge, the anchor moves so that the spring holds it there
-    tx, ty, tz = s * tx, s * ty, s * tz
-    return ((fx + tx, fy + ty, fz + tz), (-delta * Nx + tx / kt, -delta * Ny + ty / kt, -delta * Nz + tz / kt),
-            True, delta)
+    if ft <= mu * phi:  # stick: inside the cone
+        return (sx, sy, sz), (ux, uy, uz), False, delta
+    a = ft - mu * phi  # > 0; slide: towards the frictionless force, to the cone's edge
+    tau = a / (a + mu * fc)
+    s = 1.0 - tau
+    fx, fy, fz = s * sx - tau * fc * Nx, s * sy - tau * fc * Ny, s * sz - tau * fc * Nz
+    u2x, u2y, u2z = mul3(Kti, fx, fy, fz)
+    return (fx, fy, fz), (u2x / q, u2y / q, u2z / q), True, delta

@@ -1,22 +1,25 @@
 r"""Step 4, the force sent: the zero-order hold's error, damping and the passivity observer/controller.
 
-The law's force plus the tangential term ½ δ² ∇k_n (which makes the frictionless force the gradient of the
-stored energy ½ λ k_n δ²), then three velocity terms on the probe's motion Δp (low-pass filtered over 10 ms):
+The law's force plus the tangential term ½ δ² (I − δ S)⁻¹ ∇k (which makes the frictionless force the gradient
+of the stored energy ½ k δ², :mod:`pmask.runtime.contact.law`), then three velocity terms on the probe's
+motion Δp (low-pass filtered over 10 ms):
 
-- the zero-order hold's first-order error ½ J Δp (Colgate's kT/2 damping, J the law's stiffness: λ k_n N Nᵀ,
-  plus k_t on the tangent plane while friction holds) is added back;
+- the zero-order hold's first-order error ½ J Δp (Colgate's kT/2 damping, J the law's stiffness: k N Nᵀ
+  while the contact slides, K̃ while friction holds it; past δ* k* in place of k) is added back;
 - viscous damping b_v (Δp / T);
 - a **passivity observer/controller** (Hannaford & Ryu): the energy the hand has put in,
   E += f_held · Δp (the force the device held during the last tick), is compared with the energy stored, V;
   beyond a slack of 10 % of V a damper b_pc v (≤ 1 N·s/m, smoothly switched) takes out the difference.
 
 The velocity terms fade with the contact (at most half the elastic force), so a kink in the path or the
-release is not felt as a step.  The native core's ``core/output.c`` is the same code operation for operation.
+release is not felt as a step.  Here a contact's status turns DEEP when its penetration reaches δ_lin.  The native core's ``core/output.c`` is the same code operation for operation.
 """
 from __future__ import annotations
 
 import math
 
+from pmask.runtime.contact.law import GEO_k, increment_depth
+from pmask.runtime.contact.linalg3 import mul3, speed_up, tracking_depth
 from pmask.runtime.contact.state import PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
 
 
@@ -42,7 +45,13 @@ def render(c, states, active, geo, ubar, result) -> None:
         motion2 += vx * vx + vy * vy + vz * vz
         hb = st.body_force
         work += hb[0] * dpx + hb[1] * dpy + hb[2] * dpz
-        stored += 0.5 * (f[0] * u2[0] + f[1] * u2[1] + f[2] * u2[2])
+        e = 0.5 * (f[0] * u2[0] + f[1] * u2[1] + f[2] * u2[2])
+        delta, d0 = result[l][0][3], st.frozen_depth
+        if st.frozen and delta > d0:  # the law's energy past δ* (law.py) less ½ φ δ
+            e += 0.5 * d0 * (delta - d0) * (geo[l][GEO_k] - st.frozen_stiffness)
+        stored += e
+        if hb[0] == 0.0 and hb[1] == 0.0 and hb[2] == 0.0:  # its first tick: the device held no force yet, the
+            work += e                                       # energy of that tick's press is the hand's
     slack = PASSIVITY_SLACK * stored
     energy = min(c._energy + work, stored + slack) if c.passivity else stored
     deficit = stored - slack - energy
@@ -55,21 +64,33 @@ def render(c, states, active, geo, ubar, result) -> None:
     for l in active:
         st = states[l]
         (f, u2, sliding, delta), ueff = result[l]
-        Nx, Ny, Nz, K, Ki, lam, (gx, gy, gz) = geo[l]
+        g = geo[l]
+        Nx, Ny, Nz, Kt, _, k, lam, (gx, gy, gz), S, dlin = g
         dpx, dpy, dpz = st.vel  # the velocity terms use the filtered motion
-        bx, by, bz = f
-        hd = 0.5 * delta * delta  # the stored energy's gradient along the surface: ½ δ² ∇k_n
-        bx, by, bz = bx + hd * gx, by + hd * gy, bz + hd * gz
-        # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): J = λ k_n N Nᵀ, plus k_t on the
-        # tangent plane while friction holds
-        nkn = (Nx * (Ki[0] * Nx + Ki[1] * Ny + Ki[2] * Nz) + Ny * (Ki[3] * Nx + Ki[4] * Ny + Ki[5] * Nz)
-               + Nz * (Ki[6] * Nx + Ki[7] * Ny + Ki[8] * Nz))
-        dn = Nx * dpx + Ny * dpy + Nz * dpz
-        hz = 0.5 * lam / nkn * dn
-        vx, vy, vz = hz * Nx, hz * Ny, hz * Nz
-        if not sliding:
-            ht = lam / (Ki[0] + Ki[4] + Ki[8] - nkn)  # ½ k_t
-            vx, vy, vz = vx + ht * (dpx - dn * Nx), vy + ht * (dpy - dn * Ny), vz + ht * (dpz - dn * Nz)
+        # past δ_t (inside the full region) increments keep the stiffness where they began (law.py)
+        full = lam >= 1.0 - 1e-9
+        if not st.frozen:
+            if full and delta > 0.0:
+                dt = increment_depth(dlin, k, gx, gy, gz)
+                if delta >= dt:
+                    st.frozen, st.frozen_depth, st.frozen_stiffness = True, dt, k
+        elif delta < st.frozen_depth or not full:
+            st.frozen = False
+        # the stored energy's gradient along the surface, ψ(δ) (I − δ_f S)⁻¹ ∇k: ψ = ½ δ², frozen
+        # δ* δ − ½ δ*²; δ_f = min(δ, R/2) the depth whose speed-up the proxy moves with (tracking.follow)
+        d0 = st.frozen_depth
+        hd = d0 * delta - 0.5 * d0 * d0 if st.frozen else 0.5 * delta * delta
+        ax, ay, az = mul3(speed_up(S, tracking_depth(S, delta)), gx, gy, gz)
+        bx, by, bz = f[0] + hd * ax, f[1] + hd * ay, f[2] + hd * az
+        # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): J = k N Nᵀ sliding (frictionless),
+        # K̃ stuck
+        kt = st.frozen_stiffness if st.frozen else k  # the normal stiffness of an increment
+        if sliding:
+            hz = 0.5 * kt * (Nx * dpx + Ny * dpy + Nz * dpz)
+            vx, vy, vz = hz * Nx, hz * Ny, hz * Nz
+        else:
+            q = kt / k
+            vx, vy, vz = mul3(Kt, 0.5 * q * dpx, 0.5 * q * dpy, 0.5 * q * dpz)
         bv = lam * c.damping * rate + bpc  # viscous damping and the controller's, on Δp / T
         vx, vy, vz = vx + bv * dpx, vy + bv * dpy, vz + bv * dpz
         # the velocity terms fade with the contact: at most half the elastic force (as a Hunt-Crossley
@@ -87,11 +108,20 @@ def render(c, states, active, geo, ubar, result) -> None:
         st.body_force = (bx, by, bz)
         st.force = st.good_force = (-bx, -by, -bz)
         st.u_bar, st.depth, st.taper, st.sliding = total[l], delta, lam, sliding
-        st.status = Status.CONTACT if lam >= 1.0 - 1e-9 else Status.REGION_EDGE
-        if sliding and not frictionless:  # the anchor slides by the tangential part of (ū left to it) − ū'
+        st.status = (Status.DEEP if delta >= dlin and delta > 0.0 else Status.CONTACT if full else
+                     Status.REGION_EDGE)
+        # the anchor slides by the tangential part of (ū left to it) − ū', at most as far as the tool moved (a
+        # tool drags the point it holds no faster than itself: a breakaway at depth, where the static-to-dynamic
+        # drop μ_s → μ_d is tens of mN, is spread over ticks while the law keeps the force on the cone)
+        if sliding and not frictionless:
             mx, my, mz = ueff[0] - u2[0], ueff[1] - u2[1], ueff[2] - u2[2]
             mn = mx * Nx + my * Ny + mz * Nz
             mx, my, mz = mx - mn * Nx, my - mn * Ny, mz - mn * Nz
+            ms = math.sqrt(mx * mx + my * my + mz * mz)
+            lim = math.sqrt(st.move[0] * st.move[0] + st.move[1] * st.move[1] + st.move[2] * st.move[2])
+            if ms > lim:
+                s = lim / ms
+                mx, my, mz = s * mx, s * my, s * mz
             ax, ay, az = st.anchor
             st.anchor = (ax + mx, ay + my, az + mz)
             st.slip += math.sqrt(mx * mx + my * my + mz * mz)

@@ -14,6 +14,12 @@ class Status(IntEnum):
     FAR_OUTSIDE = 5     #: probe more than 10 model sizes away: are probe and model in the same units?
     REGION_EDGE = 6     #: in contact where the force tapers out at the edge of the contact region (0 < λ < 1)
     INTERNAL_ERROR = 7  #: a bug: last good force, decaying (logged)
+    DEEP = 8            #: deeper than the linear contact is meaningful (δ ≥ δ_lin): the force keeps growing
+                        #: along the normal (:mod:`pmask.runtime.contact.law`)
+
+
+#: the statuses of a contact that presses (a force from the law, shown on the display)
+TOUCHING = (Status.CONTACT, Status.REGION_EDGE, Status.DEEP)
 
 
 #: Gauss-Seidel sweeps of the several-contact solve (s = 1 needs one); both engines run exactly this many
@@ -55,6 +61,9 @@ class ContactState:
         self.tri = -1                     # proxy triangle (the probe's projection, rate-limited), -1 when not
         self.b = (1.0, 0.0, 0.0)          # tracking; proxy barycentrics
         self.anchor = None                # with friction: the material point the tool holds (x, y, z)
+        self.frozen = False               # past δ_t: increments of depth at the stiffness k* where it began
+        self.frozen_depth = 0.0           # δ* = δ_t where the press crossed it
+        self.frozen_stiffness = 0.0       # k* = k there
         self.in_contact = False
         self.above = False                # the probe was seen outside the body since tracking began
         self.sliding = False
@@ -93,5 +102,6 @@ def release(st: ContactState, status: Status = Status.NO_CONTACT) -> None:
     st.taper = 0.0
     st.sliding = False
     st.anchor = None
+    st.frozen = False
     st.slip = 0.0
     st.status = status

@@ -1,21 +1,50 @@
-"""The surface the contact algorithm runs on: mesh, triangle frames and neighbours, contact normals, the
-rendered per-vertex stiffness K_i, the taper λ, the normal-stiffness gradient ∇k_n, a spatial grid, and (for
-several contacts and the display) the ζ table.  The arrays are what a runtime table stores
-(:mod:`pmask.runtime.table`); the per-tick code reads plain-Python copies of them."""
+r"""The surface the contact algorithm runs on: mesh, triangle frames and neighbours, contact normals, the
+rendered per-vertex stiffness K_i, the taper λ, and what the contact law derives from them per vertex (the
+normal stiffness k_j, its surface gradient ∇k, the shape operator S_j of the contact normals and the depth
+δ_lin,j where the linear model stops), a spatial grid, and (for several contacts and the display) the ζ
+table.  The arrays are what a runtime table stores (:mod:`pmask.runtime.table`); the per-tick code reads
+plain-Python copies of them.
+
+**Where the linear contact stops being meaningful.**  The law renders a point-like contact on the undeformed
+surface: one contact normal, the stiffness of a mask of radius r, and the surface point under the probe.
+Two things break with depth δ:
+
+- *curvature*: a tool pressed δ into a surface of radius of curvature R touches a cap whose normals turn by θ
+  with cos θ = 1 − δ/R; past θ = 45° (δ = (1 − cos 45°) R ≈ 0.29 R) no single normal stands for the contact,
+  and the projection of the probe onto the surface approaches its focal point at δ = R, where the surface
+  point under the probe slides away sideways (measured at the kidney's pole, R ≈ 7 mm: the force turned
+  45-65° off the push and fell by a quarter between 9 and 12 mm);
+- *size*: the mask spreads the load over radius r whatever the depth, a tool sunk deeper than its patch is
+  wide is not point-like any more; past 1.5 r (on the kidney's flat top, where curvature does not limit)
+  the force's tangential part, ½ δ² |∇k|, turned the force more than 10° off the normal (measured).
+
+Hence δ_lin = min(0.29 R_min, 1.5 r) per vertex (R_min = 1/κ_max, the largest principal curvature of the
+contact-normal field): the status ``DEEP`` past it (:mod:`pmask.runtime.contact.law`, which also says how the
+force keeps growing and its direction stays near the normal there).
+"""
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
-from pmask.runtime.geometry import contact_normals, triangle_frames, triangle_neighbours
+from pmask.runtime.geometry import contact_normals, triangle_areas, triangle_frames, triangle_neighbours
 from pmask.runtime.spatial import TriangleGrid
 from pmask.runtime.stiffness import zeta_compliance, zeta_deformation
+
+#: the contact cap's half-angle past which one normal no longer stands for the contact (see the module
+#: docstring): δ_lin ≤ (1 − cos DEEP_ANGLE) R_min
+DEEP_ANGLE = math.radians(45.0)
+#: and past this many mask radii of depth the contact is no longer point-like: δ_lin ≤ DEEP_MASK_RADII r
+DEEP_MASK_RADII = 1.5
 
 
 class ContactSurface:
     """What the contact algorithm reads of a stiffness: the mesh, triangle frames and neighbours, contact
-    normals, per-vertex rendered K, taper λ and ∇k_n, a spatial grid, and (for several contacts and the
-    display) the ζ table.  The arrays are what a runtime table stores (:mod:`pmask.runtime.table`), and
-    :meth:`from_table` rebuilds one from a table; plain-Python copies serve the per-tick code.
+    normals, per-vertex rendered K, taper λ, normal stiffness k, its gradient ∇k, the shape operator S and
+    the linear depth δ_lin, a spatial grid, and (for several contacts and the display) the ζ table.  The
+    arrays are what a runtime table stores (:mod:`pmask.runtime.table`), and :meth:`from_table` rebuilds one
+    from a table; plain-Python copies serve the per-tick code.
 
     stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
     normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
@@ -27,18 +56,22 @@ class ContactSurface:
         frames = triangle_frames(P, T)
         e = np.linalg.norm(P[T[:, 1]] - P[T[:, 0]], axis=1)
         mean_edge = float(e.mean()) if len(e) else 1.0
-        if normal_radius is None:  # 3 mask radii (a single-vertex mask or a bare surface: 6 mean edges)
-            masks = getattr(stiffness, "masks", None)
-            r = getattr(masks, "radius", 0.0) if masks is not None else 0.0
-            normal_radius = 3.0 * (r if r > 0 else 2.0 * mean_edge)
+        masks = getattr(stiffness, "masks", None)
+        r = getattr(masks, "radius", 0.0) if masks is not None else 0.0
+        mask_radius = r if r > 0 else 2.0 * mean_edge  # a single-vertex mask or a bare surface: 2 mean edges
+        if normal_radius is None:
+            normal_radius = 3.0 * mask_radius
         normals = contact_normals(P, T, float(normal_radius))
         K = np.asarray(stiffness.K_vertex, float).reshape(len(P), 9)
         taper = np.asarray(getattr(stiffness, "taper", np.ones(len(P))), float)
-        gradient = normal_stiffness_gradient(P, T, normals, K, taper, frames[:, 3:6], frames[:, 6:9])
+        k = normal_stiffness(K, normals, taper)
+        gradient = normal_stiffness_gradient(P, T, k, frames[:, 3:6], frames[:, 6:9])
+        shape = shape_operators(P, T, normals, frames)
         grid = TriangleGrid(P, T, frames=frames)
         lo, hi = P.min(axis=0), P.max(axis=0)
-        self._setup(P, T, frames, triangle_neighbours(T), normals, K, taper, gradient, grid, lo, hi,
-                    mean_edge, float(np.linalg.norm(hi - lo)), float(normal_radius))
+        self._setup(P, T, frames, triangle_neighbours(T), normals, K, taper, k, gradient, shape,
+                    linear_depths(shape, mask_radius), grid, lo, hi, mean_edge, float(np.linalg.norm(hi - lo)),
+                    float(normal_radius))
         self.stiffness = stiffness
         self.meta = {}
 
@@ -52,8 +85,9 @@ class ContactSurface:
         grid = TriangleGrid(P, T, frames=t["frames"])
         mean_edge, diag = (float(x) for x in t["lengths"][0])
         srf = cls.__new__(cls)
-        srf._setup(P, T, t["frames"], t["neighbours"], t["normals"], t["stiffness"], t["taper"][:, 0], t["gradient"],
-                   grid, t["bounds"][0], t["bounds"][1], mean_edge, diag, float(t["meta"].get("normal_radius", 0.0)))
+        srf._setup(P, T, t["frames"], t["neighbours"], t["normals"], t["stiffness"], t["taper"][:, 0],
+                   t["normal_stiffness"][:, 0], t["gradient"], t["shape"], t["linear_depth"][:, 0], grid,
+                   t["bounds"][0], t["bounds"][1], mean_edge, diag, float(t["meta"].get("normal_radius", 0.0)))
         srf.stiffness = None
         srf.meta = t["meta"]
         if not isinstance(table, (dict, bytes, bytearray, memoryview)):  # the native core loads the same file
@@ -62,8 +96,8 @@ class ContactSurface:
             srf._coupling = (t["zeta"], t["contact_row"][:, 0])
         return srf
 
-    def _setup(self, P, T, frames, neighbours, normals, K, taper, gradient, grid, lo, hi, mean_edge, diag,
-               normal_radius):
+    def _setup(self, P, T, frames, neighbours, normals, K, taper, k, gradient, shape, linear_depth, grid, lo, hi,
+               mean_edge, diag, normal_radius):
         c = np.ascontiguousarray
         self.P, self.T = c(P, dtype=float), c(T, dtype=np.int64)
         self.tri_geom = c(frames, dtype=float)
@@ -71,7 +105,10 @@ class ContactSurface:
         self.vertex_normals = c(normals, dtype=float)
         self.K = c(np.reshape(K, (len(P), 9)), dtype=float)
         self.taper = c(taper, dtype=float)
+        self.normal_stiffness = c(k, dtype=float)
         self.gradient = c(gradient, dtype=float)
+        self.shape = c(np.reshape(shape, (len(P), 9)), dtype=float)
+        self.linear_depth = c(linear_depth, dtype=float)
         self.grid = grid
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.mean_edge, self.diag, self.normal_radius = float(mean_edge), float(diag), float(normal_radius)
@@ -83,7 +120,10 @@ class ContactSurface:
         self._N = [tuple(r) for r in self.vertex_normals.tolist()]
         self._K = [tuple(r) for r in self.K.tolist()]
         self._lam = self.taper.tolist()
+        self._k = self.normal_stiffness.tolist()
         self._G = [tuple(r) for r in self.gradient.tolist()]
+        self._S = [tuple(r) for r in self.shape.tolist()]
+        self._dlin = self.linear_depth.tolist()
         self._coupling = None
         self._row = None
 
@@ -109,22 +149,76 @@ class ContactSurface:
         return zeta_deformation(Zt, row, self.T, loads)
 
 
-def normal_stiffness_gradient(P, T, VN, K, taper, dual_a, dual_b) -> np.ndarray:
-    """(n_s, 3): the surface gradient of the normal stiffness k_n = λ / (nᵀ K⁻¹ n), per vertex.
+
+def at(srf, t, b0, b1, b2):
+    """What the law reads at barycentric b of triangle t, interpolated (eq. 15's way): K(x) (9 floats
+    row-major), λ(x), k(x), ∇k(x) (3), S(x) (9) and δ_lin(x).  Plain Python, for the per-tick code."""
+    i0, i1, i2 = srf._idx[t]
+    KK, G, SS = srf._K, srf._G, srf._S
+    k0, k1, k2 = KK[i0], KK[i1], KK[i2]
+    K = [b0 * k0[i] + b1 * k1[i] + b2 * k2[i] for i in range(9)]
+    s0, s1, s2 = SS[i0], SS[i1], SS[i2]
+    S = [b0 * s0[i] + b1 * s1[i] + b2 * s2[i] for i in range(9)]
+    g0, g1, g2 = G[i0], G[i1], G[i2]
+    g = (b0 * g0[0] + b1 * g1[0] + b2 * g2[0], b0 * g0[1] + b1 * g1[1] + b2 * g2[1],
+         b0 * g0[2] + b1 * g1[2] + b2 * g2[2])
+    lam, kn, dl = srf._lam, srf._k, srf._dlin
+    return (K, b0 * lam[i0] + b1 * lam[i1] + b2 * lam[i2], b0 * kn[i0] + b1 * kn[i1] + b2 * kn[i2], g, S,
+            b0 * dl[i0] + b1 * dl[i1] + b2 * dl[i2])
+
+
+def normal_stiffness(K, N, taper) -> np.ndarray:
+    """(n_s,): the normal stiffness k_j = λ_j / (n_jᵀ K_j⁻¹ n_j) per vertex: the stiffness along the contact
+    normal with the surface free to slide under the tool (the Schur complement of K's tangential block),
+    tapered.  The law interpolates it linearly, k(x) = Σ_j φ_j(x) k_j, so that ½ k δ² is an energy whose
+    surface gradient the vertex gradients below interpolate."""
+    Kv = np.reshape(K, (-1, 3, 3))
+    Ki = np.linalg.inv(Kv)
+    return np.asarray(taper, float) / np.einsum("vi,vij,vj->v", N, Ki, N)
+
+
+def normal_stiffness_gradient(P, T, k, dual_a, dual_b) -> np.ndarray:
+    """(n_s, 3): the surface gradient ∇k of the normal stiffness, per vertex.
 
     On each triangle, the gradient of the linear interpolant of the vertex values (∇φ_1 = a, ∇φ_2 = b,
     ∇φ_0 = −a − b with a, b the duals of the edges); at a vertex, the area-weighted mean over its
-    triangles.  Interpolated (eq. 15's way) and projected on the tangent plane, it gives the tangential
-    force ½ δ² ∇k_n that makes the frictionless force the gradient of the stored energy ½ k_n δ²
-    (continuous across edges, unlike the per-triangle gradient, which jumps by a few % of the force)."""
-    Kv = K.reshape(-1, 3, 3)
-    Ki = np.linalg.inv(Kv + 1e-300 * np.eye(3))
-    k = taper / np.maximum(np.einsum("vi,vij,vj->v", VN, Ki, VN), 1e-300)
+    triangles.  Interpolated (eq. 15's way) it gives the tangential force that makes the frictionless force
+    the gradient of the stored energy ½ k δ² (continuous across edges, unlike the per-triangle gradient,
+    which jumps by a few % of the force)."""
     g_t = (k[T[:, 1]] - k[T[:, 0]])[:, None] * dual_a + (k[T[:, 2]] - k[T[:, 0]])[:, None] * dual_b
-    area = 0.5 * np.linalg.norm(np.cross(P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]]), axis=1)
-    g = np.zeros_like(P)
+    return _vertex_mean(P, T, g_t)
+
+
+def shape_operators(P, T, VN, frames) -> np.ndarray:
+    """(n_s, 9): the shape operator S_j = P ∇N P of the contact-normal field per vertex (row-major,
+    symmetric, on the triangle planes): per triangle the gradient of the linearly interpolated normals
+    projected on its plane, area-averaged at the vertices.  Its eigenvalues are the principal curvatures
+    (1/R; positive where the surface is convex), and a probe δ below a point of the surface moves that
+    point's projection (I − δ S)⁻¹ times as fast as it moves itself."""
+    a, b, n = frames[:, 3:6], frames[:, 6:9], frames[:, 9:12]
+    d1, d2 = VN[T[:, 1]] - VN[T[:, 0]], VN[T[:, 2]] - VN[T[:, 0]]
+    grad = np.einsum("ti,tj->tij", d1, a) + np.einsum("ti,tj->tij", d2, b)
+    Pf = np.eye(3)[None] - np.einsum("ti,tj->tij", n, n)
+    S = Pf @ grad @ Pf
+    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    return _vertex_mean(P, T, S.reshape(-1, 9))
+
+
+def linear_depths(shape, mask_radius: float) -> np.ndarray:
+    """(n_s,): δ_lin = min((1 − cos 45°) / κ_max, 1.5 r) per vertex, the depth past which the linear contact
+    stops being meaningful (the module docstring)."""
+    kmax = np.linalg.eigvalsh(np.reshape(shape, (-1, 3, 3)))[:, -1]
+    by_size = DEEP_MASK_RADII * float(mask_radius)
+    by_curvature = (1.0 - math.cos(DEEP_ANGLE)) / np.maximum(kmax, 1e-300)
+    return np.minimum(by_curvature, by_size)
+
+
+def _vertex_mean(P, T, per_triangle) -> np.ndarray:
+    """Area-weighted mean over each vertex's triangles of a per-triangle quantity (n_t, m)."""
+    area = triangle_areas(P, T)
+    out = np.zeros((len(P), per_triangle.shape[1]))
     w = np.zeros(len(P))
     for c in range(3):
-        np.add.at(g, T[:, c], area[:, None] * g_t)
+        np.add.at(out, T[:, c], area[:, None] * per_triangle)
         np.add.at(w, T[:, c], area)
-    return g / np.maximum(w, 1e-300)[:, None]
+    return out / np.maximum(w, 1e-300)[:, None]

@@ -18,7 +18,9 @@ import math
 
 import numpy as np
 
+from pmask.runtime.contact.linalg3 import mul3, speed_up, tangent_part, tracking_depth
 from pmask.runtime.contact.state import FAR_FACTOR, VELOCITY_FILTER, Status, hold, release
+from pmask.runtime.contact.surface import at
 
 log = logging.getLogger("pmask.runtime.haptics")
 
@@ -231,9 +233,28 @@ def prepare(c, st, sample):
 
 
 def follow(c, st) -> None:
-    """The proxy's move this tick: towards this tick's projection, at most ``proxy_speed`` ‖Δp‖."""
-    if st.target is not None:
-        move_proxy(c, st, *point(c.surface, *st.target), c.proxy_speed * norm(st.move))
+    """The proxy's move this tick: towards this tick's projection, at most ``proxy_speed`` ‖Δp‖.
+
+    Deeper than half the radius of curvature the projection nears the surface's focal point and runs off
+    sideways; the proxy then moves by dead reckoning instead, by (I − δ_f S)⁻¹ P Δp (P = I − N Nᵀ at the
+    proxy, S the shape operator on the tangent plane, δ_f = R / 2), the factor the law's tangential term
+    uses (:func:`pmask.runtime.contact.linalg3.tracking_depth`): a straight press keeps its contact point."""
+    if st.target is None:
+        return
+    srf = c.surface
+    if st.depth > 0.0:
+        t, (b0, b1, b2) = st.tri, st.b
+        Nx, Ny, Nz = normal(srf, t, b0, b1, b2)
+        St = tangent_part(Nx, Ny, Nz, at(srf, t, b0, b1, b2)[4])
+        d = tracking_depth(St, st.depth)
+        if d < st.depth:
+            mx, my, mz = st.move
+            mn = Nx * mx + Ny * my + Nz * mz
+            vx, vy, vz = mul3(speed_up(St, d), mx - mn * Nx, my - mn * Ny, mz - mn * Nz)
+            x, y, z = point(srf, t, b0, b1, b2)
+            move_proxy(c, st, x + vx, y + vy, z + vz, math.sqrt(vx * vx + vy * vy + vz * vz))
+            return
+    move_proxy(c, st, *point(srf, *st.target), c.proxy_speed * norm(st.move))
 
 
 def norm(v):

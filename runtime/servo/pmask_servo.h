@@ -2,17 +2,20 @@
  *
  * The same algorithm as pmask.runtime.haptics (the Python reference; a test requires both to give the
  * same statuses and forces to 1e-12 on recorded probe traces): proxies that follow the probe's Phong
- * projection along the surface, the frictionless normal law λ k_n δ with the tangential term ½ δ² ∇k_n,
- * slip-weakening Coulomb friction, several contacts coupled through the Green's functions by block
- * Gauss-Seidel, zero-order-hold compensation, viscous damping and a passivity observer/controller.
+ * projection along the surface (by dead reckoning past half the radius of curvature), the frictionless normal
+ * law k δ with the tangential term ½ δ² (I − δ S)⁻¹ ∇k (past δ_t the increments keep the stiffness where they
+ * began; PM_DEEP past δ_lin), friction between the stuck (K̃ ū) and the frictionless force on the cone's edge,
+ * several contacts coupled through the Green's functions by block Gauss-Seidel, zero-order-hold
+ * compensation, viscous damping and a passivity observer/controller.
  *
  * A runtime table (``pmask export-table ARTIFACT -o FILE``; format in pmask/runtime/table.py) carries
- * everything the step reads: the mesh, contact normals, per-vertex rendered stiffness K_i, taper λ and
- * ∇k_n, triangle frames and neighbours, and optionally the ζ table for coupling and deformation.  Its
+ * everything the step reads: the mesh, contact normals, per-vertex rendered stiffness K_i, taper λ, normal
+ * stiffness k and ∇k, the shape operator S, δ_lin, triangle frames and neighbours, and optionally the ζ table
+ * for coupling and deformation.  Its
  * layout (little-endian): a 64-byte header ("PMASKTBL", major, minor, size, section count, a CRC-32 of
  * header and directory), a directory of named sections with a CRC-32 each, the sections.  A foreign,
- * truncated or corrupt file, a newer major version and stiffnesses that are not positive definite are
- * refused with a message.  Loading builds a bounding-volume hierarchy of the triangles, which restarts
+ * truncated or corrupt file, a 1.0 table (without the 1.1 law's sections), a newer major version and
+ * stiffnesses that are not positive definite are refused with a message.  Loading builds a bounding-volume hierarchy of the triangles, which restarts
  * contact tracking in O(log n) whatever the probe's depth.
  *
  * Threads: a table is read-only after loading and may be shared.  A servo (contact state for n
@@ -45,7 +48,7 @@ extern "C" {
 #endif
 
 #define PM_TABLE_MAJOR 1
-#define PM_TABLE_MINOR 0
+#define PM_TABLE_MINOR 1
 
 /* contact statuses (the values of pmask.runtime.Status) */
 enum {
@@ -56,7 +59,9 @@ enum {
     PM_OUTSIDE_REGION = 4,
     PM_FAR_OUTSIDE = 5,
     PM_REGION_EDGE = 6,
-    PM_INTERNAL_ERROR = 7
+    PM_INTERNAL_ERROR = 7,
+    PM_DEEP = 8               /* deeper than the linear contact is meaningful: the force keeps growing along the
+                                 proxy's normal (see the haptics guide) */
 };
 
 typedef struct pm_table pm_table;

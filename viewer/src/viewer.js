@@ -204,7 +204,7 @@ async function main() {
   const disp = geom.attributes.position.array;
   function applyReply(reply) {
     reply.contacts.forEach((c, k) => {
-      const touching = c.status === 'CONTACT' || c.status === 'REGION_EDGE';
+      const touching = c.status === 'CONTACT' || c.status === 'REGION_EDGE' || c.status === 'DEEP';
       $(`status${k}`).textContent = c.status;
       $(`force${k}`).textContent = `${fmt(c.force_norm)} N (${c.force.map((x) => fmt(x)).join(', ')})`;
       $(`force${k}`).dataset.force = JSON.stringify(c.force);

@@ -68,7 +68,7 @@ static int solve_spd(double *A, double *r, double *x, int32_t s)
 }
 
 /* the frictionless start: the coupled normal problem with every active contact pressing (coupling.normal_start) */
-static void normal_start(pm_servo *S, const int32_t *act, int32_t na)
+static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
 {
     const int32_t n = S->n;
     double *A = S->nA, *r = S->nr, *x = S->nx;
@@ -77,9 +77,18 @@ static void normal_start(pm_servo *S, const int32_t *act, int32_t na)
         const geom *g = &S->geo[l];
         const double Nx = g->N[0], Ny = g->N[1], Nz = g->N[2];
         for (int32_t b = 0; b < na; b++) A[a * na + b] = 0.0;
-        A[a * na + a] = pm__nkn(g->N, g->Ki) / g->lam;
         const double *u = S->ubar + 3 * l;
         r[a] = -(Nx * u[0] + Ny * u[1] + Nz * u[2]);
+        const cstate *st = &S->st[l];
+        if (st->frozen) {  /* φ = k δ* + k* (δ − δ*) */
+            const double k = g->k, ks = st->frozen_stiffness;
+            if (ks == 0.0) return -1;
+            A[a * na + a] = 1.0 / ks;
+            r[a] = r[a] - st->frozen_depth * (1.0 - k / ks);
+        } else {
+            if (g->k == 0.0) return -1;  /* the Python's ZeroDivisionError */
+            A[a * na + a] = 1.0 / g->k;
+        }
         for (int32_t b = 0; b < na; b++) {
             int32_t k = act[b];
             if (k == l) continue;
@@ -100,6 +109,7 @@ static void normal_start(pm_servo *S, const int32_t *act, int32_t na)
         S->gsf[3 * l + 1] = -p * N[1];
         S->gsf[3 * l + 2] = -p * N[2];
     }
+    return 0;
 }
 
 int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
@@ -108,7 +118,7 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
     const int32_t n = S->n;
     if (coupled) coupling_blocks(S, act, na);
     if (coupled && S->frictionless) {
-        normal_start(S, act, na);
+        if (normal_start(S, act, na)) return -1;
     } else {
         for (int32_t x = 0; x < na; x++) {  /* warm start: last tick's forces */
             int32_t l = act[x];

@@ -15,7 +15,7 @@ static int deformation(pm_servo *s, double *out)
     double b[64][3], u[64][3], f[64][3];
     for (int32_t l = 0; l < n; l++) {
         const pm_contact_state *one = &snap[l];
-        if (one->status == PM_CONTACT || one->status == PM_REGION_EDGE) {
+        if (one->status == PM_CONTACT || one->status == PM_REGION_EDGE || one->status == PM_DEEP) {
             tri[na] = one->triangle;
             memcpy(b[na], one->bary, sizeof b[na]);
             memcpy(u[na], one->u_bar, sizeof u[na]);

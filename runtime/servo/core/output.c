@@ -1,6 +1,6 @@
 /* pmask servo core, step 4: the force sent (pmask.runtime.contact.output).
  *
- * The law's force plus ½ δ² ∇k_n, the zero-order hold's first-order error ½ J Δp added back, viscous damping,
+ * The law's force plus ½ δ² (I − δ S)⁻¹ ∇k, the zero-order hold's first-order error ½ J Δp added back, viscous damping,
  * and the passivity observer/controller (Hannaford & Ryu): a smoothly switched damper takes out the energy the
  * hand did not put in beyond a slack of 10 % of the stored energy.  The velocity terms fade with the contact. */
 #include "pm_internal.h"
@@ -26,7 +26,12 @@ int pm__render(pm_servo *S, int32_t na)
         motion2 += vx * vx + vy * vy + vz * vz;
         const double *hb = st->body_force;
         work += hb[0] * dpx + hb[1] * dpy + hb[2] * dpz;
-        stored += 0.5 * (R->f[0] * R->total[0] + R->f[1] * R->total[1] + R->f[2] * R->total[2]);
+        double e = 0.5 * (R->f[0] * R->total[0] + R->f[1] * R->total[1] + R->f[2] * R->total[2]);
+        const double d0 = st->frozen_depth;
+        if (st->frozen && R->delta > d0)  /* the law's energy past δ* (law.py) less ½ φ δ */
+            e += 0.5 * d0 * (R->delta - d0) * (S->geo[l].k - st->frozen_stiffness);
+        stored += e;
+        if (hb[0] == 0.0 && hb[1] == 0.0 && hb[2] == 0.0) work += e;  /* its first tick: the hand's press */
     }
     double slack = PASSIVITY_SLACK * stored;
     double energy = S->o.passivity ? PYMIN(S->energy + work, stored + slack) : stored;
@@ -43,30 +48,48 @@ int pm__render(pm_servo *S, int32_t na)
         cstate *st = &S->st[l];
         const lres *R = &S->res[l];
         const geom *g = &S->geo[l];
-        const double Nx = g->N[0], Ny = g->N[1], Nz = g->N[2], lam = g->lam;
-        const double *Ki = g->Ki;
-        const double gx = g->g[0], gy = g->g[1], gz = g->g[2];
+        const double Nx = g->N[0], Ny = g->N[1], Nz = g->N[2], lam = g->lam, k = g->k;
         const double *f = R->f, *u2 = R->u2;
         const double delta = R->delta;
         const int sliding = R->sliding;
         double dpx = st->vel[0], dpy = st->vel[1], dpz = st->vel[2];
-        double bx = f[0], by = f[1], bz = f[2];
-        double hd = 0.5 * delta * delta;
-        bx = bx + hd * gx;
-        by = by + hd * gy;
-        bz = bz + hd * gz;
-        double nkn = pm__nkn(g->N, Ki);
-        double dn = Nx * dpx + Ny * dpy + Nz * dpz;
-        if (nkn == 0.0) return -1;
-        double hz = 0.5 * lam / nkn * dn;
-        double vx = hz * Nx, vy = hz * Ny, vz = hz * Nz;
-        if (!sliding) {
-            double den = Ki[0] + Ki[4] + Ki[8] - nkn;
-            if (den == 0.0) return -1;
-            double ht = lam / den;
-            vx = vx + ht * (dpx - dn * Nx);
-            vy = vy + ht * (dpy - dn * Ny);
-            vz = vz + ht * (dpz - dn * Nz);
+        /* past δ_t (inside the full region) increments keep the stiffness where they began (law.py) */
+        const int full = lam >= 1.0 - 1e-9;
+        if (!st->frozen) {
+            if (full && delta > 0.0) {
+                const double gm = sqrt(g->g[0] * g->g[0] + g->g[1] * g->g[1] + g->g[2] * g->g[2]);
+                double dt = g->dlin;  /* law.increment_depth */
+                if (FROZEN_CHANGE * k < dt * gm) dt = FROZEN_CHANGE * k / gm;
+                if (delta >= dt) {
+                    st->frozen = 1;
+                    st->frozen_depth = dt;
+                    st->frozen_stiffness = k;
+                }
+            }
+        } else if (delta < st->frozen_depth || !full) {
+            st->frozen = 0;
+        }
+        /* the stored energy's gradient along the surface, ψ(δ) (I − δ_f S)⁻¹ ∇k */
+        const double d0 = st->frozen_depth;
+        const double hd = st->frozen ? d0 * delta - 0.5 * d0 * d0 : 0.5 * delta * delta;
+        double A[9], a3[3];
+        pm__speed_up(g->S, pm__tracking_depth(g->S, delta), A);
+        pm__mul3(A, g->g[0], g->g[1], g->g[2], a3);
+        double bx = f[0] + hd * a3[0], by = f[1] + hd * a3[1], bz = f[2] + hd * a3[2];
+        /* the zero-order hold's first-order error, ½ J Δp: J = k N Nᵀ sliding, K̃ stuck (DEEP: k*) */
+        const double kt = st->frozen ? st->frozen_stiffness : k;
+        double vx, vy, vz;
+        if (sliding) {
+            double hz = 0.5 * kt * (Nx * dpx + Ny * dpy + Nz * dpz);
+            vx = hz * Nx;
+            vy = hz * Ny;
+            vz = hz * Nz;
+        } else {
+            double q = kt / k, v3[3];
+            pm__mul3(g->Kt, 0.5 * q * dpx, 0.5 * q * dpy, 0.5 * q * dpz, v3);
+            vx = v3[0];
+            vy = v3[1];
+            vz = v3[2];
         }
         double bv = lam * S->o.damping * rate + bpc;
         vx = vx + bv * dpx;
@@ -96,13 +119,21 @@ int pm__render(pm_servo *S, int32_t na)
         st->depth = delta;
         st->taper = lam;
         st->sliding = sliding;
-        st->status = lam >= 1.0 - 1e-9 ? PM_CONTACT : PM_REGION_EDGE;
+        st->status = delta >= g->dlin && delta > 0.0 ? PM_DEEP : full ? PM_CONTACT : PM_REGION_EDGE;
         if (sliding && !frictionless) {
             double mx = R->ueff[0] - u2[0], my = R->ueff[1] - u2[1], mz = R->ueff[2] - u2[2];
             double mn = mx * Nx + my * Ny + mz * Nz;
             mx = mx - mn * Nx;
             my = my - mn * Ny;
             mz = mz - mn * Nz;
+            double ms = sqrt(mx * mx + my * my + mz * mz);
+            double lim = sqrt(st->move[0] * st->move[0] + st->move[1] * st->move[1] + st->move[2] * st->move[2]);
+            if (ms > lim) {
+                double s = lim / ms;
+                mx = s * mx;
+                my = s * my;
+                mz = s * mz;
+            }
             st->anchor[0] = st->anchor[0] + mx;
             st->anchor[1] = st->anchor[1] + my;
             st->anchor[2] = st->anchor[2] + mz;

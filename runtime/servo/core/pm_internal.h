@@ -66,6 +66,7 @@
 struct pm_table {
     int64_t nv, nt, nc;           /* surface vertices, triangles, contact vertices (ζ table rows / 3) */
     const double *P, *frames, *N, *K, *taper, *grad;
+    const double *kn, *shape, *dlin;  /* normal stiffness k_j, shape operator S_j (9), linear depth δ_lin,j */
     const int64_t *T, *nb;
     /* the bounding-volume hierarchy of the triangles, built at load (pm_table_nearest) */
     double *box;                  /* per node: lower corner, upper corner */
@@ -91,6 +92,8 @@ typedef struct {
     int has_anchor;
     double anchor[3];
     int in_contact, above, sliding;
+    int frozen;                   /* past δ_t: increments of depth at the stiffness where they began */
+    double frozen_depth, frozen_stiffness;  /* δ* and k* */
     double slip;
     int has_last;
     double last[3], move[3], vel[3];
@@ -103,8 +106,11 @@ typedef struct {
     int32_t status;
 } cstate;
 
-typedef struct {   /* the law's inputs at the proxy (law.c's geometry) */
-    double N[3], K[9], Ki[9], lam, g[3];
+typedef struct {   /* the law's inputs at the proxy (law.c's geometry; law.GEO_K ...) */
+    double N[3], K[9], Ki[9];   /* K(x) and its inverse (workspace) */
+    double Kt[9], Kti[9];       /* the law's K̃ = c K and K̃⁻¹ */
+    double k, lam, g[3];        /* normal stiffness, taper, ∇k on the tangent plane */
+    double S[9], dlin;          /* the shape operator on the tangent plane, δ_lin */
 } geom;
 
 typedef struct {   /* the law's result and the displacement left to the contact */
@@ -221,12 +227,102 @@ static inline void pm__point_at(const pm_table *tb, int64_t t, const double *b, 
     x[2] = b[0] * a[2] + b[1] * bb[2] + b[2] * c[2];
 }
 
-/* Nᵀ K⁻¹ N (law.normal_compliance) */
+/* ------------------------------------------------------------------ 3x3 algebra (pmask.runtime.contact.linalg3) */
+/* Nᵀ K⁻¹ N (linalg3.normal_compliance) */
 static inline double pm__nkn(const double *N, const double *Ki)
 {
     const double Nx = N[0], Ny = N[1], Nz = N[2];
     return (Nx * (Ki[0] * Nx + Ki[1] * Ny + Ki[2] * Nz) + Ny * (Ki[3] * Nx + Ki[4] * Ny + Ki[5] * Nz) +
             Nz * (Ki[6] * Nx + Ki[7] * Ny + Ki[8] * Nz));
+}
+
+/* the inverse by cofactors, zeros for a singular matrix (linalg3.inverse3) */
+static inline void pm__inverse3(const double *K, double *out)
+{
+    double a = K[0], b = K[1], c = K[2], d = K[3], e = K[4], f = K[5], g = K[6], h = K[7], i = K[8];
+    double A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
+    double det = a * A + b * B + c * C;
+    if (det == 0.0 || !isfinite(det)) {
+        for (int k = 0; k < 9; k++) out[k] = 0.0;
+        return;
+    }
+    double r = 1.0 / det;
+    out[0] = A * r;
+    out[1] = -(b * i - c * h) * r;
+    out[2] = (b * f - c * e) * r;
+    out[3] = B * r;
+    out[4] = (a * i - c * g) * r;
+    out[5] = -(a * f - c * d) * r;
+    out[6] = C * r;
+    out[7] = -(a * h - b * g) * r;
+    out[8] = (a * e - b * d) * r;
+}
+
+/* M (x, y, z) (linalg3.mul3) */
+static inline void pm__mul3(const double *M, double x, double y, double z, double *out)
+{
+    double a = M[0] * x + M[1] * y + M[2] * z, b = M[3] * x + M[4] * y + M[5] * z;
+    double c = M[6] * x + M[7] * y + M[8] * z;
+    out[0] = a;
+    out[1] = b;
+    out[2] = c;
+}
+
+/* P S P, P = I − N Nᵀ (linalg3.tangent_part) */
+static inline void pm__tangent_part(const double *N, const double *Sm, double *out)
+{
+    double v[3];
+    pm__mul3(Sm, N[0], N[1], N[2], v);
+    double s = N[0] * v[0] + N[1] * v[1] + N[2] * v[2];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) out[3 * i + j] = Sm[3 * i + j] - N[i] * v[j] - v[i] * N[j] + s * N[i] * N[j];
+}
+
+/* (I − d S)⁻¹ (linalg3.speed_up) */
+static inline void pm__speed_up(const double *Sm, double d, double *out)
+{
+    double M[9];
+    for (int i = 0; i < 9; i++) M[i] = -d * Sm[i];
+    M[0] = 1.0 - d * Sm[0];
+    M[4] = 1.0 - d * Sm[4];
+    M[8] = 1.0 - d * Sm[8];
+    pm__inverse3(M, out);
+}
+
+/* κ_max of a shape operator on the tangent plane (linalg3.largest_curvature) */
+static inline double pm__largest_curvature(const double *Sm)
+{
+    double tr = Sm[0] + Sm[4] + Sm[8];
+    double m = Sm[0] * Sm[4] - Sm[1] * Sm[3] + Sm[0] * Sm[8] - Sm[2] * Sm[6] + Sm[4] * Sm[8] - Sm[5] * Sm[7];
+    double disc = tr * tr - 4.0 * m;
+    return 0.5 * (tr + sqrt(disc > 0.0 ? disc : 0.0));
+}
+
+#define FOCAL_FRACTION 0.5
+#define FROZEN_CHANGE 0.125
+
+/* min(δ, FOCAL_FRACTION / κ_max) (linalg3.tracking_depth) */
+static inline double pm__tracking_depth(const double *Sm, double delta)
+{
+    double kmax = pm__largest_curvature(Sm);
+    if (kmax * delta > FOCAL_FRACTION) return FOCAL_FRACTION / kmax;
+    return delta;
+}
+
+/* K(x), λ(x), k(x), ∇k(x), S(x), δ_lin(x) interpolated at barycentric b of t (surface.at) */
+static inline void pm__at(const pm_table *tb, int64_t t, const double *b, double *K, double *lam, double *k,
+                          double *g, double *Sm, double *dlin)
+{
+    const int64_t *v = tb->T + 3 * t;
+    const double *k0 = tb->K + 9 * v[0], *k1 = tb->K + 9 * v[1], *k2 = tb->K + 9 * v[2];
+    for (int i = 0; i < 9; i++) K[i] = b[0] * k0[i] + b[1] * k1[i] + b[2] * k2[i];
+    const double *s0 = tb->shape + 9 * v[0], *s1 = tb->shape + 9 * v[1], *s2 = tb->shape + 9 * v[2];
+    for (int i = 0; i < 9; i++) Sm[i] = b[0] * s0[i] + b[1] * s1[i] + b[2] * s2[i];
+    const double *g0 = tb->grad + 3 * v[0], *g1 = tb->grad + 3 * v[1], *g2 = tb->grad + 3 * v[2];
+    for (int i = 0; i < 3; i++) g[i] = b[0] * g0[i] + b[1] * g1[i] + b[2] * g2[i];
+    *lam = b[0] * tb->taper[v[0]] + b[1] * tb->taper[v[1]] + b[2] * tb->taper[v[2]];
+    *k = b[0] * tb->kn[v[0]] + b[1] * tb->kn[v[1]] + b[2] * tb->kn[v[2]];
+    *dlin = b[0] * tb->dlin[v[0]] + b[1] * tb->dlin[v[1]] + b[2] * tb->dlin[v[2]];
 }
 
 #endif

@@ -226,6 +226,7 @@ void pm__release(cstate *st, int32_t status)
     st->taper = 0.0;
     st->sliding = 0;
     st->has_anchor = 0;
+    st->frozen = 0;
     st->slip = 0.0;
     st->status = status;
 }
@@ -267,7 +268,9 @@ int pm__step_inner(pm_servo *S, const double *probes)
     int32_t kept = 0;
     for (int32_t x = 0; x < na; x++) {
         int32_t l = S->active[x];
-        if (S->res[l].delta <= 0.0) {
+        const double *N = S->geo[l].N, *u = S->ubar + 3 * l;
+        if (N[0] * u[0] + N[1] * u[1] + N[2] * u[2] >= 0.0) {  /* the tool is out at the proxy: the contact ends
+                                                                  (one the others carried away stays, no force) */
             cstate *st = &S->st[l];
             if (st->has_target) {
                 st->tri = st->target_t;

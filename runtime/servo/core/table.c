@@ -78,7 +78,8 @@ static int want(const unsigned char *blob, uint32_t nsec, const char *name, uint
 {
     if (!find_section(blob, nsec, name, s)) {
         if (optional) return 0;
-        fmt(err, errlen, "not a complete runtime table: section '%s' is missing (export it again)", name, 0, 0);
+        fmt(err, errlen, "not a complete runtime table: section '%s' is missing (a table from an older pmask, or a "
+            "damaged one: export it again with `pmask export-table`)", name, 0, 0);
         return -1;
     }
     if (s->dtype != dtype || (rows >= 0 && s->rows != (uint64_t)rows) || (cols >= 0 && s->cols != (uint64_t)cols)) {
@@ -221,8 +222,14 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
     t->K = (const double *)s.data;
     NEED("taper", DT_F64, t->nv, 1, 0);
     t->taper = (const double *)s.data;
+    NEED("normal_stiffness", DT_F64, t->nv, 1, 0);
+    t->kn = (const double *)s.data;
     NEED("gradient", DT_F64, t->nv, 1 * 3, 0);
     t->grad = (const double *)s.data;
+    NEED("shape", DT_F64, t->nv, 9, 0);
+    t->shape = (const double *)s.data;
+    NEED("linear_depth", DT_F64, t->nv, 1, 0);
+    t->dlin = (const double *)s.data;
     NEED("bounds", DT_F64, 2, 3, 0);
     memcpy(t->lo, s.data, 3 * sizeof(double));
     memcpy(t->hi, s.data + 24, 3 * sizeof(double));
@@ -236,6 +243,8 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
     if (!all_finite(t->P, 3 * (uint64_t)t->nv) || !all_finite(t->frames, 12 * (uint64_t)t->nt) ||
         !all_finite(t->N, 3 * (uint64_t)t->nv) || !all_finite(t->K, 9 * (uint64_t)t->nv) ||
         !all_finite(t->taper, (uint64_t)t->nv) || !all_finite(t->grad, 3 * (uint64_t)t->nv) ||
+        !all_finite(t->kn, (uint64_t)t->nv) || !all_finite(t->shape, 9 * (uint64_t)t->nv) ||
+        !all_finite(t->dlin, (uint64_t)t->nv) ||
         !all_finite(t->lo, 3) || !all_finite(t->hi, 3) || !all_finite(&t->mean_edge, 1) || !all_finite(&t->diag, 1)) {
         fmt(err, errlen, "corrupt runtime table: a non-finite number", NULL, 0, 0);
         goto bad;
@@ -243,6 +252,11 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
     for (int64_t v = 0; v < t->nv; v++) {
         if (t->taper[v] < 0.0 || t->taper[v] > 1.0) {
             fmt(err, errlen, "corrupt runtime table: taper outside [0, 1] at vertex %s%lld", NULL, (long long)v, 0);
+            goto bad;
+        }
+        if (t->kn[v] < 0.0 || !(t->dlin[v] > 0.0)) {
+            fmt(err, errlen, "corrupt runtime table: a negative normal stiffness or a linear depth that is not "
+                "positive (vertex %s%lld)", NULL, (long long)v, 0);
             goto bad;
         }
         if (!spd3(t->K + 9 * v)) {

@@ -266,11 +266,30 @@ int pm__prepare(pm_servo *S, cstate *st, const double *sample, double *p)
     return 1;
 }
 
-/* the proxy's move this tick: towards this tick's projection, at most proxy_speed |Δp| (tracking.follow) */
+/* the proxy's move this tick (tracking.follow): towards this tick's projection, at most proxy_speed |Δp|;
+ * deeper than half the radius of curvature by dead reckoning, (I − δ_f S)⁻¹ P Δp */
 int pm__follow(pm_servo *S, cstate *st)
 {
     if (!st->has_target) return 0;
+    const pm_table *tb = S->tab;
     double x[3];
-    pm__point_at(S->tab, st->target_t, st->target_b, x);
+    if (st->depth > 0.0) {
+        double N[3], K[9], lam, k, gr[3], Sm[9], dlin, St[9];
+        if (pm__normal_at(tb, st->tri, st->b, N)) return -1;
+        pm__at(tb, st->tri, st->b, K, &lam, &k, gr, Sm, &dlin);
+        pm__tangent_part(N, Sm, St);
+        double d = pm__tracking_depth(St, st->depth);
+        if (d < st->depth) {
+            double A[9], v[3];
+            const double mx = st->move[0], my = st->move[1], mz = st->move[2];
+            double mn = N[0] * mx + N[1] * my + N[2] * mz;
+            pm__speed_up(St, d, A);
+            pm__mul3(A, mx - mn * N[0], my - mn * N[1], mz - mn * N[2], v);
+            pm__point_at(tb, st->tri, st->b, x);
+            double tg[3] = {x[0] + v[0], x[1] + v[1], x[2] + v[2]};
+            return pm__move_proxy(S, st, tg, sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]));
+        }
+    }
+    pm__point_at(tb, st->target_t, st->target_b, x);
     return pm__move_proxy(S, st, x, S->o.proxy_speed * pm__norm3(st->move));
 }

@@ -1,0 +1,67 @@
+"""3x3 algebra on plain floats for the per-tick code (9 floats row-major), in the fixed order of operations
+the native core (``core/pm_internal.h``) repeats."""
+from __future__ import annotations
+
+import math
+
+
+def inverse3(K):
+    """Inverse of a 3x3 matrix by cofactors; a singular one gives zeros."""
+    a, b, c, d, e, f, g, h, i = K
+    A, B, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B + c * C
+    if det == 0.0 or not math.isfinite(det):
+        return [0.0] * 9
+    r = 1.0 / det
+    return [A * r, -(b * i - c * h) * r, (b * f - c * e) * r,
+            B * r, (a * i - c * g) * r, -(a * f - c * d) * r,
+            C * r, -(a * h - b * g) * r, (a * e - b * d) * r]
+
+
+def mul3(M, x, y, z):
+    """M (x, y, z)."""
+    return (M[0] * x + M[1] * y + M[2] * z, M[3] * x + M[4] * y + M[5] * z, M[6] * x + M[7] * y + M[8] * z)
+
+
+def normal_compliance(Nx, Ny, Nz, Ki):
+    """Nᵀ K⁻¹ N: the compliance along N with the tangential directions free (1/k_n)."""
+    return (Nx * (Ki[0] * Nx + Ki[1] * Ny + Ki[2] * Nz) + Ny * (Ki[3] * Nx + Ki[4] * Ny + Ki[5] * Nz)
+            + Nz * (Ki[6] * Nx + Ki[7] * Ny + Ki[8] * Nz))
+
+
+def tangent_part(Nx, Ny, Nz, S):
+    """P S P with P = I − N Nᵀ, for a symmetric S: S's action on the tangent plane."""
+    vx, vy, vz = mul3(S, Nx, Ny, Nz)
+    s = Nx * vx + Ny * vy + Nz * vz
+    N = (Nx, Ny, Nz)
+    v = (vx, vy, vz)
+    return [S[3 * i + j] - N[i] * v[j] - v[i] * N[j] + s * N[i] * N[j] for i in range(3) for j in range(3)]
+
+
+def speed_up(S, d):
+    """(I − d S)⁻¹: how much faster than a probe d below the surface its projection moves along a surface
+    of shape operator S (on the tangent plane)."""
+    return inverse3([1.0 - d * S[0], -d * S[1], -d * S[2], -d * S[3], 1.0 - d * S[4], -d * S[5],
+                     -d * S[6], -d * S[7], 1.0 - d * S[8]])
+
+
+def largest_curvature(S):
+    """κ_max of a shape operator on the tangent plane (symmetric, N its null vector): the larger root of
+    κ² − tr S κ + m = 0, m the sum of the principal 2 x 2 minors (the third eigenvalue is zero)."""
+    tr = S[0] + S[4] + S[8]
+    m = S[0] * S[4] - S[1] * S[3] + S[0] * S[8] - S[2] * S[6] + S[4] * S[8] - S[5] * S[7]
+    disc = tr * tr - 4.0 * m
+    return 0.5 * (tr + math.sqrt(disc if disc > 0.0 else 0.0))
+
+
+#: the proxy follows the probe's projection up to this fraction of the radius of curvature (the projection's
+#: focal point is at 1): deeper, by dead reckoning at this depth's speed-up (I − δ S)⁻¹, at most 2
+FOCAL_FRACTION = 0.5
+
+
+def tracking_depth(S, delta):
+    """min(δ, FOCAL_FRACTION / κ_max): the depth whose speed-up (I − δ S)⁻¹ the proxy moves with."""
+    kmax = largest_curvature(S)
+    if kmax * delta > FOCAL_FRACTION:
+        return FOCAL_FRACTION / kmax
+    return delta
