@@ -3,7 +3,9 @@ through pynrrd).
 
 The voxels equal to the label become a closed surface by scikit-image's marching cubes on the padded
 mask, placed in space by the image's own voxel-to-world matrix (spacing, direction and origin; a matrix
-with a negative determinant mirrors the voxels, and the triangles are turned back outwards).  The
+with a negative determinant mirrors the voxels, and the triangles are turned back outwards), in NIfTI's
+right-anterior-superior world: an NRRD's ``space`` (left-posterior-superior as ITK and 3D Slicer write it,
+or RAS, LAS) is converted to it.  The
 staircase of the voxels is smoothed by Taubin's λ|μ filter (trimesh), which does not shrink a surface as
 Laplacian smoothing does; the volume change of the smoothing is measured and reported (more than 1 % is
 refused), and so is the volume against the voxel count.  The surface then takes the ``--surface`` route (checks, debris, gmsh remesh to
@@ -28,6 +30,13 @@ _UNIT_NAMES = {"mm": "mm", "millimeter": "mm", "millimeters": "mm", "m": "m", "m
                "um": "um", "micron": "um", "micrometer": "um", "cm": "cm", "centimeter": "cm"}
 
 
+#: NRRD's anatomical 'space' values (full and abbreviated) to the axis signs that take them to RAS, NIfTI's
+#: world (the kinds without an anatomical frame, scanner-xyz and 3D-right-handed, are taken as they are)
+NRRD_TO_RAS = {"left-posterior-superior": (-1.0, -1.0, 1.0), "lps": (-1.0, -1.0, 1.0),
+               "right-anterior-superior": (1.0, 1.0, 1.0), "ras": (1.0, 1.0, 1.0),
+               "left-anterior-superior": (-1.0, 1.0, 1.0), "las": (-1.0, 1.0, 1.0)}
+
+
 def read_label_image(path: Path):
     """(labels, affine 4x4 voxel index -> world, unit or None) of a NIfTI or NRRD file."""
     name = path.name.lower()
@@ -48,6 +57,11 @@ def read_label_image(path: Path):
             affine = np.eye(4)
             affine[:3, :3] = directions.T  # row k of 'space directions' is the step of index k
             affine[:3, 3] = origin
+            # NRRD's world is the header's 'space' (ITK and 3D Slicer write left-posterior-superior); NIfTI's
+            # affine is right-anterior-superior: the model is placed in RAS, whichever file it came from
+            to_ras = NRRD_TO_RAS.get(str(header.get("space", "")).strip().lower())
+            if to_ras is not None:
+                affine = np.diag([*to_ras, 1.0]) @ affine
             units = header.get("space units")
             unit = _UNIT_NAMES.get(str(units[0]).lower()) if units else None
             return data, affine, unit

@@ -64,17 +64,26 @@ def test_a_labelled_organ_becomes_the_model_with_its_size_place_and_volume(nifti
     assert "remesh" in info
 
 
-def test_nrrd_gives_the_same_surface_as_nifti(nifti, tmp_path):
+@pytest.mark.parametrize("space, signs", [("left-posterior-superior", (-1.0, -1.0, 1.0)),
+                                          ("right-anterior-superior", (1.0, 1.0, 1.0)),
+                                          ("left-anterior-superior", (-1.0, 1.0, 1.0))])
+def test_nrrd_gives_the_same_surface_as_nifti(nifti, tmp_path, space, signs):
+    """The same voxels written as NIfTI (whose affine is RAS) and as NRRD in its own space (the RAS matrix
+    taken into it, as ITK and 3D Slicer write LPS) give the same surface in the same place: the NRRD's
+    'space' is honoured (it was ignored, and an LPS image came out mirrored in x and y, 132 mm off for a
+    liver; this test wrote the RAS matrix under an LPS label and so locked the mirror in)."""
     from pmask.precompute.segmentation import label_surface
 
     data, affine = labels()
+    flip = np.diag(signs)
     path = tmp_path / "body.nrrd"
-    nrrd.write(str(path), data, {"space": "left-posterior-superior", "space directions": affine[:3, :3].T,
-                                 "space origin": affine[:3, 3], "space units": ["mm", "mm", "mm"]})
+    nrrd.write(str(path), data, {"space": space, "space directions": (flip @ affine[:3, :3]).T,
+                                 "space origin": flip @ affine[:3, 3], "space units": ["mm", "mm", "mm"]})
     p1, t1, r1 = label_surface(nifti, 2, None)
     p2, t2, r2 = label_surface(path, 2, None)
     assert np.array_equal(t1, t2) and np.allclose(p1, p2, atol=1e-5)  # NIfTI stores its affine in float32
     assert r1["voxels"] == r2["voxels"] == np.sum(data == 2)
+    assert np.allclose(p2.mean(axis=0), CENTRE, atol=0.6)  # where the organ is, not its mirror image
 
 
 def test_label_image_refusals_are_one_line(nifti, tmp_path, capsys):
