@@ -11,27 +11,21 @@ from __future__ import annotations
 import math
 import numpy as np
 
-from pmask.precompute.meshing import MeshError, edge_defects, pinched_vertices, shells
+from pmask.precompute.meshing import (MeshError, check_face_indices, edge_defects, pinched_vertices, read_mesh_file,
+                                      shells, stl_damage)
 
 
 def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -> dict:
     """Facts about a surface file (in the file's own units)."""
-    import warnings
-
-    import meshio
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            m = meshio.read(path)
-    except Exception as exc:  # meshio raises several types for unreadable files
-        raise MeshError(f"{path}: cannot read this file as a triangle surface ({exc})") from exc
+    m = read_mesh_file(path)
     cells = {c.type: len(c.data) for c in m.cells}
     tris = [c.data for c in m.cells if c.type == "triangle"]
     tris += [c.data[:, [0, 1, 2]] for c in m.cells if c.type == "quad"]
     tris += [c.data[:, [0, 2, 3]] for c in m.cells if c.type == "quad"]
     if len(m.points) == 0 or not tris:
-        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted(cells) or 'none'})")
+        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted(cells) or 'none'}"
+                        f"{stl_damage(path, '; ')})")
+    check_face_indices(tris, len(m.points), path)
     raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3]
     finite = np.all(np.isfinite(raw), axis=1)
     pts, inverse = np.unique(np.where(finite[:, None], raw, np.nan), axis=0, return_inverse=True)

@@ -441,25 +441,17 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     (in metres, after ``scale`` is applied).  Returns (points, tets) of the
     volume inside.
     """
-    import warnings
-
-    import meshio
-
     if not (np.isfinite(edge_length) and edge_length > 0):
         raise MeshError(f"the target edge length must be > 0, got {edge_length}")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # meshio's STL format sniffing overflows harmlessly
-            m = meshio.read(path)
-    except Exception as exc:  # meshio raises several types for unreadable files
-        raise MeshError(f"{path}: cannot read this file as a triangle surface ({exc})") from exc
+    m = read_mesh_file(path)
     blocks = [c.data for c in m.cells if c.type == "triangle"]
     # quadrilaterals (OBJ, PLY exports) as two triangles each, instead of dropping them
     blocks += [q[:, [0, 1, 2]] for q in (c.data for c in m.cells if c.type == "quad")]
     blocks += [q[:, [0, 2, 3]] for q in (c.data for c in m.cells if c.type == "quad")]
     if len(m.points) == 0 or not blocks:
-        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted({c.type for c in m.cells}) or 'none'}); "
-                        "give a closed triangle surface (STL, OBJ, PLY, ...)")
+        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted({c.type for c in m.cells}) or 'none'}"
+                        f"{stl_damage(path, '; ')}); give a closed triangle surface (STL, OBJ, PLY, ...)")
+    check_face_indices(blocks, len(m.points), path)
     raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
     check_finite(raw, path)
     check_extent(raw, units_given, path)
@@ -591,6 +583,53 @@ def _remesh(pts, tris, path, edge_length, angle_deg):
             raise MeshError(f"{path}: gmsh could not remesh this surface ({exc}); "
                             "check that it is closed and not self-intersecting") from exc
         return tets_from_gmsh(gmsh)
+
+
+def stl_damage(path, lead: str = "") -> str:
+    """What is wrong with a damaged STL file, from its size and header ("" when nothing is found)."""
+    path = Path(path)
+    if path.suffix.lower() != ".stl" or not path.is_file():
+        return ""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if head[:5].lower() == b"solid" and b"\0" not in head[:80]:
+        return f"{lead}an ASCII STL that ends early or is malformed: re-export it"
+    if size < 84:
+        return f"{lead}an STL of {size} bytes, shorter than a binary STL's 84-byte header: truncated, re-export it"
+    n = int.from_bytes(head[80:84], "little")
+    if 84 + 50 * n != size:
+        return (f"{lead}a binary STL whose header counts {n} triangles ({84 + 50 * n} bytes) in a file of {size} "
+                "bytes: truncated or miscounted, re-export it")
+    return ""
+
+
+def read_mesh_file(path):
+    """meshio.read with one clear line for a file it cannot read (its STL reader prints and exits)."""
+    import contextlib
+    import io
+    import warnings
+
+    import meshio
+
+    try:
+        quiet = io.StringIO()  # meshio's STL reader prints its failure before exiting
+        with warnings.catch_warnings(), contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+            warnings.simplefilter("ignore", RuntimeWarning)  # meshio's STL format sniffing overflows harmlessly
+            return meshio.read(path)
+    except (Exception, SystemExit) as exc:  # meshio raises several types for unreadable files, and SystemExit
+        why = stl_damage(path) or (str(exc) if str(exc) not in ("", "1") else type(exc).__name__)
+        raise MeshError(f"{path}: cannot read this file as a triangle surface ({why})") from None
+
+
+def check_face_indices(blocks, n_points: int, path) -> None:
+    """Every face's vertex index within the file's vertices (an OBJ face naming a missing vertex)."""
+    for b in blocks:
+        b = np.asarray(b)
+        if b.size and (b.min() < 0 or b.max() >= n_points):
+            bad = int(b.max()) if b.max() >= n_points else int(b.min())
+            raise MeshError(f"{path}: a face refers to vertex {bad + 1} (counting from 1), but the file has "
+                            f"{n_points} vertices: the file is damaged or truncated; re-export it")
 
 
 def read_volume(path: Path, *, scale: float = 1.0):

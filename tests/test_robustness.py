@@ -578,3 +578,25 @@ def test_group_selectors_work_from_the_command_line(tmp_path, capsys):
     err = cli_error(capsys, ["precompute", "block", "--volume", str(msh), "--fixed", "group:pedicle",
                              "-o", str(tmp_path / "x.h5")])
     assert "no physical group named 'pedicle'" in err and "support" in err
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("missing.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 9\n",
+     "a face refers to vertex 9 (counting from 1), but the file has 4 vertices"),
+    ("ends.stl", b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n",
+     "an ASCII STL that ends early or is malformed"),
+    ("short.stl", bytes(80) + (5).to_bytes(4, "little") + bytes(100),
+     "header counts 5 triangles (334 bytes) in a file of 184 bytes"),
+])
+def test_damaged_surface_files_are_one_line_naming_the_damage(tmp_path, capsys, name, content, message):
+    """The scans issue's input errors: an OBJ face naming a missing vertex was a traceback (exit 3; `inspect`
+    too), a truncated or miscounted STL read as an encoding error (meshio's STL reader prints and exits).
+    Both `precompute` and `inspect` now say what is damaged, in one line."""
+    p = tmp_path / name
+    p.write_bytes(content)
+    err = cli_error(capsys, ["precompute", "x", "--surface", str(p), "--edge-length", "0.3", "--units", "mm",
+                             "--fixed", "z<0.1", "-o", str(tmp_path / "x.h5")])
+    assert message in err
+    assert main(["inspect", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
