@@ -12,9 +12,9 @@ exactly k: one compliance D = K̃⁻¹ serves the frictionless, the stuck and th
   sideways by 0.5–0.8 x the normal force through K's normal–tangential coupling and did net work round closed
   loops.
 - **Stuck**: the tool holds the anchor, f_stuck = K̃ ū: the full stiffness, tangential coupling included,
-  while its tangential part |P f_stuck| ≤ μ (−N·f_stuck).
+  while its tangential part ‖P f_stuck‖ ≤ μ (−N·f_stuck).
 - **Sliding**: f = (1 − τ) f_stuck + τ f_free with the smallest τ ∈ (0, 1] that puts f on the friction cone,
-  τ = (|t_0| − μ φ_0) / (|t_0| − μ φ_0 + μ k δ) (φ_0, t_0: f_stuck's normal and tangential parts).  The anchor
+  τ = (‖t_0‖ − μ φ_0) / (‖t_0‖ − μ φ_0 + μ k δ) (φ_0, t_0: f_stuck's normal and tangential parts).  The anchor
   slips by τ s with s = ū − K̃⁻¹ f_free (tangential: the slip that frees the contact), so the force stays the
   stiffness of the surface's own displacement, f = K̃ (ū − τ s).  Every force lies between the frictionless
   and the stuck one; the normal force never depends on a tangential offset in a way that can wedge (a cone
@@ -31,7 +31,7 @@ body: the probe's projection runs off sideways near the surface's focal point (a
 turned 45-65° and fell), and the tangential term ½ δ² ∇k outgrows the normal force (turning the force more
 than 10° off the normal on the flat top).  The first is step 1's (the proxy moves by dead reckoning past half
 the radius of curvature, :func:`pmask.runtime.contact.tracking.follow`); for the second, past the depth
-δ_t = min(δ_lin, k / (8 |∇k|)) (where k changes by an eighth of itself; only inside the full contact
+δ_t = min(δ_lin, k / (8 ‖∇k‖)) (where k changes by an eighth of itself; only inside the full contact
 region, λ = 1) the contact remembers δ* = δ_t and k* = k there, and while δ ≥ δ* its stored energy is
 
     E = k(x) (δ* δ − ½ δ*²) + ½ k* (δ − δ*)²,
@@ -88,12 +88,12 @@ def geometry(c, st, p):
             (p[0] - r * Nx - cx, p[1] - r * Ny - cy, p[2] - r * Nz - cz))
 
 
-#: past δ_t = min(δ_lin, FROZEN_CHANGE k / |∇k|) increments of depth keep the stiffness where they began
+#: past δ_t = min(δ_lin, FROZEN_CHANGE k / ‖∇k‖) increments of depth keep the stiffness where they began
 FROZEN_CHANGE = 0.125
 
 
 def increment_depth(dlin, k, gx, gy, gz):
-    """δ_t = min(δ_lin, FROZEN_CHANGE k / |∇k|): the depth over which k changes by an eighth of itself."""
+    """δ_t = min(δ_lin, FROZEN_CHANGE k / ‖∇k‖): the depth over which k changes by an eighth of itself."""
     gm = math.sqrt(gx * gx + gy * gy + gz * gz)
     if FROZEN_CHANGE * k < dlin * gm:
         return FROZEN_CHANGE * k / gm

@@ -16,7 +16,7 @@ Two things break with depth δ:
   45-65° off the push and fell by a quarter between 9 and 12 mm);
 - *size*: the mask spreads the load over radius r whatever the depth, a tool sunk deeper than its patch is
   wide is not point-like any more; past 1.5 r (on the kidney's flat top, where curvature does not limit)
-  the force's tangential part, ½ δ² |∇k|, turned the force more than 10° off the normal (measured).
+  the force's tangential part, ½ δ² ‖∇k‖, turned the force more than 10° off the normal (measured).
 
 Hence δ_lin = min(0.29 R_min, 1.5 r) per vertex (R_min = 1/κ_max, the largest principal curvature of the
 contact-normal field): the status ``DEEP`` past it (:mod:`pmask.runtime.contact.law`, which also says how the
