@@ -8,7 +8,7 @@ import numpy as np
 
 from pmask.runtime.artifact import (DEFINITION, FORMAT_NAME, FORMAT_VERSION, array_digest, metadata_digest,
                                     update_array_digest)
-from pmask.runtime.files import atomic_write
+from pmask.runtime.files import atomic_write, check_interrupt
 
 
 def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, triangles, areas, regions,
@@ -85,6 +85,7 @@ def _write_blocks(f, name, arr, dtype, block_bytes=8 << 20) -> str:
     row_bytes = max(1, int(np.prod(arr.shape[1:])) * arr.itemsize)
     step = max(chunks[0], (block_bytes // row_bytes) // chunks[0] * chunks[0])
     for i0 in range(0, arr.shape[0], step):
+        check_interrupt()  # Ctrl-C is taken here, between blocks (pmask.runtime.files)
         block = np.ascontiguousarray(arr[i0:i0 + step], dtype)
         ds[i0:i0 + step] = block
         update_array_digest(h, block)

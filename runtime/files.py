@@ -6,12 +6,21 @@ fsynced, then renamed over the final name, which is atomic on POSIX file systems
 file left by a writer that was killed (its process is gone) is removed by the next write to the
 same name.  A write that fails for lack of space or permission raises
 :class:`pmask.errors.OutputError` with one line that says what to change.
+
+Ctrl-C (SIGINT) or SIGTERM during a write is taken at a safe point: the signal only marks the write
+interrupted, the writer checks the mark between blocks (:func:`check_interrupt`) and before the rename, and
+the interrupt then leaves as a ``KeyboardInterrupt`` with the temporary file removed.  (Raised at an
+arbitrary point, h5py's object registry swallowed it inside a weak-reference callback: "Exception ignored in
+WeakValueDictionary", and the run went on to exit 0.)
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import shutil
+import signal
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -40,6 +49,33 @@ def remove_stale_temporaries(path) -> list[Path]:
     return removed
 
 
+_interrupted: list = []  # the signal that arrived during a write, taken at the next check_interrupt()
+
+
+def check_interrupt() -> None:
+    """Raise ``KeyboardInterrupt`` if Ctrl-C or SIGTERM arrived during the current write (a safe point)."""
+    if _interrupted:
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _interrupts_deferred():
+    """SIGINT and SIGTERM mark the write interrupted instead of raising wherever Python happens to be
+    (main thread only: elsewhere signals are not delivered to Python anyway)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _interrupted.clear()
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in old:
+        signal.signal(s, lambda signum, frame: _interrupted.append(signum))
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
 def atomic_write(path, write: Callable[[Path], None], *, suffix: str = "") -> Path:
     """Create ``path`` by ``write(tmp)`` on a temporary file in the same folder, fsync, then rename.
 
@@ -52,15 +88,19 @@ def atomic_write(path, write: Callable[[Path], None], *, suffix: str = "") -> Pa
     remove_stale_temporaries(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{suffix}")
     try:
-        write(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        with _interrupts_deferred():
+            write(tmp)
+            check_interrupt()
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            check_interrupt()
+            os.replace(tmp, path)
     except OSError as exc:
         raise _output_error(path, exc) from exc
     finally:
         if tmp.exists():
             tmp.unlink()
+        _interrupted.clear()
     return path
 
 

@@ -600,3 +600,36 @@ def test_damaged_surface_files_are_one_line_naming_the_damage(tmp_path, capsys, 
     assert main(["inspect", str(p)]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_ctrl_c_during_the_artifact_write_stops_it_and_leaves_nothing(tmp_path):
+    """#28: Ctrl-C while the artifact was written was swallowed by h5py ("Exception ignored in
+    WeakValueDictionary") and the run exited 0.  Now the signal is taken between blocks: the write stops with
+    KeyboardInterrupt (the CLI's "interrupted", exit 130), no artifact and no temporary file are left, and the
+    previous Ctrl-C handler is back."""
+    import os
+    import signal
+
+    from pmask.precompute import writer
+    from pathlib import Path
+
+    from pmask.runtime.files import atomic_write
+
+    before = signal.getsignal(signal.SIGINT)
+    calls = []
+
+    def slow_blocks(tmp):
+        Path(tmp).write_bytes(b"partial")
+        for k in range(5):
+            calls.append(k)
+            if k == 1:
+                os.kill(os.getpid(), signal.SIGINT)  # the user's Ctrl-C, mid-write
+            writer.check_interrupt()
+
+    out = tmp_path / "a.h5"
+    with pytest.raises(KeyboardInterrupt):
+        atomic_write(out, slow_blocks)
+    assert calls == [0, 1] and not out.exists() and not list(tmp_path.glob(".a.h5.tmp-*"))
+    assert signal.getsignal(signal.SIGINT) is before
+    atomic_write(out, lambda tmp: Path(tmp).write_bytes(b"whole"))  # the next write is not interrupted
+    assert out.read_bytes() == b"whole"
