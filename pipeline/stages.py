@@ -320,6 +320,29 @@ def validate(spec: Spec, out: Path) -> None:
 
 
 # ------------------------------------------------------------------------------- stages
+def check_selectors_before_meshing(spec: Spec, points: np.ndarray, triangles: np.ndarray) -> None:
+    """A support or contact selector that matches none (or, for the support, all) of a user's surface is
+    refused before the minutes of meshing (#25): tested on its vertices, edge midpoints and triangle
+    centroids (in the file's units, as the selectors are)."""
+    from pmask.precompute import selectors
+    from pmask.precompute.regions import RegionError
+
+    T = np.asarray(triangles, np.int64)
+    samples = np.vstack([points, points[T].mean(axis=1), 0.5 * (points[T[:, 0]] + points[T[:, 1]]),
+                         0.5 * (points[T[:, 1]] + points[T[:, 2]]), 0.5 * (points[T[:, 2]] + points[T[:, 0]])])
+    for what, sel in (("fixed-region", spec.fixed), ("contact-region", spec.contact)):
+        if not sel or "group:" in sel:
+            continue
+        hit = selectors.select(sel, samples)
+        if not hit.any():
+            lo, hi = np.round(points.min(axis=0), 4).tolist(), np.round(points.max(axis=0), 4).tolist()
+            raise RegionError(f"the {what} selector '{sel}' matches no point of the input surface (its box is "
+                              f"{lo} to {hi} in the file's units); choose a region that touches it")
+        if what == "fixed-region" and hit.all():
+            raise RegionError(f"the fixed-region selector '{sel}' matches the whole input surface, so nothing is "
+                              "free to touch; choose a smaller support region")
+
+
 def mesh_stage(spec: Spec) -> ModelMesh:
     """Stage 1: the volume mesh (metres) and its named groups, from a model or a user's file."""
     from pmask.pipeline.models import get_model
@@ -329,6 +352,7 @@ def mesh_stage(spec: Spec) -> ModelMesh:
         from pmask.precompute.segmentation import label_surface
 
         pts, tris, report = label_surface(Path(spec.segmentation), spec.label, spec.units)
+        check_selectors_before_meshing(spec, pts, tris)
         import meshio
 
         ply = Path(tempfile.mkdtemp(prefix="pmask-label-")) / f"label{spec.label}.ply"  # the --surface route's input
@@ -343,6 +367,13 @@ def mesh_stage(spec: Spec) -> ModelMesh:
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
                          info={"source": Path(spec.segmentation).name, "segmentation": report, "remesh": change})
     if spec.surface:
+        with contextlib.suppress(meshing.MeshError):  # an unreadable file is the remesh's to report
+            m = meshing.read_mesh_file(Path(spec.surface))
+            tris = [c.data[:, :3] for c in m.cells if c.type in ("triangle", "quad")]
+            if tris and len(m.points):
+                tris = np.concatenate(tris)
+                if tris.min() >= 0 and tris.max() < len(m.points):
+                    check_selectors_before_meshing(spec, np.asarray(m.points, float)[:, :3], tris)
         points, tets, change = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
                                                       scale=spec.scale, units_given=spec.units is not None,
                                                       timeout=spec.mesh_timeout, repair=spec.repair,

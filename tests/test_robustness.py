@@ -633,3 +633,19 @@ def test_ctrl_c_during_the_artifact_write_stops_it_and_leaves_nothing(tmp_path):
     assert signal.getsignal(signal.SIGINT) is before
     atomic_write(out, lambda tmp: Path(tmp).write_bytes(b"whole"))  # the next write is not interrupted
     assert out.read_bytes() == b"whole"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--fixed", "z<-100"], "fixed-region selector 'z<-100' matches no point of the input surface"),
+    (["--fixed", "z<100"], "matches the whole input surface"),
+    (["--fixed", "z<-15", "--contact", "sphere:100,0,0,5"], "contact-region selector 'sphere:100,0,0,5' matches no"),
+])
+def test_selectors_that_match_nothing_are_refused_before_meshing(tmp_path, capsys, sphere, argv, message):
+    """#25: a selector that matched nothing or everything was found only after meshing (minutes for a scan);
+    now before, in one line, from the input surface itself (and the refusal comes before gmsh starts: the run
+    takes well under the mesher's time, which the test checks by the absence of any remesh report)."""
+    path = write_stl(tmp_path / "s.stl", *sphere)
+    err = cli_error(capsys, ["precompute", "s", "--surface", path, "--units", "mm", "--edge-length", "4", *argv,
+                             "-o", str(tmp_path / "x.h5")])
+    assert message in err
+    assert not (tmp_path / "x.h5").exists()
