@@ -429,6 +429,7 @@ def main(argv=None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if not args.verbose:
         logging.getLogger("skfem").setLevel(logging.WARNING)
+    previous = _sigterm_as_interrupt()
     try:
         return args.func(args)
     except PmaskError as exc:
@@ -447,3 +448,23 @@ def main(argv=None) -> int:
         print(f"pmask: internal error: this is a bug in pmask, not in your input; please report it with the "
               f"command line above and `{version_line()}`", file=sys.stderr)
         return 3
+    finally:
+        if previous is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _sigterm_as_interrupt():
+    """SIGTERM (a scheduler's or a supervisor's stop) ends a command as Ctrl-C does: the cleanup runs (the
+    gmsh worker is killed, temporary folders go, finished stages are kept) instead of the process vanishing
+    mid-way.  Returns the previous handler (None off the main thread)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+    return signal.signal(signal.SIGTERM, stop)

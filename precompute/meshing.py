@@ -272,9 +272,20 @@ def _worker(argv) -> int:
     import signal
     import traceback
 
+    import os
+    import threading
+    import time
+
     job, out = json.loads(argv[0]), argv[1]
     if hasattr(signal, "SIGALRM"):  # if the parent is killed outright, do not outlive its time limit
         signal.alarm(int(job.get("timeout", 600)) + 30)
+    parent = os.getppid()
+
+    def orphaned():  # nor the parent by more than a second (a SIGKILL leaves no one to stop us)
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+    threading.Thread(target=orphaned, daemon=True).start()
     warned = []  # this process's warnings, re-logged by the parent (the user's console is the parent's)
     handler = logging.Handler(logging.WARNING)
     handler.emit = lambda record: warned.append(record.getMessage())

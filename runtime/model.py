@@ -129,8 +129,11 @@ class Model:
         try:
             check_positive_definite(K, self.contact[m.centres])
         except StiffnessError:
-            if mask == "single":
-                raise
+            if mask == "single":  # with P2 a vertex's point load is not the adjoint of its point value: the
+                # block need not be positive definite on a coarse mesh, and nothing is corrupt
+                check_positive_definite(K, self.contact[m.centres], cause=(
+                    f"a point load observed at its own vertex on a mesh this coarse ({len(self.points)} surface "
+                    f"vertices, mean edge {self.mean_edge_length:.3g}): use a mask (e.g. 'linear') or a finer mesh"))
             # the point-force blocks Ξ_ii / a_i of an elastic body are positive definite: if they are, the
             # mask is to blame (spread over it, the traction can move the centre against the force on a
             # coarse or small body), not the Green's functions
