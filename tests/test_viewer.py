@@ -177,6 +177,58 @@ def test_the_force_the_page_shows_is_the_runtimes_for_that_probe(browser, server
     assert np.allclose(f_page, f_ref[0], rtol=1e-5, atol=1e-5 * np.linalg.norm(f_ref[0]))
 
 
+def test_after_a_release_the_surface_springs_back(browser, server, session):
+    """#28: after a release the surface often stayed deformed: the page asked for the deformation once, and
+    the reply raced the servo's release.  It now asks until the servo reports the surface flat: pressed, the
+    shown surface is displaced; released, it returns to the rest shape within a second."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    url, _ = server
+    _open(browser, url)
+    m = session.model
+    (v,) = _screen_vertices(browser, m, 1, 0.0)
+    _drag(browser, browser.execute_script(f"return window.pmaskView.screenOf({v})"), slide=(0, 0))
+    try:
+        pressed = 0.0
+        for _ in range(60):
+            pressed = max(pressed, browser.execute_script("return window.pmaskView.displacement()"))
+            time.sleep(0.05)
+    finally:
+        ActionChains(browser).release().perform()
+    assert pressed > 0.1 * m.mean_edge_length
+    for _ in range(40):
+        time.sleep(0.05)
+        if browser.execute_script("return window.pmaskView.displacement()") == 0.0:
+            break
+    assert browser.execute_script("return window.pmaskView.displacement()") == 0.0
+
+
+def test_a_stopped_server_is_shown_and_not_hammered(browser, kidney_small):
+    """#28: when the server stopped, the page kept showing the last force and retried every frame (66
+    console errors in a few seconds).  Now it shows NO SERVER and no force, and backs off (100 ms doubling to
+    2 s): at most a dozen attempts in 4 s.  (The server is `pmask view` in its own process, killed as a
+    user's Ctrl-C or a crash ends it: its connections die with it.)"""
+    p = subprocess.Popen(_pmask("view", str(kidney_small), "--port", "0"), stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        url = [p.stdout.readline() for _ in range(3)][2].split()[1]
+        _open(browser, url)
+        time.sleep(0.5)
+        p.kill()
+        p.communicate(timeout=30)
+        time.sleep(0.5)
+        before = browser.execute_script("return window.pmaskView.stats.failures")
+        time.sleep(4.0)
+        failures = browser.execute_script("return window.pmaskView.stats.failures") - before
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert 1 <= failures <= 12, failures
+    assert browser.find_element("id", "status0").text == "NO SERVER"
+    assert browser.find_element("id", "force0").text == "—"
+    assert "retrying" in browser.find_element("id", "error").text
+
+
 def test_two_probes_are_coupled_through_the_body(browser, server, session):
     """Shift-drag leaves a second probe on the body; dragging the first next to it, both forces shown are
     the runtime's coupled two-contact solve for the two probe positions, and they differ from what two

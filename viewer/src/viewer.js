@@ -199,8 +199,10 @@ async function main() {
   }
 
   // ---------------------------------------------------------------- server round trips
-  let inflight = false, wasDeformed = false;
-  const stats = { fps: 0, ups: 0, rtt: 0, frames: 0, updates: 0, t0: performance.now(), history: [] };
+  // wasDeformed: the last reply's surface was displaced, so the page keeps asking for the deformation after a
+  // release until the servo reports it flat (one request raced the servo's release and left it dented)
+  let inflight = false, wasDeformed = false, retryAt = 0, backoff = 0;
+  const stats = { fps: 0, ups: 0, rtt: 0, frames: 0, updates: 0, failures: 0, t0: performance.now(), history: [] };
   const disp = geom.attributes.position.array;
   function applyReply(reply) {
     reply.contacts.forEach((c, k) => {
@@ -229,6 +231,7 @@ async function main() {
     const s = reply.servo;
     $('step').textContent = `${s.engine} thread at ${s.rate} Hz · step max ${fmt(s.step_max * 1e6, 3)} µs · `
       + `late ${s.late} of ${s.ticks} ticks`;
+    let umax = 0;
     if (reply.deformation) {
       const bytes = Uint8Array.from(atob(reply.deformation), (ch) => ch.charCodeAt(0));
       const u = new Float32Array(bytes.buffer);
@@ -236,9 +239,21 @@ async function main() {
       for (let i = 0; i < 3 * n; i++) disp[i] = base[i] + e * u[i];
       geom.attributes.position.needsUpdate = true;
       geom.computeVertexNormals();
-      let umax = 0;
       for (let i = 0; i < n; i++) umax = Math.max(umax, Math.hypot(u[3 * i], u[3 * i + 1], u[3 * i + 2]));
       $('umax').textContent = `${fmt(umax * mm, 3)} ${lenUnit}`;
+    }
+    return umax;
+  }
+  function serverLost(message) {   // no stale force on show, and no request every frame to a stopped server
+    stats.failures++;
+    backoff = Math.min(2000, backoff ? 2 * backoff : 100);
+    retryAt = performance.now() + backoff;
+    $('error').textContent = `server: ${message} (retrying every ${(backoff / 1000).toFixed(1)} s)`;
+    for (let k = 0; k < markers.length; k++) {
+      $(`status${k}`).textContent = 'NO SERVER';
+      $(`force${k}`).textContent = '—';
+      $(`force${k}`).dataset.force = '';
+      markers[k].arrow.visible = false;
     }
   }
   async function update(now) {
@@ -248,12 +263,13 @@ async function main() {
     const deform = Number(exaggeration.value) > 0 && (touching || wasDeformed);
     const t0 = performance.now();
     try {
-      applyReply(await api('/api/probe', { probes, deform }));
+      const umax = applyReply(await api('/api/probe', { probes, deform }));
       stats.updates++;
       stats.rtt = performance.now() - t0;
-      wasDeformed = touching;
+      wasDeformed = deform && umax > 0;
+      backoff = 0;
       $('error').textContent = '';
-    } catch (e) { $('error').textContent = `server: ${e.message}`; }
+    } catch (e) { serverLost(e.message); }
     inflight = false;
   }
 
@@ -265,7 +281,7 @@ async function main() {
   });
   function frame(now) {
     requestAnimationFrame(frame);
-    if (!inflight) update(now);
+    if (!inflight && performance.now() >= retryAt) update(now);
     controls.update();
     renderer.render(scene, camera);
     stats.frames++;
@@ -293,6 +309,12 @@ async function main() {
       raycaster.set(camera.position, p.clone().sub(camera.position).normalize());
       const hits = raycaster.intersectObject(pickMesh, false);
       return hits.length > 0 && hits[0].point.distanceTo(p) < 0.5 * model.mean_edge;
+    },
+    displacement() {   // the largest displacement shown (before exaggeration), for a scripted release
+      let d = 0;
+      for (let i = 0; i < n; i++) d = Math.max(d, Math.hypot(disp[3 * i] - base[3 * i], disp[3 * i + 1] - base[3 * i + 1],
+        disp[3 * i + 2] - base[3 * i + 2]));
+      return d;
     },
     stats,
     ready: true,
