@@ -11,7 +11,7 @@ API (every answer is JSON; an error is ``{"error": "one line saying what to fix"
     sets the servo thread's probes (null: lifted) and returns each contact's force on the hand [N], status,
     penetration depth, proxy point and ‖K(x)‖ at the proxy, the servo's timing, and with ``deform`` the
     surface displacement (eq. 16, float32, base64) that meets every contact.
-``POST /api/radius`` ``{"radius": r}``
+``POST /api/radius`` ``{"radius": r}`` (the reply also counts the masks that reach no neighbour)
     rebuilds the K_i for a new mask radius (0 < r ≤ r_max) and restarts the servo on them.
 
 The request handling (:meth:`ViewerSession.respond`) is a plain function of (method, path, body), which
@@ -210,7 +210,9 @@ class ViewerSession:
                     self._build(float(r))
                 except PmaskError as exc:  # e.g. a mask too large for the body: the old radius stays
                     raise BadRequest(str(exc)) from None
-            return _json(200, {"radius": self.radius, "masked": self.fields["masked"].tolist()})
+            masks = self.stiffness.masks
+            return _json(200, {"radius": self.radius, "masked": self.fields["masked"].tolist(),
+                               "single_vertex": int(masks.single_vertex), "masks": int(len(masks.centres))})
         if path in FILES or path.startswith("/api/"):
             return _json(405, {"error": f"{method[:20]!r} is not allowed on {path[:200]!r}"})
         return _json(404, {"error": f"no such page: {path[:200]!r}"})

@@ -90,19 +90,29 @@ async function main() {
   const contactIdx = [];
   fields.contact.forEach((c, i) => { if (c > 0) contactIdx.push(i); });
   const FIELD_INFO = {
-    masked: ['‖K_i‖₂ with the mask [N/m] (range over the contact region; the support is clamped)', 'N/m'],
-    single: ['‖K_i‖₂ single vertex [N/m] (range over the contact region; the support is clamped)', 'N/m'],
+    masked: ['‖K_i‖₂ with the mask [N/m] (2nd to 98th percentile of the contact region, beyond clamped)', 'N/m'],
+    single: ['‖K_i‖₂ single vertex [N/m] (2nd to 98th percentile of the contact region, beyond clamped)', 'N/m'],
     area: [`vertex area [${lenUnit}²]`, `${lenUnit}²`],
     fixed: ['fixed region (yellow)', ''],
     contact: ['contact region (yellow)', ''],
   };
+  function percentile(sorted, q) {   // numpy's default (linear between the closest ranks)
+    const x = (q / 100) * (sorted.length - 1), i = Math.floor(x), f = x - i;
+    return i + 1 < sorted.length ? sorted[i] + f * (sorted[i + 1] - sorted[i]) : sorted[i];
+  }
   function recolour() {
     const name = $('field').value;
     const v = fields[name];
     const scale = name === 'area' ? mm * mm : 1;
     let lo = Infinity, hi = -Infinity;
     const over = (name === 'masked' || name === 'single') && contactIdx.length ? contactIdx : v.map((_, i) => i);
-    for (const i of over) { lo = Math.min(lo, v[i]); hi = Math.max(hi, v[i]); }
+    if (name === 'masked' || name === 'single') {
+      // a robust range: the few stiff vertices by the support would leave the rest of the organ one colour
+      const sorted = over.map((i) => v[i]).sort((a, b) => a - b);
+      lo = percentile(sorted, 2); hi = percentile(sorted, 98);
+    } else {
+      for (const i of over) { lo = Math.min(lo, v[i]); hi = Math.max(hi, v[i]); }
+    }
     if (name === 'fixed' || name === 'contact') { lo = 0; hi = 1; }
     const col = geom.attributes.color.array;
     for (let i = 0; i < n; i++) {
@@ -135,7 +145,9 @@ async function main() {
       fields.masked = r.masked;
       radius.value = r.radius;
       recolour();
-      $('error').textContent = '';
+      $('error').textContent = r.single_vertex > 0
+        ? `at this radius ${r.single_vertex} of ${r.masks} masks reach no neighbour and fall back to the `
+          + 'single-vertex stiffness (which softens with refinement): use at least one mean edge length' : '';
     } catch (e) { $('error').textContent = `radius: ${e.message}`; }
     radius.disabled = false;
     radius.dataset.applied = radius.value;
