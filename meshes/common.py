@@ -16,6 +16,8 @@ class ModelMesh:
     contact : selector string for the region a probe can touch, or None for every free vertex.
     material : default Young's modulus ``E`` [Pa] and Poisson ratio ``nu``.
     groups : named boolean point masks (gmsh physical groups) usable as ``group:NAME``.
+    regions : named boolean masks over the tetrahedra (physical volumes, an inclusion): where
+        ``--materials`` (or ``material["regions"]``) puts other materials.
     info : facts about the model worth keeping in the artifact (JSON-serialisable).
     """
 
@@ -25,6 +27,7 @@ class ModelMesh:
     contact: str | None = None
     material: dict = field(default_factory=lambda: {"E": 1.0e4, "nu": 0.45})
     groups: dict = field(default_factory=dict)
+    regions: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)
 
 
@@ -37,7 +40,8 @@ def save_model_mesh(path, model: ModelMesh) -> None:
     meta = {"fixed": model.fixed, "contact": model.contact, "material": model.material, "info": model.info}
     atomic_write(path, lambda tmp: np.savez_compressed(
         tmp, points=model.points, tets=model.tets.astype(np.int32), meta=json.dumps(meta),
-        **{f"group_{k}": np.asarray(v, bool) for k, v in model.groups.items()}), suffix=".npz")
+        **{f"group_{k}": np.asarray(v, bool) for k, v in model.groups.items()},
+        **{f"region_{k}": np.asarray(v, bool) for k, v in model.regions.items()}), suffix=".npz")
 
 
 def load_model_mesh(path) -> ModelMesh:
@@ -47,4 +51,6 @@ def load_model_mesh(path) -> ModelMesh:
     with np.load(path) as ck:
         meta = json.loads(str(ck["meta"]))
         groups = {k[6:]: ck[k] for k in ck.files if k.startswith("group_")}
-        return ModelMesh(points=ck["points"], tets=ck["tets"].astype(np.int64), groups=groups, **meta)
+        regions = {k[7:]: ck[k] for k in ck.files if k.startswith("region_")}
+        return ModelMesh(points=ck["points"], tets=ck["tets"].astype(np.int64), groups=groups, regions=regions,
+                         **meta)

@@ -67,6 +67,9 @@ def add_precompute(sub) -> None:
     p.add_argument("--r-max", type=float, help="largest mask radius the runtime may use (input units)")
     p.add_argument("-E", "--youngs-modulus", dest="E", type=float, help="Young's modulus [Pa]")
     p.add_argument("--nu", type=float, help="Poisson's ratio, in (-1, 0.5)")
+    p.add_argument("--materials", help="materials by region, NAME:E:nu,... (NAME a physical volume of a --volume mesh "
+                                       "or a model's region, e.g. the palpation model's 'inclusion'); the rest of "
+                                       "the body keeps -E/--nu"),
     p.add_argument("--units", default=None, help="length unit of the input geometry: m, cm, mm, um (default m; a file "
                                                  "more than 2 m across is then refused as probably in mm)")
     p.add_argument("--mesh-timeout", type=float, default=600.0,
@@ -116,7 +119,7 @@ def cmd_precompute(args) -> int:
     if args.size is not None:
         params["size"] = args.size
     spec = Spec(model=label, params=params, surface=args.surface, volume=args.volume, fixed=args.fixed,
-                contact=args.contact, E=args.E, nu=args.nu, r_max=args.r_max,
+                contact=args.contact, E=args.E, nu=args.nu, materials=args.materials, r_max=args.r_max,
                 units=args.units.lower().replace("µ", "u") if args.units else None,
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
                 element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,

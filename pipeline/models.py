@@ -3,13 +3,15 @@ from __future__ import annotations
 
 from functools import partial
 
-from pmask.meshes import halfspace, kidney, loop
+from pmask.meshes import halfspace, kidney, loop, palpation
 
 from pmask.errors import InputError
 
 #: name -> (builder, one-line description)
 MODELS = {
     "kidney": (kidney.build, "kidney-shaped solid, 11 x 6 x 4 cm, fixed at the hilum (~1,500 free vertices)"),
+    "palpation": (palpation.build, "block of soft tissue with a 10x stiffer ball 10 mm under its upper face (materials "
+                                   "by region)"),
     "halfspace": (halfspace.build, "hemisphere standing in for a half-space, graded mesh at the load point"),
     **{f"loop{k}": (partial(loop.build, level=k),
                     f"Figure 5 ellipsoid, Loop level {k} ({[34, 130, 514, 2050][k]} surface vertices)")

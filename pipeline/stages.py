@@ -90,6 +90,7 @@ class Spec:
     contact: str | None = None
     E: float | None = None
     nu: float | None = None
+    materials: str | None = None
     units: str | None = None
     r_max: float | None = None
     edge_length: float | None = None
@@ -205,7 +206,8 @@ def stage_keys(spec: Spec) -> dict:
     mesh = _digest({k: d[k] for k in geometry}
                    | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
     factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")}
-                     | ({"solver": d["solver"]} if d["solver"] != "factor" else {}))
+                     | ({"solver": d["solver"]} if d["solver"] != "factor" else {})
+                     | ({"materials": d["materials"]} if d.get("materials") else {}))
     artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION}
                        | ({"compress": d["compress"]} if d["compress"] else {}))
     return {"mesh": mesh, "factor": factor, "artifact": artifact}
@@ -307,6 +309,10 @@ def validate(spec: Spec, out: Path) -> None:
     for sel in (spec.fixed, spec.contact):
         if sel is not None:
             selectors.parse(sel)
+    if spec.materials:  # the text's syntax and each material before any meshing (the names against the mesh later)
+        from pmask.precompute.materials import parse_materials
+
+        parse_materials(spec.materials)
     out = Path(out)
     if out.is_dir():
         raise OutputError(f"--out {out} is a folder; give the artifact's file name, e.g. {out / spec.model}.h5")
@@ -383,9 +389,9 @@ def mesh_stage(spec: Spec) -> ModelMesh:
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
         return load_model_mesh(spec.volume)
     if spec.volume:
-        points, tets, groups = meshing.read_volume(Path(spec.volume), scale=spec.scale)
+        points, tets, groups, regions = meshing.read_volume(Path(spec.volume), scale=spec.scale, with_regions=True)
         meshing.check_extent(points, spec.units is not None, spec.volume)
-        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", groups=groups,
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", groups=groups, regions=regions,
                          info={"source": Path(spec.volume).name})
     return get_model(spec.model)(**spec.params)
 
@@ -482,11 +488,39 @@ def material(spec: Spec, mesh: ModelMesh) -> tuple[float, float]:
     return float(E), float(nu)
 
 
+def element_materials(spec: Spec, mesh: ModelMesh):
+    """Materials by region (:mod:`pmask.precompute.materials`): (E, nu, region label, report) per tetrahedron
+    from ``--materials`` or the model's ``material["regions"]``, or None for one material."""
+    from pmask.precompute import materials
+
+    assigned = materials.parse_materials(spec.materials) if spec.materials else {
+        k: tuple(v) for k, v in mesh.material.get("regions", {}).items()}
+    if not assigned:
+        return None
+    base = (spec.E if spec.E is not None else mesh.material["E"], spec.nu if spec.nu is not None else mesh.material["nu"])
+    return materials.per_element(mesh.regions, len(mesh.tets), base, assigned)
+
+
+def _region_report(regions, mesh: ModelMesh) -> dict:
+    """What the artifact records of materials by region: each region's material, tetrahedra and volume, and
+    every tetrahedron's region (-1: the body's material)."""
+    from pmask.precompute.meshing import signed_volumes
+
+    _, _, label, report = regions
+    vol = np.abs(signed_volumes(mesh.points, mesh.tets))
+    for k, r in enumerate(report):
+        r["volume_m3"] = float(vol[label == k].sum())
+    return {"regions": report, "label": label}
+
+
 def element_name(spec: Spec, mesh: ModelMesh) -> str:
     """The element this run uses: ``spec.element``, or for ``auto`` the one the material asks for."""
     from pmask.precompute.elements import element_name as resolve
 
     nu = spec.nu if spec.nu is not None else mesh.material["nu"]
+    regions = element_materials(spec, mesh) if (spec.materials or mesh.material.get("regions")) else None
+    if regions is not None:  # the element for the most nearly incompressible region
+        nu = max(float(nu), float(regions[1].max()))
     return resolve(spec.element, float(nu))
 
 
@@ -533,6 +567,9 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
 
     element = elements.get_element(element_name(spec, mesh))
     E, nu = material(spec, mesh)
+    regions = element_materials(spec, mesh)
+    if regions is not None:  # a material per tetrahedron (materials by region)
+        E, nu = regions[0], regions[1]
     t0 = time.perf_counter()
     d = element.discretise(mesh.points, mesh.tets)
     K = element.stiffness(d, E, nu)
@@ -587,8 +624,10 @@ def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, react
     from pmask.precompute.writer import write_artifact
 
     E, nu = material(spec, mesh)
+    regions = element_materials(spec, mesh)
     meta = {
         "model": spec.model, "input_hash": keys["artifact"], "E": E, "nu": nu, "r_max": surf.r_max,
+        "materials": None if regions is None else _region_report(regions, mesh),
         "tolerance": spec.compress,
         "fixed_selector": surf.fixed_selector, "contact_selector": surf.contact_selector, "element": element_name(spec, mesh),
         "parameters": {**asdict(spec), "model_info": mesh.info},

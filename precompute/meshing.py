@@ -643,11 +643,12 @@ def check_face_indices(blocks, n_points: int, path) -> None:
                             f"{n_points} vertices: the file is damaged or truncated; re-export it")
 
 
-def read_volume(path: Path, *, scale: float = 1.0):
+def read_volume(path: Path, *, scale: float = 1.0, with_regions: bool = False):
     """Read a tetrahedral mesh (.msh, .vtu, ...) with meshio.
 
     Returns (points, tets, groups) where ``groups`` maps a physical group name
-    to the boolean mask of the points its elements touch.
+    to the boolean mask of the points its elements touch; ``with_regions`` adds
+    the physical volumes as boolean masks over the tetrahedra.
     """
     import meshio
 
@@ -671,17 +672,26 @@ def read_volume(path: Path, *, scale: float = 1.0):
         raise MeshError(f"{path}: {n_neg} of {len(vol)} tetrahedra are inverted (opposite orientation to the rest); "
                         "repair the mesh (e.g. re-export it from the mesher)")
     groups: dict[str, np.ndarray] = {}
+    regions: dict[str, np.ndarray] = {}  # physical volumes: masks over the tetrahedra (materials by region)
+    offsets = np.cumsum([0] + [len(c.data) if c.type == "tetra" else 0 for c in m.cells])
     for name, sets in (m.cell_sets or {}).items():
         if name.startswith("gmsh:"):
             continue
         mask = np.zeros(len(points), bool)
-        for cells, ids in zip(m.cells, sets):
+        tmask = np.zeros(len(tets), bool)
+        for k, (cells, ids) in enumerate(zip(m.cells, sets)):
             if ids is not None and len(ids):
                 mask[np.asarray(cells.data)[ids].ravel()] = True
+                if cells.type == "tetra":
+                    tmask[offsets[k] + np.asarray(ids, np.int64)] = True
         groups[name] = mask
+        if tmask.any():
+            regions[name] = tmask
     points, tets, used = compact(points, tets)
     groups = {k: v[used] for k, v in groups.items()}
     check_volume_quality(points, tets, path)
+    if with_regions:
+        return points, tets, groups, regions
     return points, tets, groups
 
 

@@ -33,7 +33,8 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         "element": meta.get("element", "P1"),
         "units": json.dumps({"length": "m", "force": "N", "pressure": "Pa", "Xi": "m/Pa",
                              "reactions": "N/Pa", "vertex_areas": "m^2"}),
-        "material": json.dumps({"E": meta["E"], "nu": meta["nu"], "model": "isotropic linear elastic"}),
+        "material": json.dumps({"E": meta["E"], "nu": meta["nu"], "model": "isotropic linear elastic",
+                                **({"regions": meta["materials"]["regions"]} if meta.get("materials") else {})}),
         "r_max": float(meta["r_max"]),
         "fixed_selector": meta["fixed_selector"],
         "contact_selector": meta["contact_selector"],
@@ -43,6 +44,8 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         "timings": json.dumps(meta["timings"], sort_keys=True),
     }
     big = {"volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
+    if meta.get("materials"):  # materials by region: each tetrahedron's region in material["regions"], -1 the body
+        big["volume/material_region"] = (meta["materials"]["label"], np.int64)
     if isinstance(Xi, dict):  # compressed (pmask.precompute.compress): its arrays, values in ``dtype``
         attrs.update({"greens_form": "hmatrix", "tolerance": float(meta["tolerance"])})
         for k, arr in Xi.items():

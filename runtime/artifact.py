@@ -63,6 +63,8 @@ RUNTIME = SURFACE + ("greens/Xi",)
 HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V"))
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
+#: materials by region (optional): each tetrahedron's index into attrs material["regions"], -1 the body's
+MATERIALS = ("volume/material_region",)
 JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings", "sha256_covers")
 #: format 1.0: the digest covered every attribute and these datasets
 LEGACY_SMALL = SURFACE
@@ -127,7 +129,7 @@ def _major_minor(version: str) -> tuple[int, int]:
         return -1, -1
 
 
-def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS, verify: bool = True) -> dict:
+def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, verify: bool = True) -> dict:
     """Read and check an artifact; return the requested datasets and the decoded attributes.
 
     ``datasets``: the names to read (default: everything this reader knows; the runtime asks for
@@ -156,7 +158,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS, verify: bool =
             if attrs.get("greens_form") == "hmatrix" and "greens/Xi" in datasets:  # Ξ in compressed form
                 datasets = [d for d in datasets if d != "greens/Xi"] + list(HMATRIX)
             wanted = list(datasets) + ([d for d in LEGACY_SMALL if d not in datasets] if legacy and verify else [])
-            missing = [d for d in wanted if d not in f and d not in REACTIONS]
+            missing = [d for d in wanted if d not in f and d not in REACTIONS + MATERIALS]
             if missing:
                 raise ArtifactError(f"{path}: incomplete artifact, missing {', '.join(missing)}")
             data = {d: (f[d][()] if d in f else None) for d in wanted}

@@ -77,33 +77,46 @@ class FullSystem:
         P, T = d["volume/points"], d["volume/tets"]
         vi, fixed, tris = d["surface/volume_index"], d["surface/fixed"], d["surface/triangles"]
         self.vi, self.areas, self.fixed_volume = vi, d["surface/vertex_areas"], vi[fixed]
-        E, nu = d["attrs"]["material"]["E"], d["attrs"]["material"]["nu"]
+        material = d["attrs"]["material"]
+        E, nu = material["E"], material["nu"]
+        if material.get("regions"):  # materials by region: each tetrahedron's from the artifact's own record
+            label = np.asarray(d["volume/material_region"])
+            E = np.where(label >= 0, np.array([r["E"] for r in material["regions"]] + [E])[label], E)
+            nu = np.where(label >= 0, np.array([r["nu"] for r in material["regions"]] + [nu])[label], nu)
         N = len(P)
         mesh = MeshTet(np.ascontiguousarray(P.T), np.ascontiguousarray(T.T))
+        lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+
+        @BilinearForm
+        def dev(u, v, w):
+            return 2.0 * w.mu * ddot(sym_grad(u), sym_grad(v))
+
+        @BilinearForm
+        def vol(u, v, w):
+            return w.lam * div(u) * div(v)
+
+        def per_element(x, basis):  # a scalar, or one value per tetrahedron at each quadrature point
+            return x if np.ndim(x) == 0 else np.repeat(np.asarray(x, float)[:, None], basis.X.shape[1], axis=1)
+
         if self.element == "P1":
-            K = stiffness_matrix(P, T, E, nu)
+            if np.ndim(E) == 0:
+                K = stiffness_matrix(P, T, E, nu)
+            else:
+                b1 = Basis(mesh, ElementVector(ElementTetP1()), intorder=1)
+                K = (asm(dev, b1, mu=per_element(mu, b1)) + asm(vol, b1, lam=per_element(lam, b1))).tocsr()
             held = dofs(self.fixed_volume)
             self.B = None
         else:
-            lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
             el = ElementVector(ElementTetP2())
             full, centroid = Basis(mesh, el, intorder=2), Basis(mesh, el, intorder=1)
             assert np.array_equal(full.nodal_dofs, 3 * np.arange(N) + np.arange(3)[:, None])
             assert full.edge_dofs[0, 0] == 3 * N
 
             @BilinearForm
-            def dev(u, v, w):
-                return 2.0 * mu * ddot(sym_grad(u), sym_grad(v))
-
-            @BilinearForm
-            def vol(u, v, w):
-                return lam * div(u) * div(v)
-
-            @BilinearForm
             def mass(u, v, w):
                 return u * v
 
-            K = (asm(dev, full) + asm(vol, centroid)).tocsr()
+            K = (asm(dev, full, mu=per_element(mu, full)) + asm(vol, centroid, lam=per_element(lam, centroid))).tocsr()
             self.B = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4), FacetBasis(mesh, ElementTetP2(), intorder=4))
             fixed_mask = np.zeros(len(d["surface/points"]), bool)
             fixed_mask[fixed] = True
