@@ -52,3 +52,20 @@ def test_grasp_example_squeezes_harder_coupled_and_the_display_meets_both_jaws(k
     touching = {str(int(x)) for x in TOUCHING}  # in contact (DEEP too: the coupled squeeze is past δ_lin)
     assert hold and all(r["status_upper"] in touching and r["status_lower"] in touching for r in hold)
     assert (tmp_path / "grasp.png").stat().st_size > 10_000
+
+
+palpation = runpy.run_path(str(ROOT / "examples" / "palpation.py"), run_name="example")
+
+
+def test_palpation_example_feels_the_mass_less_with_depth_and_more_with_contrast(tmp_path):
+    """#26's palpation map: k_n over the mass against the same block without it, for a ball 1.5, 2 and 3 radii
+    deep, 5x and 10x stiffer: every contrast above 1, the 10x mass felt more than the 5x at each depth, and
+    both felt less the deeper they lie (the numbers are in the example's CSV and figure)."""
+    assert palpation["main"](["--out", str(tmp_path)]) == 0
+    with open(tmp_path / "palpation.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    c5 = np.array([float(r["contrast_5x"]) for r in rows])
+    c10 = np.array([float(r["contrast_10x"]) for r in rows])
+    assert np.all(c5 > 1.0) and np.all(c10 > c5)
+    assert np.all(np.diff(c5) < 0) and np.all(np.diff(c10) < 0)
+    assert (tmp_path / "palpation.png").stat().st_size > 10_000
