@@ -61,11 +61,10 @@ def push(stiff, x, N, tilt, azimuth, tree):
 def test_pushing_harder_never_feels_softer(stiff, kidney, site):
     """Over the stretch of each push where the line goes deeper (its depth grows by at least half the push's
     speed, up to the deepest point of the line, ≤ 15 mm): the contact never ends and |F| never falls below
-    its largest value so far by more than 1.5 % (measured: 0 at the pole, top, rim and lip; 0.94 % on a 30°
-    line at the lateral face, which carries the contact towards softer tissue while δ grows slowly, the force
-    k(x) δ with k falling along the surface; a force discrimination threshold is ~7 %; it fell by 27 % at the
-    pole before); for a normal push at a smooth convex part (pole, top, lateral face) F stays
-    within 10° of the contact normal at first contact (measured ≤ 7°; it turned 45-65° before); and past
+    its largest value so far, beyond round-off (measured: not at all, on every line; it fell by 27 % at the
+    pole before, and by 0.94 % on a 30° line at the lateral face with an earlier form of the deep law, whose
+    increments followed k(x) as the contact slid towards softer tissue); for a normal push at a smooth convex part (pole, top, lateral face) F stays
+    within 10° of the contact normal at first contact (measured ≤ 9.2°; it turned 45-65° before); and past
     δ_lin the status is DEEP."""
     normals, tree = kidney
     x, N = normals[site]
@@ -81,7 +80,7 @@ def test_pushing_harder_never_feels_softer(stiff, kidney, site):
             assert np.isin(status[first:end + 1], TOUCHING).all(), (site, tilt, az)
             m = mag[deeper]
             fall = np.max((np.maximum.accumulate(m) - m) / np.maximum.accumulate(m)) if len(m) else 0.0
-            assert fall <= 0.015, (site, tilt, az, fall)
+            assert fall <= 1e-12, (site, tilt, az, fall)
             if tilt == 0:
                 assert depth[end] > 0.01 and Status.DEEP in status, (site, depth[end])
                 if site in ("pole", "top", "lateral face"):

@@ -37,10 +37,12 @@ region, λ = 1) the contact remembers δ* = δ_t and k* = k there, and while δ 
     E = k(x) (δ* δ − ½ δ*²) + ½ k* (δ − δ*)²,
 
 which is ½ k δ² where it begins: the normal force k(x) δ* + k* (δ − δ*) keeps growing, and equals k δ* where
-it ends again (δ < δ*, or leaving λ = 1), so entering and leaving are continuous and loops through it stay
-conservative; the tangential term (δ* δ − ½ δ*²) ∇k grows only as fast as the normal force, so the force
-stays within atan(2 x 1/16 x 2) = 14° of the normal at most, and within 10° where the curvature factor is
-below 1.41 (measured ≤ 9° in normal pushes to 15 mm at the pole, top, sides, hilum and support rim).  The law
+it ends again as δ falls below δ*, so entering and leaving are continuous and loops through it stay
+conservative (sliding out of the full region while deeper, λ < 1, drops the increments' part to k's: a step of
+(k* − k)(δ − δ*)); the tangential term (δ* δ − ½ δ*²) ∇k grows only as fast as the normal force, its share
+tending to δ* ‖A ∇k‖ / k* ≤ ‖A‖ / 8 with A = (I − δ_f S)⁻¹: within atan(2/8) = 14° of the normal at most, and
+10° where ‖A‖ ≤ 1.41 (measured in normal pushes to 15 mm: ≤ 9.2° at the pole, top, sides and hilum lip;
+17.5° at the support rim, where the stiffness rises tenfold within a few millimetres).  The law
 is the same with the secant stiffness k_s = φ / δ in place of k (:func:`secant`).  The status ``DEEP``
 says when δ ≥ δ_lin (:func:`pmask.runtime.contact.surface.linear_depths`: 0.29 x the smallest radius of
 curvature or 1.5 mask radii), where the linear model stops being meaningful.
