@@ -48,21 +48,6 @@ def sources() -> list[Path]:
     return sorted((include_dir() / "core").glob("*.c"))
 
 
-def main(argv=None) -> int:
-    """``python -m pmask.runtime.servo --include`` / ``--sources``: what a Makefile needs, on one line."""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="python -m pmask.runtime.servo", description=main.__doc__)
-    p.add_argument("--include", action="store_true", help="the include folder")
-    p.add_argument("--sources", action="store_true", help="the C files, space-separated")
-    a = p.parse_args(argv)
-    if a.include or not a.sources:
-        print(include_dir())
-    if a.sources:
-        print(" ".join(str(f) for f in sources()))
-    return 0
-
-
 def load_table(source):
     """A runtime table loaded by the C loader (a path or bytes); refusals raise
     :class:`pmask.runtime.table.TableError` with the C loader's message."""
