@@ -167,6 +167,14 @@ def at(srf, t, b0, b1, b2):
             b0 * dl[i0] + b1 * dl[i1] + b2 * dl[i2])
 
 
+def shape_at(srf, t, b0, b1, b2):
+    """S(x) (9 floats) alone, interpolated as :func:`at` does: what step 1 reads every tick."""
+    i0, i1, i2 = srf._idx[t]
+    SS = srf._S
+    s0, s1, s2 = SS[i0], SS[i1], SS[i2]
+    return [b0 * s0[i] + b1 * s1[i] + b2 * s2[i] for i in range(9)]
+
+
 def normal_stiffness(K, N, taper) -> np.ndarray:
     """(n_s,): the normal stiffness k_j = λ_j / (n_jᵀ K_j⁻¹ n_j) per vertex: the stiffness along the contact
     normal with the surface free to slide under the tool (the Schur complement of K's tangential block),

@@ -20,7 +20,7 @@ import numpy as np
 
 from pmask.runtime.contact.linalg3 import mul3, speed_up, tangent_part, tracking_depth
 from pmask.runtime.contact.state import FAR_FACTOR, VELOCITY_FILTER, Status, hold, release
-from pmask.runtime.contact.surface import at
+from pmask.runtime.contact.surface import shape_at
 
 log = logging.getLogger("pmask.runtime.haptics")
 
@@ -245,7 +245,7 @@ def follow(c, st) -> None:
     if st.depth > 0.0:
         t, (b0, b1, b2) = st.tri, st.b
         Nx, Ny, Nz = normal(srf, t, b0, b1, b2)
-        St = tangent_part(Nx, Ny, Nz, at(srf, t, b0, b1, b2)[4])
+        St = tangent_part(Nx, Ny, Nz, shape_at(srf, t, b0, b1, b2))
         d = tracking_depth(St, st.depth)
         if d < st.depth:
             mx, my, mz = st.move

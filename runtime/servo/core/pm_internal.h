@@ -309,6 +309,14 @@ static inline double pm__tracking_depth(const double *Sm, double delta)
     return delta;
 }
 
+/* S(x) alone, interpolated as pm__at does (surface.shape_at): what step 1 reads every tick */
+static inline void pm__shape_at(const pm_table *tb, int64_t t, const double *b, double *Sm)
+{
+    const int64_t *v = tb->T + 3 * t;
+    const double *s0 = tb->shape + 9 * v[0], *s1 = tb->shape + 9 * v[1], *s2 = tb->shape + 9 * v[2];
+    for (int i = 0; i < 9; i++) Sm[i] = b[0] * s0[i] + b[1] * s1[i] + b[2] * s2[i];
+}
+
 /* K(x), λ(x), k(x), ∇k(x), S(x), δ_lin(x) interpolated at barycentric b of t (surface.at) */
 static inline void pm__at(const pm_table *tb, int64_t t, const double *b, double *K, double *lam, double *k,
                           double *g, double *Sm, double *dlin)

@@ -274,9 +274,9 @@ int pm__follow(pm_servo *S, cstate *st)
     const pm_table *tb = S->tab;
     double x[3];
     if (st->depth > 0.0) {
-        double N[3], K[9], lam, k, gr[3], Sm[9], dlin, St[9];
+        double N[3], Sm[9], St[9];
         if (pm__normal_at(tb, st->tri, st->b, N)) return -1;
-        pm__at(tb, st->tri, st->b, K, &lam, &k, gr, Sm, &dlin);
+        pm__shape_at(tb, st->tri, st->b, Sm);
         pm__tangent_part(N, Sm, St);
         double d = pm__tracking_depth(St, st->depth);
         if (d < st->depth) {
