@@ -131,6 +131,7 @@ async function main() {
   recolour();
 
   // ---------------------------------------------------------------- sliders
+  let notice = '';   // a standing message (the radius's single-vertex fallback) the probe loop keeps on show
   const radius = $('radius');
   radius.min = model.radius_range[0]; radius.max = model.radius_range[1];
   radius.step = (model.radius_range[1] - model.radius_range[0]) / 400;
@@ -145,9 +146,10 @@ async function main() {
       fields.masked = r.masked;
       radius.value = r.radius;
       recolour();
-      $('error').textContent = r.single_vertex > 0
+      notice = r.single_vertex > 0   // kept on show (the probe loop's replies would clear a plain message)
         ? `at this radius ${r.single_vertex} of ${r.masks} masks reach no neighbour and fall back to the `
           + 'single-vertex stiffness (which softens with refinement): use at least one mean edge length' : '';
+      $('error').textContent = notice;
     } catch (e) { $('error').textContent = `radius: ${e.message}`; }
     radius.disabled = false;
     radius.dataset.applied = radius.value;
@@ -280,7 +282,7 @@ async function main() {
       stats.rtt = performance.now() - t0;
       wasDeformed = deform && umax > 0;
       backoff = 0;
-      $('error').textContent = '';
+      $('error').textContent = notice;
     } catch (e) { serverLost(e.message); }
     inflight = false;
   }
