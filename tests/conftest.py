@@ -13,6 +13,26 @@ from pmask.pipeline.stages import Spec, run  # noqa: E402
 from pmask.precompute.elasticity import dofs, stiffness_matrix  # noqa: E402
 
 
+def gmsh_volume(path, solids, size: float) -> Path:
+    """A user's tet mesh written by gmsh: ``solids(gmsh)`` adds OCC solids (fragmented into a conformal mesh)
+    and returns {physical group name: (dimension, entity tags)} after the model is synchronised; each group's
+    tags are picked by ``solids`` from the entities then present."""
+    import gmsh
+
+    gmsh.initialize(["-noenv"])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        groups = solids(gmsh)
+        for name, (dim, tags) in groups.items():
+            gmsh.model.addPhysicalGroup(dim, list(tags), name=name)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    return Path(path)
+
+
 def build(tmp_path_factory, name: str, spec: Spec) -> Path:
     out = tmp_path_factory.mktemp(name) / f"{name}.h5"
     run(spec, out)

@@ -181,30 +181,21 @@ def test_materials_by_region_refusals_are_one_line(tmp_path, capsys):
 def test_a_volume_meshs_physical_volumes_take_their_materials(tmp_path):
     """A --volume mesh whose physical volumes name a core and a shell: `--materials core:E:nu` puts the core's
     material on exactly the core's tetrahedra (the artifact's record), the shell keeps -E/--nu."""
-    import gmsh
-
+    from conftest import gmsh_volume
     from pmask.pipeline.cli import main
     from pmask.runtime.artifact import read_artifact
 
-    msh = tmp_path / "cored.msh"
-    gmsh.initialize(["-noenv"])
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    def cored(gmsh):
         box = gmsh.model.occ.addBox(-0.02, -0.02, -0.02, 0.04, 0.04, 0.04)
         ball = gmsh.model.occ.addSphere(0, 0, 0, 0.008)
         gmsh.model.occ.fragment([(3, box)], [(3, ball)])
         gmsh.model.occ.synchronize()
-        vols = gmsh.model.getEntities(3)
-        core = [t for _, t in vols if gmsh.model.getBoundingBox(3, t)[3] < 0.01]
-        gmsh.model.addPhysicalGroup(3, core, name="core")
-        gmsh.model.addPhysicalGroup(3, [t for _, t in vols if t not in core], name="shell")
+        vols = [t for _, t in gmsh.model.getEntities(3)]
+        core = [t for t in vols if gmsh.model.getBoundingBox(3, t)[3] < 0.01]
         bottom = [t for _, t in gmsh.model.getEntities(2) if gmsh.model.getBoundingBox(2, t)[5] < -0.02 + 1e-5]
-        gmsh.model.addPhysicalGroup(2, bottom, name="support")
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.006)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(msh))
-    finally:
-        gmsh.finalize()
+        return {"core": (3, core), "shell": (3, [t for t in vols if t not in core]), "support": (2, bottom)}
+
+    msh = gmsh_volume(tmp_path / "cored.msh", cored, 0.006)
     out = tmp_path / "cored.h5"
     assert main(["-q", "precompute", "cored", "--volume", str(msh), "--fixed", "group:support", "-E", "2e4",
                  "--materials", "core:2e5:0.4", "-o", str(out)]) == 0

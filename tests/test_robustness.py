@@ -551,27 +551,20 @@ def test_group_selectors_work_from_the_command_line(tmp_path, capsys):
     group its default support is) and `--fixed group:support` on a `--volume` mesh whose physical groups name
     it.  Both build, and hold exactly the group's vertices (before, `parse()`'s any-group placeholder, an empty
     mapping, was replaced by `{}` and every group was 'not in this mesh')."""
-    import gmsh
+    from conftest import gmsh_volume
 
     out = tmp_path / "k.h5"
     assert main(["-q", "precompute", "kidney", "--size", "0.012", "--fixed", "group:hilum", "-o", str(out)]) == 0
     default = tmp_path / "d.h5"
     assert main(["-q", "precompute", "kidney", "--size", "0.012", "-o", str(default)]) == 0
     np.testing.assert_array_equal(Model.load(out).fixed, Model.load(default).fixed)
-    msh = tmp_path / "block.msh"
-    gmsh.initialize(["-noenv"])
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    def block(gmsh):
         gmsh.model.occ.addBox(0, 0, 0, 0.04, 0.03, 0.02)
         gmsh.model.occ.synchronize()
         bottom = [t for _, t in gmsh.model.getEntities(2) if gmsh.model.getBoundingBox(2, t)[5] < 1e-5]  # (OCC pads)
-        gmsh.model.addPhysicalGroup(2, bottom, name="support")
-        gmsh.model.addPhysicalGroup(3, [1], name="body")
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.006)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(msh))
-    finally:
-        gmsh.finalize()
+        return {"support": (2, bottom), "body": (3, [1])}
+
+    msh = gmsh_volume(tmp_path / "block.msh", block, 0.006)
     block = tmp_path / "b.h5"
     assert main(["-q", "precompute", "block", "--volume", str(msh), "--fixed", "group:support", "-o", str(block)]) == 0
     m = Model.load(block)
