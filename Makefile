@@ -67,9 +67,9 @@ docs: venv
 	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
 	@echo "open docs/_build/html/index.html"
 
-## make bench: precompute and runtime benchmarks -> bench/results.json and docs/generated/benchmarks.md
+## make bench: precompute and runtime benchmarks -> bench/results.json and docs/generated/benchmarks.md (ONLY=haptics: the haptic step alone)
 bench: venv
-	$(BIN)/python bench/run.py
+	$(BIN)/python bench/run.py $(if $(ONLY),--only $(ONLY),)
 
 ## make reference: recompute tests/reference from the stored meshes, show the diff, rewrite docs/generated/reference.md (REMESH=1: mesh anew)
 reference: venv
