@@ -339,9 +339,19 @@ def add_export_table(sub) -> None:
 def cmd_export_table(args) -> int:
     from pmask.runtime.table import export_table
 
-    out = export_table(args.artifact, Path(args.out), mask=args.mask, radius=args.radius, k_rigid=args.k_rigid,
-                       normal_radius=args.normal_radius, zeta=not args.no_zeta)
+    from pmask.runtime.model import Model
+
+    model = Model.load(args.artifact)
+    compressed = model.attrs.get("greens_form") == "hmatrix"
+    out = export_table(model, Path(args.out), mask=args.mask, radius=args.radius, k_rigid=args.k_rigid,
+                       normal_radius=args.normal_radius, zeta=not args.no_zeta and not compressed)
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB)")
+    if compressed and not args.no_zeta:
+        n3 = 3 * len(model.contact)
+        print(f"  without the zeta table: this artifact's Green's functions are compressed, and the table would be a "
+              f"dense {n3} x {n3} array ({n3 * n3 * 8 / 2**30:.1f} GiB); the table renders single contacts (and "
+              "uncoupled ones); couple contacts and deform the surface from Python (pmask.runtime.Contacts), or "
+              "export from an artifact precomputed without --compress")
     return 0
 
 

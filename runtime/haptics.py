@@ -121,8 +121,8 @@ class Contacts:
         self.max_jump = 5.0 * s.mean_edge if max_jump is None else _num("max_jump", max_jump, lo=0.0, lo_open=True)
         self.slip_length = (0.25 * s.mean_edge if slip_length is None
                             else _num("slip_length", slip_length, lo=0.0, lo_open=True))
-        self.coupled = (s.coupling() is not None and self.n > 1) if coupled is None else bool(coupled)
-        if self.coupled and s.coupling() is None:
+        self.coupled = (s.greens and self.n > 1) if coupled is None else bool(coupled)
+        if self.coupled and not s.greens:
             raise InputError("coupled contacts need Green's functions (a Stiffness from Model.stiffness)")
         self._margin = 2.0 * self.max_jump + self.tool_radius
         self._energy = 0.0
@@ -136,6 +136,15 @@ class Contacts:
         self._exchange = False
         if engine not in (None, "native", "python"):
             raise InputError(f"engine must be 'native', 'python' or None, got {engine!r}")
+        if engine != "python" and self.coupled and s.compressed:
+            # the C core couples contacts through the ζ table, which a compressed Ξ does not have (it is as
+            # large as Ξ): the Python engine couples them from Ξ's blocks instead
+            if engine == "native":
+                raise InputError("engine='native' couples contacts through a ζ table, and this artifact's Green's "
+                                 "functions are compressed (the table would be as large as dense Ξ): use "
+                                 "engine='python' (or None), coupled=False, or an artifact precomputed without "
+                                 "--compress")
+            engine = "python"
         if engine != "python":
             servo = _servo_module()
             if servo is not None and servo.available():
@@ -311,7 +320,7 @@ class Contacts:
         exactly: C_disp f_disp = ū', C_disp the exact interpolation of the ζ table (its diagonal blocks
         are Σ_i Σ_m φ_i φ_m ζ_m(i) rather than the inverse of eq. 15's K, which differ by 5-10 % between
         vertices).  Zero where nothing is in contact."""
-        if self.surface.coupling() is None:
+        if not self.surface.greens:
             raise InputError("deformation needs Green's functions (a Stiffness from Model.stiffness, or a "
                              "runtime table exported with its zeta table)")
         if self._native is not None and self._native.has_zeta:

@@ -47,6 +47,8 @@ from pmask.runtime.masks import Masks
 BARY_TOL = 1e-6
 #: Jacobi sweeps that relax the support's rendered stiffness (see ``Stiffness._blend_support``)
 SUPPORT_RELAX_SWEEPS = 20
+#: ζ_m(i) blocks :meth:`Stiffness.zeta_block` keeps (9 floats each; a few contacts use tens)
+ZETA_BLOCK_CACHE = 65536
 #: queries per piece in ``at_batch``: the gathered rows (27 floats each) stay in cache (measured:
 #: 1 M random queries 7 -> 14 M/s on 500 vertices, 4 -> 7 M/s on 50,000)
 BATCH_CHUNK = 32768
@@ -249,6 +251,9 @@ class Stiffness(SurfaceStiffness):
         self._contact_row = np.full(n_s, -1)
         self._contact_row[model.contact] = np.arange(len(model.contact))
         self._zeta_table = None
+        self._zeta_blocks = {}
+        self._mask_of_contact = np.full(len(model.contact), -1)
+        self._mask_of_contact[masks.centres] = np.arange(len(masks.centres))
 
     def _fill_unknown_free(self, Kv: np.ndarray, known: np.ndarray) -> None:
         """Free vertices outside Ξ (λ = 0 there): the nearest known vertex's K, so that K(x) stays
@@ -380,22 +385,35 @@ class Stiffness(SurfaceStiffness):
 
     def compliance_between(self, t_l, b_l, t_k, b_k) -> np.ndarray:
         r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k
-        (:func:`zeta_compliance`)."""
-        if self.compressed:  # Σ_i Σ_m φ_i φ_m Σ_j ρ^m_j Ξ_ij, from Ξ's blocks
-            C = np.zeros((3, 3))
-            for m, pm in zip(self.triangles[t_k], b_k):
-                k = self._row_of_surface[m]
-                if pm == 0.0 or k < 0:
-                    continue
+        (:func:`zeta_compliance` on :meth:`zeta_block`)."""
+        return np.array(zeta_compliance(self.zeta_block, self._contact_row, self.triangles,
+                                        t_l, b_l, t_k, b_k)).reshape(3, 3)
+
+    def zeta_block(self, rm: int, ri: int) -> list:
+        r"""ζ_m(i)ᵀ = (Σ_j ρ^m_j Ξ_ij)ᵀ (eq. 13) for contact vertices m (the force's) and i (the displaced
+        one), three lists of three: the block function of :func:`zeta_compliance`.
+
+        From the ζ table when it has been formed; otherwise from Ξ's blocks of mask m's columns at row i
+        (compressed Ξ: the exact near field, or the far field's low-rank factors, O(|M| k) work whatever n),
+        kept in a bounded cache, since contacts stay on the same vertices for many ticks.  This is how
+        contacts on a compressed artifact couple without the ζ table, which is as large as Ξ."""
+        if self._zeta_table is not None:
+            Zt = self._zeta_table
+            return Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].tolist()
+        key = (rm, ri)
+        blk = self._zeta_blocks.get(key)
+        if blk is None:
+            k = self._mask_of_contact[rm]
+            if k < 0:  # no mask at m (outside the core): a zero row in the ζ table too
+                blk = [[0.0] * 3 for _ in range(3)]
+            else:
                 cols, w = self.masks.row(k)
-                for i, pi in zip(self.triangles[t_l], b_l):
-                    ri = self._contact_row[i]
-                    if pi == 0.0 or ri < 0:
-                        continue
-                    C += pi * pm * np.einsum("j,jrc->rc", w, xi_blocks(self.model.Xi, np.full(len(cols), ri), cols))
-            return C
-        C = zeta_compliance(self.zeta_table(), self._contact_row, self.triangles, t_l, b_l, t_k, b_k)
-        return np.array(C).reshape(3, 3)
+                Z = np.einsum("j,jrc->rc", w, xi_blocks(self.model.Xi, np.full(len(cols), ri), cols))
+                blk = Z.T.tolist()
+            if len(self._zeta_blocks) >= ZETA_BLOCK_CACHE:
+                self._zeta_blocks.clear()
+            self._zeta_blocks[key] = blk
+        return blk
 
     def coupled_forces(self, points, displacements) -> np.ndarray:
         r"""Forces at several contact points that impose the given displacements, solved together through the
@@ -440,13 +458,14 @@ class Stiffness(SurfaceStiffness):
         return out
 
 
-def zeta_compliance(Zt, row, triangles, t_l, b_l, t_k, b_k) -> list:
+def zeta_compliance(block, row, triangles, t_l, b_l, t_k, b_k) -> list:
     r"""C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i), 9 floats row-major: the displacement at x_l (interpolated,
-    eq. 16) per unit force at x_k (spread by the masks, eq. 13), from the ζ table (nine 3x3 blocks).
+    eq. 16) per unit force at x_k (spread by the masks, eq. 13), from nine 3x3 blocks ζ_m(i).
 
-    Zt : :meth:`Stiffness.zeta_table`; row : surface vertex -> its row block in Zt (-1: none).  Plain
-    Python floats in a fixed order: the haptic step couples contacts with it, and the native core
-    computes the same sums in the same order."""
+    block : (r_m, r_i) -> ζ_m(i)ᵀ as three lists of three, r the rows of the force vertex m and the displaced
+    vertex i (:func:`table_block` reads them from a ζ table, :meth:`Stiffness.zeta_block` from Ξ's blocks);
+    row : surface vertex -> its row (-1: none).  Plain Python floats in a fixed order: the haptic step
+    couples contacts with it, and the native core computes the same sums in the same order."""
     C = [0.0] * 9
     for i, pi in zip(triangles[t_l], b_l):
         ri = row[i]
@@ -457,11 +476,16 @@ def zeta_compliance(Zt, row, triangles, t_l, b_l, t_k, b_k) -> list:
             if pm == 0.0 or rm < 0:
                 continue
             w = pi * pm
-            blk = Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].tolist()  # ζ_m(i)ᵀ
+            blk = block(rm, ri)  # ζ_m(i)ᵀ
             for r in range(3):
                 for c in range(3):
                     C[3 * r + c] += w * blk[c][r]
     return C
+
+
+def table_block(Zt):
+    """The block function of :func:`zeta_compliance` for a ζ table Zt (rows 3m..3m+2 = ζ_mᵀ)."""
+    return lambda rm, ri: Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].tolist()
 
 
 def zeta_deformation(Zt, row, triangles, loads) -> np.ndarray:

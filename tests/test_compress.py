@@ -99,6 +99,70 @@ def test_the_zeta_table_is_refused_with_a_line_that_says_what_to_use(pair):
         comp.stiffness("linear", R_MAX).zeta_table()
 
 
+def _grasp_path(model):
+    """Two jaws squeezing the kidney's middle from above and below: 2 mm outside to 2.5 mm in, held, then
+    both slid 3 mm along x (the grasp test of test_contacts.py, with a slide so that friction acts)."""
+    from pmask.runtime.geometry import vertex_normals
+
+    P, free = model.points, model.contact[model.core]
+    middle = free[np.abs(P[free, 0]) < 0.3 * np.abs(P[free, 0]).max()]
+    n = vertex_normals(P, model.triangles)
+    jaws = [(P[v], n[v]) for v in (middle[np.argmax(P[middle, 2])], middle[np.argmin(P[middle, 2])])]
+    depth = np.concatenate([np.linspace(-2e-3, 2.5e-3, 400), np.full(300, 2.5e-3)])
+    slide = np.concatenate([np.zeros(400), np.linspace(0.0, 3e-3, 300)])
+    return np.stack([p - depth[:, None] * nv + slide[:, None] * [1.0, 0.0, 0.0] for p, nv in jaws], axis=1)
+
+
+def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair):
+    """The hands issue's item 8: a compressed artifact in the haptic loop without its ζ table (as large as
+    Ξ: 28 GiB at 20k vertices).  One contact reads only K_i (the exact near field): the same forces as the
+    dense artifact's, native engine on both, to 1e-9 (K_i agree to 1e-10, test above).  Two coupled jaws
+    with friction couple through ζ_m(i) blocks read from Ξ's blocks (the Python engine): their forces and
+    the displayed deformation within 1e-3 of the dense artifact's (the far field's per-block 1e-4 summed over
+    the mask; the coupled-forces bound above)."""
+    from pmask.runtime import Contacts, HapticContact
+
+    dense, comp, _ = pair
+    sd, sc = dense.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
+    path = _grasp_path(dense)
+    one = [HapticContact(s) for s in (sd, sc)]
+    assert one[1].engine == one[0].engine  # native where built: a single contact needs no ζ table
+    worst = 0.0
+    for probe in path[:, 0]:
+        (fd, _), (fc, _) = (h.step(probe) for h in one)
+        worst = max(worst, float(np.linalg.norm(np.subtract(fc, fd))) / max(float(np.linalg.norm(fd)), 1e-3))
+    assert worst <= 1e-9
+    assert np.linalg.norm(one[1].deformation() - one[0].deformation()) <= 1e-3 * np.linalg.norm(one[0].deformation())
+    grasp = [Contacts(s, 2, friction=0.3, dynamic_friction=0.3, engine="python") for s in (sd, sc)]
+    auto = Contacts(sc, 2, friction=0.3)
+    assert auto.coupled and auto.engine == "python"  # the C core couples through a ζ table only
+    with pytest.raises(InputError, match="compressed"):
+        Contacts(sc, 2, engine="native")
+    worst = 0.0
+    for probes in path:
+        (Fd, _), (Fc, _) = (c.step(list(probes)) for c in grasp)
+        Fd, Fc = np.array(Fd), np.array(Fc)
+        worst = max(worst, float(np.linalg.norm(Fc - Fd)) / max(float(np.linalg.norm(Fd)), 1e-3))
+    assert np.linalg.norm(Fd) > 0.05  # still squeezing at the end (N)
+    assert worst <= 1e-3
+    vd, vc = grasp[0].deformation(), grasp[1].deformation()
+    assert np.linalg.norm(vc - vd) <= 1e-3 * np.linalg.norm(vd)
+    assert sc._zeta_table is None  # nothing formed the dense table
+
+
+def test_export_table_of_a_compressed_artifact_leaves_zeta_out_and_says_why(pair, tmp_path, capsys):
+    from pmask.pipeline.cli import main
+    from pmask.runtime.table import read_table
+
+    _, comp, _ = pair
+    out = tmp_path / "c.tbl"
+    assert main(["export-table", str(comp.path), "-o", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "without the zeta table" in said and "compressed" in said
+    t = read_table(out)
+    assert "zeta" not in t and len(t["points"]) == len(comp.points)
+
+
 def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
     """Two worker processes, small panels; after the first tile arrives one worker is killed (SIGKILL).
     The run finishes with the same numbers, and no tile that had finished is run again."""

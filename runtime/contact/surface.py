@@ -30,7 +30,7 @@ import numpy as np
 
 from pmask.runtime.geometry import contact_normals, triangle_areas, triangle_frames, triangle_neighbours
 from pmask.runtime.spatial import TriangleGrid
-from pmask.runtime.stiffness import zeta_compliance, zeta_deformation
+from pmask.runtime.stiffness import table_block, zeta_compliance, zeta_deformation
 
 #: the contact cap's half-angle past which one normal no longer stands for the contact (see the module
 #: docstring): δ_lin ≤ (1 − cos DEEP_ANGLE) R_min
@@ -126,24 +126,43 @@ class ContactSurface:
         self._dlin = self.linear_depth.tolist()
         self._coupling = None
         self._row = None
+        self._block = None
 
     def coupling(self):
         """(ζ table, surface vertex -> its row in the table) for the coupled solve and the display;
-        None for a surface stiffness without Green's functions."""
-        if self._coupling is None and self.stiffness is not None and hasattr(self.stiffness, "zeta_table"):
+        None for a surface stiffness without Green's functions, and for a compressed Ξ (no ζ table: it
+        would be as large as Ξ; :attr:`greens` says whether contacts can be coupled all the same)."""
+        if (self._coupling is None and self.stiffness is not None and hasattr(self.stiffness, "zeta_table")
+                and not self.compressed):
             self._coupling = (self.stiffness.zeta_table(), self.stiffness._contact_row)
         return self._coupling
 
+    @property
+    def compressed(self) -> bool:
+        """Whether the Green's functions are a compressed Ξ (:mod:`pmask.runtime.compressed`)."""
+        return bool(getattr(self.stiffness, "compressed", False))
+
+    @property
+    def greens(self) -> bool:
+        """Whether Green's functions are at hand (coupled contacts, the deformation): a ζ table (dense Ξ, or a
+        runtime table exported with one), or a compressed Ξ read block by block."""
+        return self._coupling is not None or (self.stiffness is not None and hasattr(self.stiffness, "zeta_table"))
+
     def compliance(self, t_l, b_l, t_k, b_k) -> list:
-        """C_lk (9 floats): :func:`pmask.runtime.stiffness.zeta_compliance` on this surface's ζ table."""
-        Zt, row = self.coupling()
-        if self._row is None:
+        """C_lk (9 floats): :func:`pmask.runtime.stiffness.zeta_compliance` on this surface's ζ table, or on
+        a compressed Ξ's blocks (:meth:`pmask.runtime.stiffness.Stiffness.zeta_block`)."""
+        if self._block is None:
+            if self.compressed:
+                self._block, row = self.stiffness.zeta_block, self.stiffness._contact_row
+            else:
+                Zt, row = self.coupling()
+                self._block = table_block(Zt)
             self._row = np.asarray(row).tolist()
-        return zeta_compliance(Zt, self._row, self._idx, t_l, b_l, t_k, b_k)
+        return zeta_compliance(self._block, self._row, self._idx, t_l, b_l, t_k, b_k)
 
     def deformation_of(self, loads) -> np.ndarray:
         """The surface's displacement (n_s, 3) for point loads (eq. 16; :func:`zeta_deformation`)."""
-        if getattr(self.stiffness, "compressed", False):  # no ζ table: Ξ's blocks of the loaded columns
+        if self.compressed:  # no ζ table: Ξ's blocks of the loaded columns
             return self.stiffness.deformation_of(loads)
         Zt, row = self.coupling()
         return zeta_deformation(Zt, row, self.T, loads)
