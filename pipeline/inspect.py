@@ -83,6 +83,27 @@ def report(r: dict) -> str:
     blocking = {k for k in found if k != "degenerate triangles"}
     if len(shells) > 1 and sum(s["area_share"] for s in shells[1:]) > 0.01:
         blocking.add("several bodies")
-    L.append("ready for pmask precompute --surface" if not blocking
-             else "not ready: " + ", ".join(sorted(blocking)) + " (repair it in your mesh tool first)")
+    L.append("ready for pmask precompute --surface" if not blocking else "not ready: " + ", ".join(sorted(blocking)))
+    L += [f"  {line}" for line in repair_routes(blocking)]
     return "\n".join(L)
+
+
+def repair_routes(blocking: set) -> list[str]:
+    """The ``--repair`` routes for the defects found, each with what it does to the geometry."""
+    if not blocking:
+        return []
+    if "non-finite vertices" in blocking:
+        return ["no route repairs NaN or infinite coordinates: remove those vertices in your mesh tool"]
+    out = []
+    if "several bodies" in blocking:
+        out.append("--repair voxel rebuilds the solid from voxels (edge length / 3): overlapping bodies become "
+                   "one, separate ones stay separate and are refused; cut the file to one body for the others")
+        out.append("--repair meshfix keeps the largest body only")
+    else:
+        out.append("--repair meshfix (MeshFix): closes holes, removes non-manifold parts and self-intersections; "
+                   "keeps the largest shell and nearly all of its geometry")
+        out.append("--repair voxel: rebuilds the solid from voxels (edge length / 3); works where MeshFix drops "
+                   "much of the area (shared walls, shells that run into each other), loses detail thinner than "
+                   "a voxel")
+    out.append("both report what they changed (area kept, Hausdorff distance); or repair the file in your mesh tool")
+    return out

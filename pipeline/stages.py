@@ -31,7 +31,7 @@ import numpy as np
 
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
-from pmask.runtime.artifact import FORMAT_VERSION
+from pmask.runtime.artifact import FORMAT_VERSION, stored_input_hash
 from pmask.runtime.files import atomic_write
 
 log = logging.getLogger(__name__)
@@ -218,18 +218,6 @@ def input_hash(spec: Spec) -> str:
     return stage_keys(spec)["artifact"]
 
 
-def artifact_hash(path: Path) -> str | None:
-    """The input hash stored in an existing artifact, or None."""
-    try:
-        import h5py
-
-        with h5py.File(path, "r") as f:
-            v = f.attrs.get("input_hash")
-            return v.decode() if isinstance(v, bytes) else v
-    except (OSError, KeyError):
-        return None
-
-
 # ------------------------------------------------------------------------------- validation
 def model_parameters(name: str) -> dict:
     """The keyword parameters a registered model's builder takes (name -> default)."""
@@ -373,13 +361,18 @@ def mesh_stage(spec: Spec) -> ModelMesh:
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
                          info={"source": Path(spec.segmentation).name, "segmentation": report, "remesh": change})
     if spec.surface:
+        m = None
         with contextlib.suppress(meshing.MeshError):  # an unreadable file is the remesh's to report
             m = meshing.read_mesh_file(Path(spec.surface))
-            tris = [c.data[:, :3] for c in m.cells if c.type in ("triangle", "quad")]
-            if tris and len(m.points):
-                tris = np.concatenate(tris)
-                if tris.min() >= 0 and tris.max() < len(m.points):
-                    check_selectors_before_meshing(spec, np.asarray(m.points, float)[:, :3], tris)
+        tris = [c.data[:, :3] for c in m.cells if c.type in ("triangle", "quad")] if m is not None else []
+        if tris and len(m.points):
+            tris = np.concatenate(tris)
+            pts = np.asarray(m.points, float)[:, :3]
+            if tris.min() >= 0 and tris.max() < len(m.points) and np.all(np.isfinite(pts)):
+                # the unit first: a file in another unit misses every selector, and the unit is the cause
+                meshing.check_extent(pts * spec.scale, spec.units is not None, spec.surface,
+                                     spec.edge_length * spec.scale)
+                check_selectors_before_meshing(spec, pts, tris)
         points, tets, change = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
                                                       scale=spec.scale, units_given=spec.units is not None,
                                                       timeout=spec.mesh_timeout, repair=spec.repair,
@@ -743,7 +736,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     validate(spec, out)
     spec = _segmentation_units(spec)
     keys = stage_keys(spec)
-    if out.exists() and not force and artifact_hash(out) == keys["artifact"]:
+    if out.exists() and not force and stored_input_hash(out) == keys["artifact"]:
         log.debug("%s is up to date (input hash %s)", out, keys["artifact"][:12])
         return {"up_to_date": True, "artifact": str(out), "input_hash": keys["artifact"]}
     st = _Stages(spec, out, keys, progress)

@@ -207,13 +207,35 @@ def check_finite(points: np.ndarray, name) -> None:
                         f"vertex {int(np.flatnonzero(bad)[0])}); remove or repair them")
 
 
-def check_extent(points: np.ndarray, units_given: bool, name) -> None:
-    """Without --units the file is read in metres; refuse a size no organ has (a mm file read as m)."""
+#: no organ a haptic simulator renders is smaller or (with a stated unit) larger than this across
+MIN_EXTENT = 5e-3  # m
+MAX_EXTENT = 1.0  # m
+
+
+def check_extent(points: np.ndarray, units_given: bool, name, edge_length: float | None = None) -> None:
+    """Refuse a size no organ has: a file in one unit read in another (points in metres, as read).
+
+    Without --units the file is read in metres and more than 2 m across is probably millimetres; with a
+    unit, under 5 mm or over 1 m across is probably the wrong unit.  ``edge_length`` (metres): an edge longer
+    than half the body would leave no vertex inside it, which gmsh reports as a broken surface."""
     extent = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
     if not units_given and extent > MAX_EXTENT_WITHOUT_UNITS:
         raise MeshError(f"{name}: read in metres the geometry is {extent:.3g} m across; if the file is in "
                         f"millimetres pass --units mm (selectors, --edge-length and --r-max are then in mm too), "
                         "or --units m if it really is that large")
+    if units_given and extent > MAX_EXTENT:
+        raise MeshError(f"{name}: in the unit given (--units) the geometry is {extent:.3g} m across, larger than any "
+                        "organ: is the file in a smaller unit (a file in micrometres read as mm is 1000x too large)? "
+                        "Pass the file's own unit with --units")
+    if extent < MIN_EXTENT:
+        raise MeshError(f"{name}: as read the geometry is only {1e3 * extent:.3g} mm across, smaller than any organ: "
+                        "is the file in a larger unit than read (a file in metres read with --units mm is 1000x too "
+                        "small)? Pass the file's own unit with --units")
+    if edge_length is not None and edge_length > 0.5 * extent:
+        raise MeshError(f"{name}: --edge-length is {1e3 * edge_length:.3g} mm, longer than half the body "
+                        f"({1e3 * extent:.3g} mm across), so no vertex would lie inside it; choose about a tenth of "
+                        "the body or less (pmask inspect suggests edge lengths for vertex counts; --edge-length is in "
+                        "the --units unit)")
 
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
@@ -340,10 +362,27 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray,
         log.warning("%s: --repair meshfix kept %.0f %% of the surface area: it drops all but the largest shell, and "
                     "shells that run into each other lose the smaller one; --repair voxel keeps their union",
                     name, 100 * area_after / area_before)
-    log.warning("%s: --repair: %d boundary edges and %d non-manifold edges before; %d -> %d triangles (largest shell "
-                "kept, holes filled, self-intersections removed)", name, before["boundary_edges"],
-                before["non_manifold_edges"], before["triangles"], len(out_t))
+    log.warning("%s: --repair: %s", name, repair_changes(upts, t, out_p, out_t, before))
     return out_p, out_t, fixed
+
+
+def repair_changes(p_in, t_in, p_out, t_out, before: dict) -> str:
+    """What a repair changed, and only that (a report of "holes filled" for a surface that had none misled
+    users into looking for the holes): shells dropped, open and non-manifold edges gone, triangles and area."""
+    n_shells = len(np.unique(shells(p_in, t_in)[0]))
+    d = edge_defects(t_out)
+    area_in, area_out = float(triangle_areas(p_in, t_in).sum()), float(triangle_areas(p_out, t_out).sum())
+    parts = []
+    if n_shells > 1:
+        parts.append(f"kept the largest of {n_shells} shells")
+    for key, what in (("boundary_edges", "open (boundary) edges"), ("non_manifold_edges", "non-manifold edges")):
+        if before[key] != d[key]:
+            parts.append(f"{what} {before[key]} -> {d[key]}")
+    if len(t_out) != before["triangles"]:
+        parts.append(f"triangles {before['triangles']} -> {len(t_out)}")
+    if abs(area_out - area_in) > 1e-9 * area_in:
+        parts.append(f"{100 * area_out / area_in:.1f} % of the area kept")
+    return "; ".join(parts) if parts else "nothing needed changing (one closed, manifold shell)"
 
 
 def pinched_vertices(tris: np.ndarray) -> np.ndarray:
@@ -465,7 +504,7 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     check_face_indices(blocks, len(m.points), path)
     raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
     check_finite(raw, path)
-    check_extent(raw, units_given, path)
+    check_extent(raw, units_given, path, edge_length)
     tris = np.concatenate(blocks)
     if repair:  # "meshfix" (True: the same) or "voxel"
         if repair == "voxel":

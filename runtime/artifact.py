@@ -121,6 +121,20 @@ def _attr_bytes(value) -> bytes:
     return np.asarray(value).tobytes() + str(np.asarray(value).dtype.str).encode()
 
 
+def stored_input_hash(path) -> str | None:
+    """The input hash an existing artifact records (attribute ``input_hash``), or None when there is no
+    readable artifact at ``path``.  The pipeline compares it with the hash of the inputs it was given to
+    decide whether an artifact is up to date; nothing else is read or verified."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            v = f.attrs.get("input_hash")
+    except (OSError, KeyError):
+        return None
+    return v.decode() if isinstance(v, bytes) else v
+
+
 def _major_minor(version: str) -> tuple[int, int]:
     try:
         parts = [int(p) for p in str(version).split(".")[:2]]

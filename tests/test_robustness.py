@@ -94,6 +94,27 @@ def test_a_millimetre_file_without_units_is_refused_with_the_fix(tmp_path, capsy
     assert "m across" in err and "--units mm" in err
 
 
+def test_a_file_in_another_unit_than_stated_and_an_edge_longer_than_the_body_are_one_line_each(tmp_path, capsys):
+    """The scans issue's item 5: a 40 mm organ exported in metres and read with --units mm is 0.04 mm across
+    (gmsh then said "check that it is closed", the wrong cause); one in micrometres read as mm is 40 m
+    across; an --edge-length of 100 mm on a 40 mm body leaves no vertex inside it.  Each refusal names the
+    cause and the flag that fixes it; the same file with its own unit builds (test above and below)."""
+    s = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    metres = write_stl(tmp_path / "m.stl", 1e-3 * s.vertices, s.faces)
+    err = cli_error(capsys, ["precompute", "--surface", metres, "--edge-length", "8", "--units", "mm",
+                             "--fixed", "z<-15", "-o", str(tmp_path / "m.h5")])
+    assert "smaller than any organ" in err and "--units" in err
+    microns = write_stl(tmp_path / "um.stl", 1e3 * s.vertices, s.faces)
+    err = cli_error(capsys, ["precompute", "--surface", microns, "--edge-length", "8", "--units", "mm",
+                             "--fixed", "z<-15", "-o", str(tmp_path / "um.h5")])
+    assert "larger than any organ" in err and "--units" in err
+    mm = write_stl(tmp_path / "mm.stl", s.vertices, s.faces)
+    err = cli_error(capsys, ["precompute", "--surface", mm, "--edge-length", "100", "--units", "mm",
+                             "--fixed", "z<-15", "-o", str(tmp_path / "mm.h5")])
+    assert "longer than half the body" in err and "pmask inspect" in err
+    assert not list(tmp_path.glob("*.h5"))
+
+
 def test_a_remesh_that_does_not_finish_is_stopped_with_one_line(tmp_path, capsys, sphere):
     """gmsh runs in a child process with a time limit (a genus-142 heart sat in classifySurfaces for 19
     min): a limit shorter than the child's start-up stops it and says what to do."""
@@ -391,6 +412,7 @@ def test_inspect_reports_shells_defects_and_an_edge_length_that_works(tmp_path, 
     assert main(["inspect", bad, "--units", "mm"]) == 0
     out = capsys.readouterr().out
     assert "shells: 2" in out and "3 boundary edges (holes)" in out and "debris" in out and "not ready" in out
+    assert "--repair meshfix" in out and "--repair voxel" in out  # the routes that repair it, named
     good = write_stl(tmp_path / "good.stl", s.vertices, s.faces)
     assert main(["inspect", good, "--units", "mm", "--vertices", "800"]) == 0
     out = capsys.readouterr().out
@@ -432,6 +454,10 @@ def test_repair_makes_a_damaged_export_usable_and_says_what_it_changed(tmp_path,
     import re
     assert re.search(r"repair: [1-9]\d* boundary and [1-9]\d* non-manifold edges before", out), out
     assert "--repair" in caplog.text
+    # the repair report lists what changed and only that (it said "holes filled, self-intersections removed"
+    # whatever the input held)
+    assert re.search(r"open \(boundary\) edges [1-9]\d* -> 0; non-manifold edges [1-9]\d* -> 0", caplog.text)
+    assert "holes filled" not in caplog.text
     good = write_stl(tmp_path / "good.stl", v, f)
     assert main(["precompute", "--surface", good, "--edge-length", "6", "--units", "mm", "--fixed", "z<-15",
                  "-o", str(tmp_path / "good.h5")]) == 0
@@ -690,3 +716,15 @@ def test_sigterm_during_meshing_stops_the_worker_and_cleans_up(tmp_path):
         time.sleep(0.1)
     assert not any(Path(f"/proc/{w}").exists() for w in workers)
     assert not list(tmp_path.glob("pmask-remesh-*"))
+
+
+def test_repair_of_a_sound_surface_reports_that_nothing_needed_changing(caplog):
+    """MeshFix on a closed, manifold sphere changes nothing, and the report says so rather than listing
+    repairs it did not make."""
+    from pmask.precompute.meshing import repair_surface
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.02)
+    with caplog.at_level("WARNING"):
+        p, t, _ = repair_surface(np.asarray(s.vertices), np.asarray(s.faces), "sphere")
+    assert len(t) == len(s.faces)
+    assert "nothing needed changing" in caplog.text
