@@ -323,7 +323,10 @@ class Stiffness(SurfaceStiffness):
         r"""Zt (3 n_c, 3 n_c) with rows 3m..3m+2 = ζ_mᵀ for every core contact vertex m (zero rows
         elsewhere): the deformation of eq. 16 for a force f at vertex m is ``f @ Zt[3m:3m+3]``, three
         contiguous rows (a column of ζ would be a strided gather of Ξ, 8-10x slower).  Computed once, from
-        the transpose of Ξ in blocks of mask centres: Zt_m = Σ_j ρ^m_j Ξ[:, j]ᵀ."""
+        the transpose of Ξ, one mask at a time: Zt_m = Σ_j ρ^m_j Ξ[:, j]ᵀ, a product of the mask's few
+        weights with its few contiguous rows of Ξᵀ (blocks of 64 centres as one dense product multiplied
+        mostly zeros: 2-7x slower at the default kidney, measured, and a viewer rebuilds this table on every
+        change of the mask radius)."""
         if self._zeta_table is not None:
             return self._zeta_table
         if self.compressed:
@@ -335,19 +338,13 @@ class Stiffness(SurfaceStiffness):
         Xi = self.model.Xi
         n3 = Xi.shape[0]
         Zt = np.zeros((n3, n3))
-        XiT = np.ascontiguousarray(Xi.T, dtype=float)  # rows 3j..3j+2 = Ξ[:, 3j:3j+3]ᵀ
-        XiT3 = XiT.reshape(n3 // 3, 3 * n3)
+        XiT3 = np.ascontiguousarray(Xi.T, dtype=float).reshape(n3 // 3, 3 * n3)  # row j = Ξ[:, 3j:3j+3]ᵀ
         Zt3 = Zt.reshape(n3 // 3, 3 * n3)
         masks = self.masks
-        for k0 in range(0, len(masks.centres), 64):
-            k1 = min(k0 + 64, len(masks.centres))
-            cols = masks.indices[masks.indptr[k0]:masks.indptr[k1]]
-            J, inv = np.unique(cols, return_inverse=True)
-            W = np.zeros((k1 - k0, len(J)))
-            rows = np.repeat(np.arange(k1 - k0), np.diff(masks.indptr[k0:k1 + 1]))
-            np.add.at(W, (rows, inv), masks.values[masks.indptr[k0]:masks.indptr[k1]])
-            Zt3[masks.centres[k0:k1]] = W @ XiT3[J]
-        del XiT, XiT3
+        ptr, idx, val = masks.indptr, masks.indices, masks.values
+        for k, m in enumerate(masks.centres):
+            np.dot(val[ptr[k]:ptr[k + 1]], XiT3[idx[ptr[k]:ptr[k + 1]]], out=Zt3[m])
+        del XiT3
         self._zeta_table = Zt
         return Zt
 
