@@ -7,10 +7,13 @@ API (every answer is JSON; an error is ``{"error": "one line saying what to fix"
     colours by: ``masked`` and ``single`` (‖K_i‖₂ [N/m] of the rendered vertex stiffness, eq. 12 with the
     mask, or with single-vertex masks), ``area`` (vertex areas), ``fixed`` (Λu) and ``contact`` (the
     touchable contact region).
-``POST /api/probe`` ``{"probes": [[x, y, z] | null, ...], "deform": bool}``
+``POST /api/probe`` ``{"probes": [[x, y, z] | null, ...], "deform": bool, "client": "id"}``
     sets the servo thread's probes (null: lifted) and returns each contact's force on the hand [N], status,
     penetration depth, proxy point and ‖K(x)‖ at the proxy, the servo's timing, and with ``deform`` the
-    surface displacement (eq. 16, float32, base64) that meets every contact.
+    surface displacement (eq. 16, float32, base64) that meets every contact.  One page owns the probes at a
+    time: the one that touches first, until it lets go or goes silent for :data:`OWNER_LEASE` seconds; the
+    others' probes are not applied, and their replies (``"owner": false`` and a ``notice``) show the owner's
+    contacts and say why.
 ``POST /api/radius`` ``{"radius": r}`` (the reply also counts the masks that reach no neighbour)
     rebuilds the K_i for a new mask radius (0 < r ≤ r_max) and restarts the servo on them.
 
@@ -50,6 +53,11 @@ MAX_BODY = 64 * 1024
 N_PROBES = 2
 #: the servo thread's rate [Hz]: the rate a device would run at
 RATE = 1000.0
+#: a page that owns the probes and sends nothing for this long [s] gives them up (a closed tab)
+OWNER_LEASE = 1.0
+#: what a page that does not own the probes is told
+NOT_OWNER = ("another page is probing this model: its contacts are shown here, and yours wait until it lets go "
+             "(one probe set per server)")
 
 
 class ViewerError(PmaskError):
@@ -88,7 +96,10 @@ class ViewerSession:
         self.engine = engine
         self.rate = float(rate)
         self.spin = float(spin)
-        self.lock = threading.Lock()
+        self.lock = threading.Lock()  # held to read or swap the live contacts, never during a rebuild
+        self.build_lock = threading.Lock()
+        self.owner, self.owner_seen = None, 0.0  # the page that owns the probes, and when it last spoke
+        self.applied = [None] * N_PROBES  # the probes the owner last set
         P = model.points
         lo, hi = P.min(axis=0), P.max(axis=0)
         self.diag = float(np.linalg.norm(hi - lo))
@@ -109,21 +120,27 @@ class ViewerSession:
 
     # ------------------------------------------------------------------ state
     def _build(self, radius: float) -> None:
+        """Make K_i, the contact surface, the ζ table and a running servo thread for ``radius`` while the old
+        one keeps serving the probes (``self.lock`` is not held: a probe request is answered meanwhile), then
+        swap them in at once under the lock.  One rebuild at a time (``self.build_lock``)."""
         lo, hi = self.radius_range
         if not (lo <= radius <= hi):
             raise BadRequest(f"radius must lie in [{lo:.6g}, {hi:.6g}] (model units), got {radius:.6g}")
-        stiffness = self.model.stiffness(self.mask, radius)
-        # the mouse is not a device: a drag may move the probe several edge lengths between two page
-        # updates, which a device's plausibility check (max_jump) would hold as an implausible jump
-        contacts = Contacts(stiffness, N_PROBES, engine=self.engine, max_jump=2.0 * self.diag)
-        contacts.start(self.rate, spin=self.spin)
-        contacts.set_probes([self.park] * N_PROBES)
-        old, self.contacts = self.contacts, contacts
-        if old is not None:
-            old.stop()
-        self.stiffness = stiffness
-        self.radius = float(radius)
-        self.fields["masked"] = _norms(stiffness.K_vertex)
+        with self.build_lock:
+            stiffness = self.model.stiffness(self.mask, radius)
+            # the mouse is not a device: a drag may move the probe several edge lengths between two page
+            # updates, which a device's plausibility check (max_jump) would hold as an implausible jump
+            contacts = Contacts(stiffness, N_PROBES, engine=self.engine, max_jump=2.0 * self.diag)
+            contacts.start(self.rate, spin=self.spin)
+            contacts.set_probes([self.park] * N_PROBES)
+            masked = _norms(stiffness.K_vertex)
+            with self.lock:
+                old, self.contacts = self.contacts, contacts
+                self.stiffness = stiffness
+                self.radius = float(radius)
+                self.fields["masked"] = masked
+            if old is not None:
+                old.stop()
 
     def close(self) -> None:
         """Stop the servo thread."""
@@ -141,11 +158,20 @@ class ViewerSession:
                 "engine": self.contacts.engine, "rate": self.rate,
                 "fields": {k: v.tolist() for k, v in self.fields.items()}}
 
-    def probe(self, probes: list, deform: bool) -> dict:
-        """Set the probes (None: lifted) and return the servo thread's latest contacts."""
+    def probe(self, probes: list, deform: bool, client: str = "") -> dict:
+        """Set the probes (None: lifted) and return the servo thread's latest contacts.  ``client``: the page's
+        id; the probes are applied only for the page that owns them (module docstring)."""
         with self.lock:
             c, stiffness = self.contacts, self.stiffness  # one radius for the whole answer
-            c.set_probes([self.park if p is None else p for p in probes])
+            now = time.monotonic()
+            touching = any(p is not None for p in probes)
+            owner = (self.owner is None or self.owner == client or now - self.owner_seen > OWNER_LEASE)
+            if owner:
+                self.owner = client if touching else None
+                self.owner_seen = now
+                c.set_probes([self.park if p is None else p for p in probes])
+                self.applied = list(probes)
+            shown = probes if owner else self.applied  # a page that does not own them sees the owner's probes
             forces, statuses = c.read()
             states = c.states
             stats = c.tick_stats()
@@ -154,9 +180,9 @@ class ViewerSession:
         out = []
         for k, (f, s, st) in enumerate(zip(forces, statuses, states)):
             f = [float(x) for x in f]
-            entry = {"probe": probes[k], "force": f, "force_norm": math.sqrt(sum(x * x for x in f)),
+            entry = {"probe": shown[k], "force": f, "force_norm": math.sqrt(sum(x * x for x in f)),
                      "status": Status(int(s)).name, "depth": float(st.depth), "proxy": None, "k_norm": None}
-            if st.tri >= 0 and probes[k] is not None:
+            if st.tri >= 0 and shown[k] is not None:
                 b = np.asarray(st.b, float)
                 entry["proxy"] = (b @ P[T[st.tri]]).tolist()
                 K = (b @ stiffness.table[st.tri]).reshape(3, 3)
@@ -164,7 +190,9 @@ class ViewerSession:
             out.append(entry)
         reply = {"contacts": out, "servo": {"engine": c.engine, "rate": self.rate, "ticks": int(stats["ticks"]),
                                            "late": int(stats["late"]), "step_max": float(stats["step_max"])},
-                 "radius": self.radius}
+                 "radius": self.radius, "owner": owner}
+        if not owner:
+            reply["notice"] = NOT_OWNER
         if u is not None:
             reply["deformation"] = base64.b64encode(np.ascontiguousarray(u, np.float32).tobytes()).decode()
         return reply
@@ -200,18 +228,21 @@ class ViewerSession:
             deform = msg.get("deform", False)
             if not isinstance(deform, bool):
                 raise BadRequest("deform must be true or false")
-            return _json(200, self.probe(probes, deform))
+            client = msg.get("client", "")
+            if not isinstance(client, str) or len(client) > 64:
+                raise BadRequest("client must be a string of at most 64 characters (the page's id)")
+            return _json(200, self.probe(probes, deform, client))
         if method == "POST" and path == "/api/radius":
             r = _message(body).get("radius")
             if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r):
                 raise BadRequest("radius must be a finite number (model units)")
+            try:
+                self._build(float(r))
+            except PmaskError as exc:  # e.g. a mask too large for the body: the old radius stays
+                raise BadRequest(str(exc)) from None
             with self.lock:
-                try:
-                    self._build(float(r))
-                except PmaskError as exc:  # e.g. a mask too large for the body: the old radius stays
-                    raise BadRequest(str(exc)) from None
-            masks = self.stiffness.masks
-            return _json(200, {"radius": self.radius, "masked": self.fields["masked"].tolist(),
+                masks, radius, masked = self.stiffness.masks, self.radius, self.fields["masked"]
+            return _json(200, {"radius": radius, "masked": masked.tolist(),
                                "single_vertex": int(masks.single_vertex), "masks": int(len(masks.centres))})
         if path in FILES or path.startswith("/api/"):
             return _json(405, {"error": f"{method[:20]!r} is not allowed on {path[:200]!r}"})

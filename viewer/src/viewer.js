@@ -9,6 +9,8 @@ const $ = (id) => document.getElementById(id);
 const PRESS_MS = 150;            // a press ramps from just outside to the set depth over this long
 const COLOURS = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]]; // viridis stops
 const PROBE_COLOURS = [0xff5a5a, 0x5ab4ff];
+// this page's id: the server applies the probes of one page at a time and tells the others
+const CLIENT = Array.from({ length: 4 }, () => Math.floor(Math.random() * 2 ** 32).toString(16)).join('');
 
 function colourAt(t) {
   t = Math.min(1, Math.max(0, t)) * (COLOURS.length - 1);
@@ -215,7 +217,7 @@ async function main() {
   // ---------------------------------------------------------------- server round trips
   // wasDeformed: the last reply's surface was displaced, so the page keeps asking for the deformation after a
   // release until the servo reports it flat (one request raced the servo's release and left it dented)
-  let inflight = false, wasDeformed = false, retryAt = 0, backoff = 0;
+  let inflight = false, wasDeformed = false, othersProbe = false, retryAt = 0, backoff = 0;
   const stats = { fps: 0, ups: 0, rtt: 0, frames: 0, updates: 0, failures: 0, t0: performance.now(), history: [] };
   const disp = geom.attributes.position.array;
   function applyReply(reply) {
@@ -274,15 +276,18 @@ async function main() {
     inflight = true;
     const probes = probePositions(now);
     const touching = probes.some((p) => p !== null);
-    const deform = Number(exaggeration.value) > 0 && (touching || wasDeformed);
+    const deform = Number(exaggeration.value) > 0 && (touching || wasDeformed || othersProbe);
     const t0 = performance.now();
     try {
-      const umax = applyReply(await api('/api/probe', { probes, deform }));
+      const reply = await api('/api/probe', { probes, deform, client: CLIENT });
+      const umax = applyReply(reply);
       stats.updates++;
       stats.rtt = performance.now() - t0;
       wasDeformed = deform && umax > 0;
+      othersProbe = reply.owner === false;   // another page's probes are shown, and this page's wait
+      document.body.dataset.owner = othersProbe ? '0' : '1';
       backoff = 0;
-      $('error').textContent = notice;
+      $('error').textContent = othersProbe ? reply.notice : notice;
     } catch (e) { serverLost(e.message); }
     inflight = false;
   }
