@@ -103,14 +103,12 @@ def batch_bench(stiff, n=1_000_000) -> dict:
         del K
     return {"queries": n, "seconds": min(runs), "first_run_s": runs[0], "queries_per_s": n / min(runs)}
 
-def haptics_only() -> None:
-    """`make bench ONLY=haptics`: the haptic step alone, on kidneys precomputed afresh at the three sizes (one
-    run each: the precompute rows are not replaced), written into the stored results beside the other
-    sections with its own date, which the page states.  For a change to the contact law or the servo, whose
-    numbers must not wait for the whole hour-long bench."""
+def section_only(section: str) -> None:
+    """`make bench ONLY=haptics` (or ONLY=viewer): one section alone, on kidneys precomputed afresh at the
+    three sizes (one run each: the precompute rows are not replaced), written into the stored results beside
+    the other sections with its own date, which the page states.  For a change to the contact law, the servo
+    or the viewer, whose numbers must not wait for the whole hour-long bench."""
     from pmask.runtime import Model
-
-    import runtime_bench
 
     stored = HERE / "results.json"
     res = json.loads(stored.read_text())
@@ -120,10 +118,17 @@ def haptics_only() -> None:
         print(f"precompute kidney size={size} ...", flush=True)
         precompute(size, work / f"kidney_{size}.h5")
         arts.append(work / f"kidney_{size}.h5")
-    print("haptics ...", flush=True)
-    res["haptics"] = runtime_bench.run({len(Model.load(p).points): p for p in arts},
-                                       runtime_bench.synthetic_stiffness, work)
-    res["haptics"]["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
+    print(f"{section} ...", flush=True)
+    if section == "haptics":
+        import runtime_bench
+
+        res["haptics"] = runtime_bench.run({len(Model.load(p).points): p for p in arts},
+                                           runtime_bench.synthetic_stiffness, work)
+    else:
+        import viewer_bench
+
+        res["viewer"] = viewer_bench.run({n: p for n, p in ((len(Model.load(p).points), p) for p in arts) if n > 1000})
+    res[section]["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
     import shutil
 
     shutil.rmtree(work, ignore_errors=True)
@@ -136,9 +141,9 @@ def haptics_only() -> None:
 def main() -> None:
     if "--only" in sys.argv:
         part = sys.argv[sys.argv.index("--only") + 1:][:1]
-        if part != ["haptics"]:
-            sys.exit("bench: --only takes 'haptics' (the other sections run as one: `make bench`)")
-        return haptics_only()
+        if part not in (["haptics"], ["viewer"]):
+            sys.exit("bench: --only takes 'haptics' or 'viewer' (the other sections run as one: `make bench`)")
+        return section_only(part[0])
 
     work = Path(tempfile.mkdtemp(prefix="pmask-bench-"))
     res = {"machine": {"platform": platform.platform(), "cpu": _cpu(), "cores": os.cpu_count(),
@@ -393,11 +398,14 @@ def markdown(res: dict) -> str:
 
     if res["haptics"].get("date"):
         L += ["", f"The haptic step below was measured again on its own, {res['haptics']['date']} on the same "
-                  "machine (`make bench ONLY=haptics`), after a change to the contact law."]
+                  "machine (`make bench ONLY=haptics`)."]
     L += ["", runtime_bench.markdown(res["haptics"])]
     import viewer_bench
 
-    L += ["", viewer_bench.markdown(res["viewer"])]
+    if res["viewer"].get("date"):
+        L += ["", f"The viewer below was measured again on its own, {res['viewer']['date']} on the same machine "
+                  "(`make bench ONLY=viewer`)."]
+    L += ["", viewer_bench.markdown({k: v for k, v in res["viewer"].items() if k != "date"})]
     return "\n".join(L) + "\n"
 
 if __name__ == "__main__":

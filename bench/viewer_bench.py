@@ -78,6 +78,7 @@ def one(path: Path, screenshot: Path | None = None) -> dict:
             d.save_screenshot(str(screenshot))
         ActionChains(d).release().perform()
         probing = _windows(d, n0 + 1, True)
+        radius = radius_change(session)
     finally:
         d.quit()
         srv.shutdown()
@@ -91,7 +92,50 @@ def one(path: Path, screenshot: Path | None = None) -> dict:
                 "reads_median": float(np.median(u)) if u else None}
 
     return {"surface_vertices": len(m.points), "idle": summary(idle), "probing": summary(probing),
-            "servo_ticks": t1["ticks"] - t0["ticks"], "servo_late": t1["late"] - t0["late"], "window": list(WINDOW)}
+            "servo_ticks": t1["ticks"] - t0["ticks"], "servo_late": t1["late"] - t0["late"], "window": list(WINDOW),
+            "radius_change": radius}
+
+
+def radius_change(session, changes: int = 6) -> dict:
+    """A radius change as the page makes it (POST /api/radius: K_i, contact surface, ζ table, a new servo
+    thread, the swap), between 2 and 2.5 mean edges and back, with the page open and polling; meanwhile a
+    probe request every 2 ms from another thread, whose longest gap between answers shows whether the probe
+    stayed live.  The same probe loop without a rebuild is the noise reference."""
+    import json
+
+    from pmask.viewer.server import N_PROBES
+
+    h = session.model.mean_edge_length
+    def gaps(seconds=None, during=None):
+        out, last = [], time.perf_counter()
+        start = last
+        while during() if during else time.perf_counter() - start < seconds:
+            session.probe([None] * N_PROBES, deform=False)
+            now = time.perf_counter()
+            out.append(now - last)
+            last = now
+            time.sleep(0.002)
+        return out
+
+    times, live = [], []
+    for k in range(changes):
+        r = (2.5 if k % 2 == 0 else 2.0) * h
+        t = threading.Thread(target=lambda r=r: times.append(_timed(session.respond, "POST", "/api/radius",
+                                                                     json.dumps({"radius": r}).encode())))
+        t.start()
+        live += gaps(during=t.is_alive)
+        t.join()
+    idle = gaps(seconds=2.0)
+    return {"changes": changes, "rebuild_s_median": float(np.median(times)), "rebuild_s_max": float(max(times)),
+            "probe_gap_ms_max": 1e3 * float(max(live)), "probe_gap_ms_max_idle": 1e3 * float(max(idle))}
+
+
+def _timed(f, *args) -> float:
+    t0 = time.perf_counter()
+    status = f(*args)[0]
+    if status != 200:
+        raise RuntimeError(f"radius change answered {status}")
+    return time.perf_counter() - t0
 
 
 def run(arts: dict) -> dict:
@@ -118,6 +162,16 @@ def markdown(res: dict) -> str:
         i, p = r["idle"], r["probing"]
         L.append(f"| {n} | {i['fps_median']:.0f} | {p['fps_median']:.0f} | {p['fps_min']:.0f} | {p['reads_median']:.0f} | "
                  f"{r['servo_late']} of {r['servo_ticks']} |")
+    rc = {n: r["radius_change"] for n, r in res.items() if r.get("radius_change")}
+    if rc:
+        L += ["", "**Radius change in the viewer** (POST /api/radius between 2 and 2.5 mean edges, the page open: K_i, "
+              "contact surface, ζ table and a new servo thread built beside the running one, then swapped; a probe "
+              "request every 2 ms meanwhile, its longest wait beside the same loop's with no rebuild)", "",
+              "| surface vertices | changes | rebuild s median | rebuild s max | longest probe wait during, ms | "
+              "longest probe wait idle, ms |", "|---|---|---|---|---|---|"]
+        for n, r in rc.items():
+            L.append(f"| {n} | {r['changes']} | {r['rebuild_s_median']:.2f} | {r['rebuild_s_max']:.2f} | "
+                     f"{r['probe_gap_ms_max']:.1f} | {r['probe_gap_ms_max_idle']:.1f} |")
     return "\n".join(L)
 
 
