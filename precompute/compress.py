@@ -331,10 +331,6 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
     reader's layout with offsets relative to this tile (:func:`assemble` shifts them)."""
     t0 = time.perf_counter()
-    trace = os.environ.get("PMASK_TILE_TRACE")
-    if trace:  # test hook: which process ran which tile (a test kills a worker and reads who ran what)
-        with open(trace, "a") as f:
-            f.write(f"{column} {os.getpid()}\n")
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     X = panel_columns(factor, tree.perm, c0, c1)
     t_solve = time.perf_counter() - t0
@@ -469,7 +465,10 @@ def connect(scheduler: str | None, workers: int | None, memory_limit: int | None
     n = workers or os.cpu_count() or 1
     for name in ("distributed", "distributed.scheduler", "distributed.nanny", "distributed.worker"):
         logging.getLogger(name).setLevel(logging.WARNING)  # not pmask's INFO lines: a worker's start is no news
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+    # no dashboard: dashboard_address=None still binds the scheduler's HTTP routes to port 8787 ("Port 8787 is
+    # already in use" beside another cluster); a free local port and dashboard=False start neither
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
+                           scheduler_kwargs={"dashboard": False},
                            memory_limit=memory_limit if memory_limit else "auto", silence_logs=logging.ERROR)
     return Client(cluster)
 

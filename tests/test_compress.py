@@ -163,6 +163,25 @@ def test_export_table_of_a_compressed_artifact_leaves_zeta_out_and_says_why(pair
     assert "zeta" not in t and len(t["points"]) == len(comp.points)
 
 
+def _tile_trace(path: str):
+    """A Dask worker plugin (test code, not the library's): each tile task that starts executing appends
+    "column pid" to a file, so a test that kills a worker can read who ran what.  A local class, so that
+    cloudpickle sends it by value (the workers cannot import this test module)."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class TileTrace(WorkerPlugin):
+        name = "pmask-tile-trace"
+
+        def transition(self, key, start, finish, **kwargs):
+            if finish == "executing" and isinstance(key, str) and key.startswith("pmask-tile-"):
+                import os
+
+                with open(path, "a") as f:
+                    f.write(f"{int(key.split('-')[2])} {os.getpid()}\n")
+
+    return TileTrace()
+
+
 def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
     """Two worker processes, small panels; after the first tile arrives one worker is killed (SIGKILL).
     The run finishes with the same numbers, and no tile that had finished is run again."""
@@ -171,15 +190,15 @@ def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
     from pmask.pipeline import stages
 
     trace = tmp_path / "trace.txt"
-    monkeypatch.setenv("PMASK_TILE_TRACE", str(trace))  # inherited by the worker processes
     spec = Spec(model="kidney", r_max=R_MAX)
     mesh = stages.support_stage(spec, stages.mesh_stage(spec))
     surf = stages.surface_stage(spec, mesh)
     factor, _ = stages.factor_stage(spec, mesh, surf)
     pts = mesh.points[surf.vertices[surf.regions.contact]]
     finished, killed = [], []
-    with Client(LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)) as client:
+    with Client(LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False})) as client:
         pids = client.run(os.getpid)
+        client.register_plugin(_tile_trace(str(trace)))  # which process started which tile
 
         def on_tile(t):
             finished.append(t["column"])
@@ -281,7 +300,7 @@ def test_a_scheduler_address_runs_the_same_tiles(pair, tmp_path):
     artifact equals the local run's."""
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False}) as cluster:
         s = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, scheduler=cluster.scheduler_address), tmp_path / "k.h5")
     assert s["factor_stats"]["compress"]["scheduler"] == cluster.scheduler_address
     remote, local = Model.load(tmp_path / "k.h5").Xi, pair[1].Xi
