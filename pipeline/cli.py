@@ -55,11 +55,16 @@ def add_precompute(sub) -> None:
     src.add_argument("--segmentation", help="label image (NIfTI .nii/.nii.gz or NRRD): the organ of --label becomes "
                                             "the surface (needs the segmentation extra)")
     p.add_argument("--label", type=int, help="with --segmentation: the organ's label value")
-    p.add_argument("--repair", nargs="?", const="meshfix", choices=("meshfix", "voxel"), default=None,
+    p.add_argument("--repair", nargs="?", const="meshfix", choices=("meshfix", "voxel", "auto"), default=None,
                    help="repair the surface first, with a report of what changed: meshfix (the default; pymeshfix: "
-                        "largest shell, holes, non-manifold parts, self-intersections; the repair extra) or voxel "
+                        "largest shell, holes, non-manifold parts, self-intersections; the repair extra), voxel "
                         "(rebuilt from the solid it encloses at a third of --edge-length; mends what meshfix cannot, "
-                        "rounds features below a voxel; the segmentation extra)")
+                        "rounds features below a voxel; the segmentation extra) or auto (as it is, then meshfix if it "
+                        "keeps 95 %% of the area, then voxel, then meshfix whatever it keeps; reports the route and "
+                        "the distance to the input; both extras)")
+    p.add_argument("--shell", type=int, metavar="K",
+                   help="with --surface: precompute the K-th largest shell (by area; 1 = the largest) of a file that "
+                        "holds several bodies (pmask inspect lists them)")
     p.add_argument("--edge-length", type=float, help="target edge length for --surface (input units)")
     p.add_argument("--fixed", help="support region selector: 'z<-0.9', 'box:x0,y0,z0,x1,y1,z1', "
                                    "'sphere:cx,cy,cz,r', 'group:NAME', unions with '|'")
@@ -113,7 +118,8 @@ def cmd_precompute(args) -> int:
     if args.segmentation:
         require_extra("segmentation")
     if args.repair:
-        require_extra("repair" if args.repair == "meshfix" else "segmentation")
+        for extra in {"meshfix": ("repair",), "voxel": ("segmentation",), "auto": ("repair", "segmentation")}[args.repair]:
+            require_extra(extra)
     label = args.model or Path(args.surface or args.volume or args.segmentation).name.split(".")[0]
     params = dict(args.param)
     if args.size is not None:
@@ -124,7 +130,8 @@ def cmd_precompute(args) -> int:
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
                 element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,
                 solve_timeout=args.solve_timeout,
-                segmentation=args.segmentation, label=args.label, repair=args.repair, compress=args.compress,
+                segmentation=args.segmentation, label=args.label, repair=args.repair, shell=args.shell,
+                compress=args.compress,
                 solver=args.solver, scheduler=args.scheduler, workers=args.workers, worker_memory=args.worker_memory)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
@@ -138,6 +145,11 @@ def cmd_precompute(args) -> int:
           f"{summary['fixed']} fixed (Λu), {summary['contact']} in Ξ")
     if summary.get("remesh"):
         g = summary["remesh"]
+        if g.get("auto"):
+            a = g["auto"]
+            print(f"  repair auto: {'route ' + a['route'] if a['route'] != 'none' else 'no repair needed'}; the "
+                  f"surface lies within {1e3 * a['hausdorff_to_input_m']:.3g} mm of the input (Hausdorff) with "
+                  f"{100 * a['area_kept']:.1f} % of its area" + "".join(f"\n    not used: {t}" for t in a["tried"]))
         if g.get("repair"):
             b, a = g["repair"]["before"], g["repair"]["after"]
             if g["repair"].get("route") == "voxel":
@@ -145,7 +157,7 @@ def cmd_precompute(args) -> int:
                       f"separate solid(s), the largest kept; {b['triangles']} -> {a['triangles']} triangles")
             else:
                 print(f"  repair: {b['boundary_edges']} boundary and {b['non_manifold_edges']} non-manifold edges "
-                      f"before; {b['triangles']} -> {a['triangles']} triangles")
+                      f"before; {g['repair'].get('changes') or str(b['triangles']) + ' -> ' + str(a['triangles']) + ' triangles'}")
         print(f"  remesh: surface moved by up to {1e3 * g['hausdorff_m']:.3g} mm (Hausdorff, sampled every "
               f"{1e3 * g['sample_spacing_m']:.2g} mm), volume {100 * g['volume_change']:+.2f} %")
     c = (summary.get("factor_stats") or {}).get("compress")

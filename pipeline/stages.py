@@ -102,6 +102,7 @@ class Spec:
     segmentation: str | None = None
     label: int | None = None
     repair: str | None = None
+    shell: int | None = None
     compress: float | None = None
     solver: str = "factor"
     scheduler: str | None = None
@@ -201,7 +202,8 @@ def stage_keys(spec: Spec) -> dict:
     versions = library_versions()
     code = code_digest()
     geometry = ("model", "params", "surface", "volume", "units", "edge_length") + (
-        ("segmentation", "label") if d["segmentation"] else ()) + (("repair",) if d["repair"] else ())
+        ("segmentation", "label") if d["segmentation"] else ()) + (("repair",) if d["repair"] else ()) + (
+        ("shell",) if d.get("shell") is not None else ())
     # (the optional keys only when used: earlier artifacts keep their keys)
     mesh = _digest({k: d[k] for k in geometry}
                    | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
@@ -249,10 +251,13 @@ def validate(spec: Spec, out: Path) -> None:
         raise InputError("give one of --surface, --volume and --segmentation")
     if spec.segmentation and (spec.label is None or isinstance(spec.label, bool) or not isinstance(spec.label, int)):
         raise InputError("--segmentation needs --label N (the label value of the organ in the image)")
-    if spec.repair not in (None, False, True, "meshfix", "voxel"):
-        raise InputError(f"--repair {spec.repair}: use meshfix or voxel")
+    if spec.repair not in (None, False, True, "meshfix", "voxel", "auto"):
+        raise InputError(f"--repair {spec.repair}: use meshfix, voxel or auto")
     if spec.repair and not (spec.surface or spec.segmentation):
         raise InputError("--repair applies to --surface and --segmentation inputs")
+    if spec.shell is not None and (isinstance(spec.shell, bool) or not isinstance(spec.shell, int) or spec.shell < 1
+                                   or not spec.surface):
+        raise InputError("--shell K applies to --surface inputs and counts from 1 (the largest shell by area)")
     if spec.compress is not None:
         from pmask.precompute import compress
 
@@ -376,7 +381,7 @@ def mesh_stage(spec: Spec) -> ModelMesh:
         points, tets, change = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
                                                       scale=spec.scale, units_given=spec.units is not None,
                                                       timeout=spec.mesh_timeout, repair=spec.repair,
-                                                      xi_of_all=spec.contact is None)
+                                                      xi_of_all=spec.contact is None, shell=spec.shell)
         return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
                          info={"source": Path(spec.surface).name, "remesh": change})
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)

@@ -239,7 +239,8 @@ def check_extent(points: np.ndarray, units_given: bool, name, edge_length: float
 
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
-                   timeout: float = 600.0, repair: str | None = None, xi_of_all: bool = False):
+                   timeout: float = 600.0, repair: str | None = None, xi_of_all: bool = False,
+                   shell: int | None = None):
     """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
     after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
@@ -253,7 +254,7 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
     import tempfile
 
     job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
-           "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout}
+           "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout, "shell": shell}
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
@@ -317,7 +318,7 @@ def _worker(argv) -> int:
         report: dict = {}
         points, tets = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
                                       units_given=job["units_given"], report=report, repair=job["repair"],
-                                      xi_of_all=job["xi_of_all"])
+                                      xi_of_all=job["xi_of_all"], shell=job.get("shell"))
         np.savez(out, points=points, tets=tets)
         result = {"kind": "ok", "report": report}
     except MeshError as exc:
@@ -333,7 +334,7 @@ def _worker(argv) -> int:
 REPAIR_AREA_WARN = 0.05
 
 
-def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray, np.ndarray, dict]:
+def repair_surface(pts: np.ndarray, tris: np.ndarray, name, warn: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
     """``--repair`` / ``--repair meshfix``: pymeshfix (Attene's MeshFix) keeps the largest shell, removes non-manifold parts and
     self-intersections, fills holes and orients the result outwards; returns it with what it changed."""
     try:
@@ -345,24 +346,26 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name) -> tuple[np.ndarray,
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
     d = edge_defects(t)
     before = {"vertices": int(len(upts)), "triangles": int(len(t)), "boundary_edges": d["boundary_edges"],
-              "non_manifold_edges": d["non_manifold_edges"]}
+              "non_manifold_edges": d["non_manifold_edges"], "inconsistent_edges": d["inconsistent_edges"]}
     mf = pymeshfix.MeshFix(upts, t)
     mf.repair()
     out_p, out_t = np.asarray(mf.points, float), np.asarray(mf.faces, np.int64)
     if len(out_t) == 0:
-        raise MeshError(f"{name}: --repair could not make a closed surface of this file (nothing was left); "
-                        "repair it in a mesh tool")
+        raise MeshError(f"{name}: MeshFix could not make a closed surface of this file (nothing was left); "
+                        "mend it in a mesh tool")
     if enclosed_volume(out_p, out_t) < 0:
         out_t = out_t[:, ::-1]
     area_before = float(triangle_areas(upts, t).sum())
     area_after = float(triangle_areas(out_p, out_t).sum())
     fixed = {"before": before | {"area": area_before},
-             "after": {"vertices": int(len(out_p)), "triangles": int(len(out_t)), "area": area_after}}
-    if area_after < (1 - REPAIR_AREA_WARN) * area_before:
+             "after": {"vertices": int(len(out_p)), "triangles": int(len(out_t)), "area": area_after},
+             "changes": repair_changes(upts, t, out_p, out_t, before)}
+    if warn and area_after < (1 - REPAIR_AREA_WARN) * area_before:
         log.warning("%s: --repair meshfix kept %.0f %% of the surface area: it drops all but the largest shell, and "
                     "shells that run into each other lose the smaller one; --repair voxel keeps their union",
                     name, 100 * area_after / area_before)
-    log.warning("%s: --repair: %s", name, repair_changes(upts, t, out_p, out_t, before))
+    if warn:
+        log.warning("%s: --repair: %s", name, fixed["changes"])
     return out_p, out_t, fixed
 
 
@@ -375,8 +378,9 @@ def repair_changes(p_in, t_in, p_out, t_out, before: dict) -> str:
     parts = []
     if n_shells > 1:
         parts.append(f"kept the largest of {n_shells} shells")
-    for key, what in (("boundary_edges", "open (boundary) edges"), ("non_manifold_edges", "non-manifold edges")):
-        if before[key] != d[key]:
+    for key, what in (("boundary_edges", "open (boundary) edges"), ("non_manifold_edges", "non-manifold edges"),
+                      ("inconsistent_edges", "inconsistently oriented edges")):
+        if before.get(key, d[key]) != d[key]:
             parts.append(f"{what} {before[key]} -> {d[key]}")
     if len(t_out) != before["triangles"]:
         parts.append(f"triangles {before['triangles']} -> {len(t_out)}")
@@ -425,9 +429,65 @@ def pinched_vertices(tris: np.ndarray) -> np.ndarray:
 DEBRIS_AREA_SHARE = 0.01
 
 
+def winding_numbers(p: np.ndarray, t: np.ndarray, x: np.ndarray, chunk: int = 2_000_000) -> np.ndarray:
+    """The generalised winding number of the triangle surface (p, t) at points x (Jacobson, Kavan and
+    Sorkine-Hornung 2013): Σ over triangles of the solid angle they subtend at x (Van Oosterom and Strackee's
+    formula) over 4π.  1 inside a closed outward surface, 0 outside, and a graceful in-between near holes and
+    overlaps, where a ray test flips."""
+    tri = p[np.asarray(t, np.int64)]
+    out = np.zeros(len(x))
+    step = max(1, chunk // max(len(tri), 1))
+    for s0 in range(0, len(x), step):
+        q = x[s0:s0 + step, None, None, :]
+        a, b, c = (tri[None, :, k, :] - q[:, :, 0, :] for k in range(3))
+        la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
+        num = np.einsum("ijk,ijk->ij", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ijk,ijk->ij", a, b) * lc + np.einsum("ijk,ijk->ij", b, c) * la
+               + np.einsum("ijk,ijk->ij", c, a) * lb)
+        out[s0:s0 + step] = 2.0 * np.arctan2(num, den).sum(axis=1) / (4.0 * np.pi)
+    return out
+
+
+def shells_overlap(pts, tris, tri_label, a: int, b: int, samples: int = 64) -> bool:
+    """Whether shells a and b run into each other or one holds the other: some of either's vertices lie
+    inside the other (winding number above ½), sampled."""
+    rng = np.random.default_rng(0)
+    for inner, outer in ((a, b), (b, a)):
+        v = np.unique(tris[tri_label == inner])
+        v = v if len(v) <= samples else rng.choice(v, samples, replace=False)
+        if np.any(np.abs(winding_numbers(pts, tris[tri_label == outer], pts[v])) > 0.5):
+            return True
+    return False
+
+
+class SeveralBodiesError(MeshError):
+    """A surface of several bodies (not debris): which one is the organ is the user's choice (``--shell``)."""
+
+
+def shell_list(per: np.ndarray, tri_label: np.ndarray) -> str:
+    """The shells largest first, as a refusal lists them: "1: 45.9 % of the area (2,560 triangles), ..."."""
+    counts = np.bincount(tri_label, minlength=len(per))
+    order = [k for k in np.argsort(-per) if counts[k]]
+    return ", ".join(f"{r + 1}: {100 * per[k] / per.sum():.1f} % of the area ({counts[k]:,} triangles)"
+                     for r, k in enumerate(order[:8])) + (", ..." if len(order) > 8 else "")
+
+
+def select_shell(pts: np.ndarray, tris: np.ndarray, rank: int, name):
+    """``--shell K``: the K-th largest shell by area (1 = the largest), before any check or repair."""
+    t = np.asarray(tris, np.int64)
+    tri_label, per, _ = shells(pts, t)
+    counts = np.bincount(tri_label, minlength=len(per))
+    order = [k for k in np.argsort(-per) if counts[k]]
+    if not 1 <= rank <= len(order):
+        raise MeshError(f"{name}: --shell {rank}, but the surface has {len(order)} shell(s): "
+                        f"{shell_list(per, tri_label)}")
+    return pts, t[tri_label == order[rank - 1]]
+
+
 def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     """The largest connected shell; debris (the rest, ≤ 1 % of the area) dropped with a warning, a second
-    body refused.  A segmented heart exported for 3D printing had 77 specks beside its main shell."""
+    body refused, listing the shells for ``--shell``.  A segmented heart exported for 3D printing had 77
+    specks beside its main shell; a striatum came as 4 bodies."""
     tri_label, per, _ = shells(pts, tris)
     if len(per) == 1:
         return pts, tris
@@ -435,9 +495,15 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     rest = per.sum() - per[main]
     pieces = int(np.count_nonzero(np.bincount(tri_label, minlength=len(per)))) - 1
     if rest > DEBRIS_AREA_SHARE * per.sum():
-        raise MeshError(f"{name}: the surface has {pieces + 1} separate shells and the smaller ones hold "
-                        f"{100 * rest / per.sum():.1f} % of the area: pmask models one body; export the organ "
-                        "you want on its own")
+        big = [k for k in np.argsort(-per) if k != main and per[k] > DEBRIS_AREA_SHARE * per.sum()]
+        if any(shells_overlap(pts, tris, tri_label, main, k) for k in big):
+            raise MeshError(f"{name}: the surface has {pieces + 1} shells that run into each other or lie one inside "
+                            f"another (largest first: {shell_list(per, tri_label)}): the body is their union, which "
+                            "--repair voxel builds (--repair auto tries it); --shell K takes one of them alone")
+        raise SeveralBodiesError(f"{name}: the surface has {pieces + 1} separate shells and the smaller ones hold "
+                                 f"{100 * rest / per.sum():.1f} % of the area (largest first: "
+                                 f"{shell_list(per, tri_label)}); pmask models one body: choose it with --shell K "
+                                 "(1 = the largest), or export the organ you want on its own")
     log.warning("%s: dropped %d debris piece(s) apart from the main shell (%.2f %% of the area)", name, pieces,
                 100 * rest / per.sum())
     keep = tri_label == main
@@ -483,7 +549,7 @@ def check_size_before_meshing(pts, tris, edge_length: float, name, xi_of_all: bo
 
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
                    units_given: bool = True, report: dict | None = None, repair: str | None = None,
-                   xi_of_all: bool = False):
+                   xi_of_all: bool = False, shell: int | None = None):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
 
     Follows gmsh tutorial t13: classify the triangles into patches, build a
@@ -506,7 +572,87 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     check_finite(raw, path)
     check_extent(raw, units_given, path, edge_length)
     tris = np.concatenate(blocks)
-    if repair:  # "meshfix" (True: the same) or "voxel"
+    if shell is not None:
+        raw, tris = select_shell(raw, tris, shell, path)
+    if repair != "auto":
+        return _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of_all)
+    return _remesh_auto(raw, tris, path, edge_length, angle_deg, report, xi_of_all)
+
+
+#: ``--repair auto``'s order, measured over the corpus and the public scans (bench/repair_compare.py): as
+#: it is; MeshFix, which keeps nearly all of the geometry when it keeps most of the area; the voxel route,
+#: which keeps the union of shells that share walls or run into each other; MeshFix whatever area it keeps
+AUTO_ROUTES = (None, "meshfix", "voxel", "meshfix-any-area")
+
+
+def _remesh_auto(raw, tris, path, edge_length, angle_deg, report, xi_of_all):
+    """``--repair auto``: the routes of :data:`AUTO_ROUTES` in turn until one gives a volume mesh; the report
+    says which, what each before it ran into, and what the result did to the input's geometry (Hausdorff
+    distance to the input surface as given, area and volume kept).  All failing, one line lists every
+    route's reason: no advice that was already followed."""
+    tried = []
+    for route in AUTO_ROUTES:
+        if route == "meshfix-any-area" and not any(r == "meshfix" and why.startswith("kept only") for r, why in tried):
+            continue  # only where MeshFix worked but was passed over for the area it dropped
+        sub = {} if report is not None else None
+        try:
+            if route == "meshfix":  # a MeshFix that drops much of the area is worse than the voxel route's union
+                fixed_p, fixed_t, fixed = repair_surface(raw, tris, path, warn=False)
+                kept = fixed["after"]["area"] / max(fixed["before"]["area"], 1e-300)
+                if kept < 1 - REPAIR_AREA_WARN:
+                    tried.append(("meshfix", f"kept only {100 * kept:.0f} % of the area (the largest shell)"))
+                    continue
+            out = _remesh_route(raw, tris, "meshfix" if route == "meshfix-any-area" else route, path, edge_length,
+                                angle_deg, sub, xi_of_all)
+        except SeveralBodiesError:
+            raise  # which body is the organ is the user's to say (--shell), not a repair's to guess
+        except MeshError as exc:
+            tried.append((route or "as it is", _cause(str(exc).replace(f"{path}: ", ""))))
+            continue
+        points, tets = out
+        if report is not None:
+            report.update(sub)
+            report["auto"] = {"route": route or "none", "tried": [f"{r}: {why}" for r, why in tried],
+                              **input_change(raw, tris, points, tets, edge_length)}
+        log.warning("%s: --repair auto: %s%s", path, f"route {route}" if route else "no repair needed",
+                    "".join(f"; {r} was not used ({why})" for r, why in tried))
+        return points, tets
+    raise MeshError(f"{path}: --repair auto tried every route and none gave a solid: "
+                    + "; ".join(f"{r}: {why}" for r, why in tried)
+                    + ". What is left: a smaller --edge-length (thin parts need several elements across; the voxel "
+                      "route's voxels follow it), or mending the file in a mesh tool")
+
+
+def _cause(message: str) -> str:
+    """A refusal without its advice to try a repair route (``--repair auto`` has tried them all)."""
+    import re
+
+    kept = []
+    for part in message.split("; "):
+        part = re.sub(r"^--repair \w+: ", "", part)
+        part = re.sub(r",? or try --repair( \w+)?", "", part)
+        if not re.search(r"\btry --repair", part):
+            kept.append(part)
+    return "; ".join(kept) if kept else message
+
+
+def input_change(raw, tris, points, tets, edge_length: float) -> dict:
+    """What a repaired, remeshed body did to the surface as given (which may be open, overlapping or carry
+    debris): the symmetric Hausdorff distance between the two (:func:`geometry_change`'s sampling) and the
+    share of the input's area the new surface has.  No volume: an open input encloses none."""
+    from pmask.precompute.surface import boundary_surface
+
+    t_in = np.asarray(tris, np.int64)
+    d = geometry_change(raw, t_in, points, tets, edge_length, volume=False)
+    v, t_out = boundary_surface(points, tets)
+    area_in = float(triangle_areas(raw, t_in).sum())
+    return {"hausdorff_to_input_m": d["hausdorff_m"],
+            "area_kept": float(triangle_areas(points[v], t_out).sum()) / max(area_in, 1e-300)}
+
+
+def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of_all):
+    """One route: repair (None, "meshfix" or "voxel"), the surface checks, gmsh; (points, tets)."""
+    if repair:
         if repair == "voxel":
             from pmask.precompute.voxel import voxel_repair
 
@@ -578,7 +724,7 @@ VOLUME_CHANGE_WARN = 0.02
 HAUSDORFF_WARN = 0.5  # x the edge length
 
 
-def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0) -> dict:
+def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0, volume: bool = True) -> dict:
     """How far the remeshed boundary lies from the input surface: the symmetric Hausdorff distance, as the
     largest exact point-to-surface distance over area-uniform samples of each surface (~edge/10 apart, so
     it is short of the true one by at most about that spacing), and the relative change of the volume."""
@@ -601,6 +747,8 @@ def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0)
 
     d1 = surface_distance(sample(p_out, t_out), p_in, t_in).max()
     d2 = surface_distance(sample(p_in, t_in), p_out, t_out).max()
+    if not volume:  # an open or overlapping input encloses no volume to compare with
+        return {"hausdorff_m": float(max(d1, d2)), "sample_spacing_m": spacing}
     vol_in = enclosed_volume(p_in, t_in)
     vol_out = float(np.abs(signed_volumes(points, tets)).sum())
     return {"hausdorff_m": float(max(d1, d2)), "volume_change": vol_out / vol_in - 1.0, "sample_spacing_m": spacing}

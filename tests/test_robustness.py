@@ -43,7 +43,7 @@ def sphere():
 
 @pytest.mark.parametrize("case,message", [
     ("open", "open"), ("nonmanifold", "not manifold"), ("inconsistent", "inconsistent"),
-    ("inverted", "inverted"), ("overlapping", "separate shells"),
+    ("inverted", "inverted"), ("overlapping", "shells that run into each other"),
 ])
 def test_bad_surfaces_are_refused_with_a_clear_message(tmp_path, capsys, sphere, case, message):
     pts, tris = sphere
@@ -63,7 +63,8 @@ def test_bad_surfaces_are_refused_with_a_clear_message(tmp_path, capsys, sphere,
         tris[5] = tris[5][::-1]
     elif case == "inverted":
         tris = tris[:, ::-1]
-    elif case == "overlapping":  # two bodies through each other (gmsh said "intersects itself"; two shells now)
+    elif case == "overlapping":  # two bodies through each other (gmsh said "intersects itself"; now: their union
+        # is the body, which --repair voxel builds)
         pts = np.vstack([pts, pts + [15.0, 0, 0]])
         tris = np.vstack([tris, tris + len(sphere[0])])
     stl = write_stl(tmp_path / "bad.stl", pts, tris)
