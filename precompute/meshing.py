@@ -276,8 +276,10 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
             last = (stderr or b"").decode(errors="replace").strip().splitlines()[-1:] or ["no message"]
             raise MeshError(f"{path}: gmsh crashed while remeshing this surface (exit code {proc.returncode}: "
                             f"{last[0][:200]}); "
-                            "repair the surface (closed, manifold, not self-intersecting), try --repair or "
-                            "another --edge-length") from None
+                            "repair the surface (closed, manifold, not self-intersecting), "
+                            + ("try another --repair route or " if repair and repair != "auto" else
+                               "" if repair == "auto" else "try --repair or ")
+                            + "another --edge-length") from None
         for message in result.get("warnings", []):
             log.warning("%s", message)
         if result["kind"] == "error":
@@ -661,11 +663,22 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
             raw, tris, fixed = repair_surface(raw, tris, path)
         if report is not None:
             report["repair"] = fixed
-    pts, tris = check_surface(raw, tris, str(path))
+    try:
+        pts, tris = check_surface(raw, tris, str(path))
+    except MeshError as exc:
+        if not repair or isinstance(exc, SeveralBodiesError):
+            raise
+        # never advise the route that has just run (a printed heart was told "try --repair" after it)
+        other = "voxel" if repair != "voxel" else "meshfix"
+        raise MeshError(f"{_cause(str(exc))}; this is after --repair {repair}: try --repair {other}, or mend the "
+                        "file in a mesh tool") from None
     check_size_before_meshing(pts, tris, edge_length, path, xi_of_all)
     try:
         points, tets = _remesh_with_fallback(pts, tris, path, edge_length, angle_deg)
     except MeshError as exc:
+        if repair == "meshfix" or repair is True:
+            raise MeshError(f"{_cause(str(exc))}; this is after --repair meshfix: try --repair voxel or a smaller "
+                            "--edge-length") from None
         if repair != "voxel":
             raise
         # the voxel route's surface folds where the body is thinner than about three voxels (the bunny's ears
