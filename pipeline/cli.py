@@ -62,6 +62,14 @@ def add_precompute(sub) -> None:
                         "rounds features below a voxel; the segmentation extra) or auto (as it is, then meshfix if it "
                         "keeps 95 %% of the area, then voxel, then meshfix whatever it keeps; reports the route and "
                         "the distance to the input; both extras)")
+    p.add_argument("--inclusion", action="append", default=[], metavar="FILE",
+                   help="with --surface: a closed surface inside the body (a tumour, a vessel), meshed conformally as a "
+                        "region of its own with --inclusion-E and --inclusion-nu; repeat for several (regions "
+                        "inclusion1, inclusion2, ...; one is 'inclusion')")
+    p.add_argument("--inclusion-E", action="append", type=float, default=[], metavar="E",
+                   help="Young's modulus of each --inclusion [Pa] (one for all, or one per inclusion)")
+    p.add_argument("--inclusion-nu", action="append", type=float, default=[], metavar="NU",
+                   help="Poisson ratio of each --inclusion (default: the body's)")
     p.add_argument("--shell", type=int, metavar="K",
                    help="with --surface: precompute the K-th largest shell (by area; 1 = the largest) of a file that "
                         "holds several bodies (pmask inspect lists them)")
@@ -109,6 +117,30 @@ def add_precompute(sub) -> None:
     p.set_defaults(func=cmd_precompute)
 
 
+def inclusion_materials(args) -> str | None:
+    """``--materials`` with each ``--inclusion``'s material added ("inclusion:E:nu", or "inclusion1:...", ...):
+    one --inclusion-E (and --inclusion-nu) for all, or one per inclusion; ν defaults to the body's."""
+    from pmask.meshes.common import ModelMesh
+    from pmask.precompute.meshing import inclusion_names
+
+    n = len(args.inclusion)
+    if not n:
+        if args.inclusion_E or args.inclusion_nu:
+            raise InputError("--inclusion-E and --inclusion-nu need --inclusion FILE")
+        return args.materials
+    if not args.inclusion_E:
+        raise InputError("--inclusion needs --inclusion-E (the inclusion's Young's modulus in Pa, e.g. 5e4 for a mass "
+                         "5x stiffer than the default tissue)")
+    body_nu = args.nu if args.nu is not None else ModelMesh(points=None, tets=None, fixed="").material["nu"]
+    per = []
+    for name, values in (("--inclusion-E", args.inclusion_E), ("--inclusion-nu", args.inclusion_nu or [body_nu])):
+        if len(values) not in (1, n):
+            raise InputError(f"{name}: give one value for all {n} inclusions or one per inclusion, got {len(values)}")
+        per.append(values * n if len(values) == 1 else values)
+    added = ",".join(f"{name}:{E!r}:{nu!r}" for name, E, nu in zip(inclusion_names(n), *per))
+    return f"{args.materials},{added}" if args.materials else added
+
+
 def cmd_precompute(args) -> int:
     require_extra("precompute")
     from pmask.pipeline.stages import Spec, run
@@ -120,17 +152,19 @@ def cmd_precompute(args) -> int:
     if args.repair:
         for extra in {"meshfix": ("repair",), "voxel": ("segmentation",), "auto": ("repair", "segmentation")}[args.repair]:
             require_extra(extra)
+    materials = inclusion_materials(args)
     label = args.model or Path(args.surface or args.volume or args.segmentation).name.split(".")[0]
     params = dict(args.param)
     if args.size is not None:
         params["size"] = args.size
     spec = Spec(model=label, params=params, surface=args.surface, volume=args.volume, fixed=args.fixed,
-                contact=args.contact, E=args.E, nu=args.nu, materials=args.materials, r_max=args.r_max,
+                contact=args.contact, E=args.E, nu=args.nu, materials=materials, r_max=args.r_max,
                 units=args.units.lower().replace("µ", "u") if args.units else None,
                 edge_length=args.edge_length, dtype="float32" if args.float32 else "float64",
                 element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,
                 solve_timeout=args.solve_timeout,
                 segmentation=args.segmentation, label=args.label, repair=args.repair, shell=args.shell,
+                inclusions=tuple(args.inclusion),
                 compress=args.compress,
                 solver=args.solver, scheduler=args.scheduler, workers=args.workers, worker_memory=args.worker_memory)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"

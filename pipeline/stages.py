@@ -103,6 +103,7 @@ class Spec:
     label: int | None = None
     repair: str | None = None
     shell: int | None = None
+    inclusions: tuple = ()
     compress: float | None = None
     solver: str = "factor"
     scheduler: str | None = None
@@ -199,11 +200,12 @@ def stage_keys(spec: Spec) -> dict:
     for key in ("surface", "volume", "segmentation"):
         if d[key]:
             d[key] = {"sha256": file_digest(d[key])}
+    d["inclusions"] = [{"sha256": file_digest(q)} for q in d.get("inclusions") or ()]
     versions = library_versions()
     code = code_digest()
     geometry = ("model", "params", "surface", "volume", "units", "edge_length") + (
         ("segmentation", "label") if d["segmentation"] else ()) + (("repair",) if d["repair"] else ()) + (
-        ("shell",) if d.get("shell") is not None else ())
+        ("shell",) if d.get("shell") is not None else ()) + (("inclusions",) if d["inclusions"] else ())
     # (the optional keys only when used: earlier artifacts keep their keys)
     mesh = _digest({k: d[k] for k in geometry}
                    | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
@@ -255,6 +257,16 @@ def validate(spec: Spec, out: Path) -> None:
         raise InputError(f"--repair {spec.repair}: use meshfix, voxel or auto")
     if spec.repair and not (spec.surface or spec.segmentation):
         raise InputError("--repair applies to --surface and --segmentation inputs")
+    if spec.inclusions:
+        if not spec.surface:
+            raise InputError("--inclusion applies to --surface inputs (a --volume mesh carries its regions as physical "
+                             "volumes: name them in --materials)")
+        for q in spec.inclusions:
+            if not Path(q).is_file():
+                raise InputError(f"--inclusion {q}: no such file")
+        if spec.repair:
+            raise InputError("--inclusion with --repair: mend the outer surface first (the repaired surface is not "
+                             "kept for the next run), then give it with --inclusion")
     if spec.shell is not None and (isinstance(spec.shell, bool) or not isinstance(spec.shell, int) or spec.shell < 1
                                    or not spec.surface):
         raise InputError("--shell K applies to --surface inputs and counts from 1 (the largest shell by area)")
@@ -378,12 +390,14 @@ def mesh_stage(spec: Spec) -> ModelMesh:
                 meshing.check_extent(pts * spec.scale, spec.units is not None, spec.surface,
                                      spec.edge_length * spec.scale)
                 check_selectors_before_meshing(spec, pts, tris)
-        points, tets, change = meshing.remesh_bounded(Path(spec.surface), edge_length=spec.edge_length * spec.scale,
-                                                      scale=spec.scale, units_given=spec.units is not None,
-                                                      timeout=spec.mesh_timeout, repair=spec.repair,
-                                                      xi_of_all=spec.contact is None, shell=spec.shell)
-        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
-                         info={"source": Path(spec.surface).name, "remesh": change})
+        points, tets, change, regions = meshing.remesh_bounded(
+            Path(spec.surface), edge_length=spec.edge_length * spec.scale, scale=spec.scale,
+            units_given=spec.units is not None, timeout=spec.mesh_timeout, repair=spec.repair,
+            xi_of_all=spec.contact is None, shell=spec.shell, inclusions=[Path(q) for q in spec.inclusions],
+            with_regions=True)
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", regions=regions,
+                         info={"source": Path(spec.surface).name, "remesh": change}
+                         | ({"inclusions": [Path(q).name for q in spec.inclusions]} if spec.inclusions else {}))
     if spec.volume and spec.volume.endswith(".npz"):  # a stored ModelMesh (reference meshes)
         return load_model_mesh(spec.volume)
     if spec.volume:

@@ -240,21 +240,26 @@ def check_extent(points: np.ndarray, units_given: bool, name, edge_length: float
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
                    timeout: float = 600.0, repair: str | None = None, xi_of_all: bool = False,
-                   shell: int | None = None):
+                   shell: int | None = None, inclusions=(), with_regions: bool = False):
     """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
     after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
     gmsh's surface classification can run for tens of minutes on some segmentations and defers Ctrl-C
     inside its C++ (and once printed "double free" on SIGTERM); a worker can always be killed, and the
     parent stays responsive.  A fresh interpreter rather than multiprocessing: spawn re-runs the caller's
-    script in the child when it lacks a ``__main__`` guard, fork copies BLAS threads."""
+    script in the child when it lacks a ``__main__`` guard, fork copies BLAS threads.
+
+    ``inclusions``: closed surface files inside this one, meshed conformally as regions of their own
+    (:func:`remesh_surface`); ``with_regions``: return (points, tets, change, regions) with regions
+    {name: bool over tets}."""
     import json
     import subprocess
     import sys
     import tempfile
 
     job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
-           "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout, "shell": shell}
+           "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout, "shell": shell,
+           "inclusions": [str(q) for q in inclusions]}
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
@@ -287,7 +292,16 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
         if result["kind"] == "bug":
             raise RuntimeError(f"remeshing failed inside pmask:\n{result['message']}")
         with np.load(out) as z:
-            return z["points"], z["tets"], result["report"]
+            points, tets, label = z["points"], z["tets"], z["label"]
+        if not with_regions:
+            return points, tets, result["report"]
+        return points, tets, result["report"], {name: label == k + 1
+                                                for k, name in enumerate(inclusion_names(len(inclusions)))}
+
+
+def inclusion_names(n: int) -> list[str]:
+    """The regions ``--inclusion`` files become: "inclusion", or "inclusion1", "inclusion2", ... for several."""
+    return ["inclusion"] if n == 1 else [f"inclusion{k + 1}" for k in range(n)]
 
 
 def _worker(argv) -> int:
@@ -318,10 +332,13 @@ def _worker(argv) -> int:
     logging.getLogger("pmask").setLevel(logging.WARNING)
     try:
         report: dict = {}
-        points, tets = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
-                                      units_given=job["units_given"], report=report, repair=job["repair"],
-                                      xi_of_all=job["xi_of_all"], shell=job.get("shell"))
-        np.savez(out, points=points, tets=tets)
+        label = np.zeros(0, np.int64)
+        points, tets, *rest = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
+                                             units_given=job["units_given"], report=report, repair=job["repair"],
+                                             xi_of_all=job["xi_of_all"], shell=job.get("shell"),
+                                             inclusions=[Path(q) for q in job.get("inclusions", [])])
+        label = rest[0] if rest else np.zeros(len(tets), np.int64)
+        np.savez(out, points=points, tets=tets, label=label)
         result = {"kind": "ok", "report": report}
     except MeshError as exc:
         result = {"kind": "error", "message": str(exc)}
@@ -551,8 +568,12 @@ def check_size_before_meshing(pts, tris, edge_length: float, name, xi_of_all: bo
 
 def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_deg: float = 40.0,
                    units_given: bool = True, report: dict | None = None, repair: str | None = None,
-                   xi_of_all: bool = False, shell: int | None = None):
+                   xi_of_all: bool = False, shell: int | None = None, inclusions=()):
     """Remesh a (possibly very fine) triangle surface file to a target edge length.
+
+    ``inclusions``: closed surface files (same units) that lie inside it, each meshed as a region of its own
+    with its surface an interface inside the volume (conformal: the elements on both sides share its
+    triangles); then returns (points, tets, label) with label 0 for the body and k for the k-th inclusion.
 
     Follows gmsh tutorial t13: classify the triangles into patches, build a
     parametrisable geometry from them, then mesh it anew at ``edge_length``
@@ -576,9 +597,68 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     tris = np.concatenate(blocks)
     if shell is not None:
         raw, tris = select_shell(raw, tris, shell, path)
+    if inclusions:
+        if repair:
+            raise MeshError(f"{path}: --inclusion needs a closed outer surface as it is: repair it first (pmask "
+                            "precompute --repair writes nothing you can reuse; mend it in a mesh tool)")
+        outer = check_surface(raw, tris, str(path))
+        inner = [read_inclusion(q, scale, outer, edge_length) for q in inclusions]
+        check_inclusions_apart(inner, inclusions)
+        check_size_before_meshing(*outer, edge_length, path, xi_of_all)
+        points, tets, label = _remesh(*outer, path, edge_length, angle_deg, inclusions=inner)
+        change = geometry_change(*outer, points, tets, edge_length)
+        if report is not None:
+            report.update(change)
+        return points, tets, label
     if repair != "auto":
         return _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of_all)
     return _remesh_auto(raw, tris, path, edge_length, angle_deg, report, xi_of_all)
+
+
+def read_inclusion(path: Path, scale: float, outer, edge_length: float):
+    """An ``--inclusion`` surface, checked as a body of its own (closed, manifold, outward) and against the
+    outer one: wholly inside it (a generalised winding number of its vertices), not touching it (half an
+    edge length of tissue at least: an element between the two surfaces), and not thinner than an element
+    (3 V / A, the radius of a ball, against half an edge length)."""
+    m = read_mesh_file(path)
+    blocks = [c.data for c in m.cells if c.type == "triangle"]
+    blocks += [q[:, [0, 1, 2]] for q in (c.data for c in m.cells if c.type == "quad")]
+    blocks += [q[:, [0, 2, 3]] for q in (c.data for c in m.cells if c.type == "quad")]
+    if len(m.points) == 0 or not blocks:
+        raise MeshError(f"--inclusion {path}: no triangles in this file; give a closed triangle surface")
+    check_face_indices(blocks, len(m.points), path)
+    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
+    check_finite(raw, path)
+    pts, tris = check_surface(raw, np.concatenate(blocks), f"--inclusion {path}")
+    op, ot = outer
+    rng = np.random.default_rng(0)
+    sample = pts if len(pts) <= 2000 else pts[rng.choice(len(pts), 2000, replace=False)]
+    outside = int(np.sum(winding_numbers(op, ot, sample) < 0.5))
+    if outside:
+        raise MeshError(f"--inclusion {path}: it crosses the outer surface ({outside} of {len(sample)} sampled "
+                        "vertices lie outside the body): an inclusion must lie wholly inside (same --units as the "
+                        "body)")
+    gap = float(surface_distance(sample, op, ot).min())
+    if gap < 0.5 * edge_length:
+        raise MeshError(f"--inclusion {path}: it touches the outer surface ({1e3 * gap:.3g} mm from it, less than "
+                        f"half the {1e3 * edge_length:.3g} mm edge length): leave tissue between them, or use an "
+                        f"--edge-length of at most {2e3 * gap:.3g} mm")
+    thickness = 3.0 * enclosed_volume(pts, tris) / float(triangle_areas(pts, tris).sum())
+    if thickness < 0.5 * edge_length:
+        raise MeshError(f"--inclusion {path}: it is thinner than an element (about {2e3 * thickness:.3g} mm across, "
+                        f"for {1e3 * edge_length:.3g} mm edges): use an --edge-length of at most "
+                        f"{2e3 * thickness:.3g} mm")
+    return pts, tris
+
+
+def check_inclusions_apart(inner, paths) -> None:
+    """Inclusions may not run into or hold each other: each region one material."""
+    for a in range(len(inner)):
+        for b in range(a + 1, len(inner)):
+            for x, (p, t) in ((inner[a][0], inner[b]), (inner[b][0], inner[a])):
+                if np.any(np.abs(winding_numbers(p, t, x[:500])) > 0.5):
+                    raise MeshError(f"--inclusion {paths[a]} and --inclusion {paths[b]} overlap or one holds the "
+                                    "other: give each part of the tissue one material (separate inclusions)")
 
 
 #: ``--repair auto``'s order, measured over the corpus and the public scans (bench/repair_compare.py): as
@@ -767,11 +847,18 @@ def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0,
     return {"hausdorff_m": float(max(d1, d2)), "volume_change": vol_out / vol_in - 1.0, "sample_spacing_m": spacing}
 
 
-def _remesh(pts, tris, path, edge_length, angle_deg):
+def _remesh(pts, tris, path, edge_length, angle_deg, inclusions=()):
+    """gmsh: classify and parametrise the surface(s), mesh the volume.  With ``inclusions`` (closed surfaces
+    inside, (points, tris) each) the body is the volume between the outer loop and theirs and each inclusion a
+    volume of its own on the same surface mesh; returns (points, tets, label) then, label 0 the body."""
     with gmsh_session("remesh") as gmsh:
-        s = gmsh.model.addDiscreteEntity(2)
-        gmsh.model.mesh.addNodes(2, s, np.arange(1, len(pts) + 1), pts.ravel())
-        gmsh.model.mesh.addElementsByType(s, 2, [], (tris + 1).ravel())
+        parts = [(pts, tris), *inclusions]
+        offset = 0
+        for p, t in parts:
+            s = gmsh.model.addDiscreteEntity(2)
+            gmsh.model.mesh.addNodes(2, s, np.arange(offset + 1, offset + len(p) + 1), p.ravel())
+            gmsh.model.mesh.addElementsByType(s, 2, [], (np.asarray(t) + 1 + offset).ravel())
+            offset += len(p)
         gmsh.model.mesh.classifySurfaces(np.deg2rad(angle_deg), True, True, np.pi)
         try:
             gmsh.model.mesh.createGeometry()
@@ -779,8 +866,16 @@ def _remesh(pts, tris, path, edge_length, angle_deg):
             raise MeshError(f"{path}: gmsh could not build a parametrisable geometry from this surface ({exc}); "
                             "repair or smooth it, or try another --edge-length") from exc
         surfaces = [e[1] for e in gmsh.model.getEntities(2)]
-        loop = gmsh.model.geo.addSurfaceLoop(surfaces)
-        gmsh.model.geo.addVolume([loop])
+        if not inclusions:
+            loop = gmsh.model.geo.addSurfaceLoop(surfaces)
+            gmsh.model.geo.addVolume([loop])
+        else:  # which input each classified patch came from: the one its nodes lie on
+            owner = {}
+            for s in surfaces:
+                x = gmsh.model.mesh.getNodes(2, s, includeBoundary=True)[1].reshape(-1, 3)[:8]
+                owner[s] = int(np.argmin([surface_distance(x, p, np.asarray(t)).max() for p, t in parts]))
+            loops = [gmsh.model.geo.addSurfaceLoop([s for s in surfaces if owner[s] == k]) for k in range(len(parts))]
+            volumes = [gmsh.model.geo.addVolume(loops)] + [gmsh.model.geo.addVolume([lp]) for lp in loops[1:]]
         gmsh.model.geo.synchronize()
         gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * edge_length)
         gmsh.option.setNumber("Mesh.MeshSizeMax", edge_length)
@@ -793,7 +888,27 @@ def _remesh(pts, tris, path, edge_length, angle_deg):
                                 "triangles cross (e.g. remove overlapping parts), or try --repair") from exc
             raise MeshError(f"{path}: gmsh could not remesh this surface ({exc}); "
                             "check that it is closed and not self-intersecting") from exc
-        return tets_from_gmsh(gmsh)
+        if not inclusions:
+            return tets_from_gmsh(gmsh)
+        return tets_by_volume(gmsh, volumes)
+
+
+def tets_by_volume(gmsh, volumes):
+    """(points, tets, label) of the current gmsh model, label k for the tets of ``volumes[k]``."""
+    tags, coords, _ = gmsh.model.mesh.getNodes()
+    order = np.argsort(tags)
+    tags, coords = tags[order], coords.reshape(-1, 3)[order]
+    tets, label = [], []
+    for k, v in enumerate(volumes):
+        types, _, nodes = gmsh.model.mesh.getElements(3, v)
+        t = [nt.reshape(-1, 4) for ty, nt in zip(types, nodes) if ty == 4]
+        if not t:
+            raise MeshError("gmsh produced no tetrahedra in an inclusion or the body around it: is it thicker "
+                            "than an element and free of self-intersections?")
+        tets.append(np.searchsorted(tags, np.concatenate(t)))
+        label.append(np.full(len(tets[-1]), k, np.int64))
+    points, tets, _ = compact(coords, np.vstack(tets))
+    return points, tets, np.concatenate(label)
 
 
 def stl_damage(path, lead: str = "") -> str:

@@ -208,3 +208,74 @@ def test_a_volume_meshs_physical_volumes_take_their_materials(tmp_path):
     assert reg["tets"] == int(np.sum(label == 0)) and np.all(r[label == 0] < 0.008)  # inside the faceted ball
     assert np.mean(r[label == -1] > 0.008) > 0.9  # the shell's (a few lie in the sliver between facets and ball)
     assert 0.8 < reg["volume_m3"] / (4 / 3 * np.pi * 0.008 ** 3) < 1.0
+
+
+# ------------------------------------------------------------------ --inclusion: a user's surfaces, meshed conformally
+def _ball_stl(path, radius_mm, centre=(0.0, 0.0, 0.0), sub=3):
+    import meshio
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=sub, radius=radius_mm)
+    meshio.write_points_cells(path, np.asarray(s.vertices) + centre, [("triangle", np.asarray(s.faces))])
+    return str(path)
+
+
+def test_an_inclusion_surface_is_meshed_conformally_and_meets_the_lame_solution(tmp_path):
+    """The tumour issue's item 1 from a user's files: a 10 mm ball's surface and a 5 mm ball's inside it
+    (`--surface outer.stl --inclusion inner.stl --inclusion-E 5e4 -E 1e4`).  The artifact's own volume mesh has
+    the inclusion's tetrahedra inside its surface and the body's outside (conformal: no tetrahedron straddles
+    the interface, up to the remesh's chords, 0.1 h), the artifact records the region's material, and the
+    pressed ball on that mesh meets the composite sphere's closed form within 1 % (the issue's bound; measured
+    0.4 %, the icosphere's facets and the remesh's chords of the 5 mm interface included)."""
+    from pmask.pipeline.cli import main
+    from pmask.runtime import Model
+    from pmask.runtime.artifact import read_artifact
+
+    outer, inner = _ball_stl(tmp_path / "outer.stl", 10.0, sub=4), _ball_stl(tmp_path / "inner.stl", 5.0)
+    out = tmp_path / "ball.h5"
+    assert main(["precompute", "--surface", outer, "--inclusion", inner, "--inclusion-E", "5e4", "-E", "1e4",
+                 "--units", "mm", "--edge-length", "1.8", "--fixed", "z<-9", "-o", str(out)]) == 0
+    a = read_artifact(out)
+    region = a["volume/material_region"]
+    assert [r["name"] for r in a["attrs"]["material"]["regions"]] == ["inclusion"]
+    assert a["attrs"]["material"]["regions"][0]["E"] == 5e4
+    p, t = Model.load(out).volume()
+    r = np.linalg.norm(p[t], axis=2)  # each tetrahedron's corners' radii
+    assert r[region >= 0].max() <= 0.005 * (1 + 1e-9) and r[region < 0].min() >= 0.005 * (1 - 0.1 * 1.8 / 5.0)
+    u_fe, _ = pressed(p, t, np.where(region >= 0, 5e4, 1e4), np.full(len(t), 0.45), 100.0)
+    u_exact = lame_composite(0.005, 0.01, 5e4, 0.45, 1e4, 0.45, 100.0)
+    assert abs(u_fe / u_exact - 1) < 0.01, (u_fe, u_exact)
+
+
+@pytest.mark.parametrize("inner, modulus, says", [
+    ((4.0, (7.0, 0.0, 0.0)), True, "crosses the outer surface"),
+    ((4.0, (5.5, 0.0, 0.0)), True, "touches the outer surface"),
+    ((0.4, (0.0, 0.0, 0.0)), True, "thinner than an element"),
+    ((4.0, (0.0, 0.0, 0.0)), False, "needs --inclusion-E"),
+])
+def test_inclusion_refusals_are_one_line(tmp_path, capsys, inner, modulus, says):
+    """An inclusion that crosses the body's surface, touches it (less than half an edge of tissue between:
+    where it meets the support too), is thinner than an element, or has no modulus: one line saying which,
+    before any meshing, and no artifact."""
+    from pmask.pipeline.cli import main
+
+    outer = _ball_stl(tmp_path / "outer.stl", 10.0)
+    inc = _ball_stl(tmp_path / "inner.stl", inner[0], inner[1], sub=2)
+    extra = ["--inclusion-E", "5e4"] if modulus else []
+    code = main(["precompute", "--surface", outer, "--inclusion", inc, *extra, "--units", "mm", "--edge-length",
+                 "2", "--fixed", "z<-9", "-o", str(tmp_path / "x.h5")])
+    err = capsys.readouterr().err
+    assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_two_inclusions_that_overlap_are_refused(tmp_path, capsys):
+    from pmask.pipeline.cli import main
+
+    outer = _ball_stl(tmp_path / "outer.stl", 10.0)
+    a = _ball_stl(tmp_path / "a.stl", 3.0, (-1.5, 0.0, 0.0), sub=2)
+    b = _ball_stl(tmp_path / "b.stl", 3.0, (1.5, 0.0, 0.0), sub=2)
+    code = main(["precompute", "--surface", outer, "--inclusion", a, "--inclusion", b, "--inclusion-E", "5e4",
+                 "--units", "mm", "--edge-length", "2", "--fixed", "z<-9", "-o", str(tmp_path / "x.h5")])
+    err = capsys.readouterr().err
+    assert code == 2 and "overlap" in err, err
