@@ -315,7 +315,15 @@ def cmd_figures(args) -> int:
         n = nums[name]
         print(f"  {name:6s} rank correlation with vertex area {n['rank_correlation_with_area']:+.3f}, "
               f"roughness {n['roughness']:.4f}, median ‖K‖₂ {n['median_norm']:.2f} N/m")
-    numbers = {"figure6": {"artifact": path.name, **nums}}
+    numbers = {"figure6" if path.stem == "kidney" else f"figure6_{path.stem}": {"artifact": path.name, **nums}}
+    if model.attrs.get("material", {}).get("regions"):  # an organ with a mass: the same press over it and beside it
+        from pmask.pipeline.figures import mass_figure
+
+        png, mass = mass_figure(model, Path(args.out) / f"{path.stem}_mass.png", args.radius_factor)
+        print(f"wrote {png}: {mass['force_N']:g} N over the {mass['region']} indents "
+              f"{mass['indentation_over_mm']:.2f} mm, mirrored {mass['indentation_mirrored_mm']:.2f} mm "
+              f"({mass['ratio']:.2f}x)")
+        numbers[f"mass_{path.stem}"] = mass
     if not args.no_loop:
         from pmask.pipeline.figures import loop_figures
 

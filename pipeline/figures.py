@@ -60,7 +60,7 @@ def figure6(model, out: Path, radius_factor: float = 2.0, numbers: dict | None =
         s, m = numbers["single"], numbers["masked"]
         fig.suptitle(f"{Path(model.path).name}: rank correlation with a: single {s['rank_correlation_with_area']:.2f}, "
                      f"masked {m['rank_correlation_with_area']:.2f};  roughness: single {s['roughness']:.3f}, "
-                     f"masked {m['roughness']:.3f}  (grey: fixed hilum)", fontsize=10)
+                     f"masked {m['roughness']:.3f}  (grey: the fixed support)", fontsize=10)
     out = _save(fig, out)
     return out
 
@@ -200,3 +200,61 @@ def loop_figures(out_dir: Path, work: Path) -> dict:
     f1, peaks1 = figure1(models[1:], Path(out_dir) / "figure1_point_load.png")
     f4, peaks4 = figure4(models[1], models[0].mean_edge_length, Path(out_dir) / "figure4_masks.png")
     return {"figure1": f1, "figure1_peaks": peaks1, "figure4": f4, "figure4_peaks": peaks4}
+
+
+# ------------------------------------------------------------------ an organ with a mass
+def mass_figure(model, out: Path, radius_factor: float = 2.0, force: float = 0.2) -> tuple[Path, dict]:
+    """The same press, over the stiffest region (a mass) and over the point mirrored across the body's centre
+    in x: the surface displacement seen from above, on one colour scale, each with its indentation.  A push of
+    ``force`` [N] into the surface through the cone mask (eq. 11, 13: u = Σ_j Ξ_ij ρ_j f).  Returns the PNG and
+    its numbers (indentation over the mass and mirrored, their ratio)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.tri import Triangulation
+
+    from pmask.runtime.artifact import MATERIALS, VOLUME, read_artifact
+    from pmask.runtime.geometry import vertex_normals
+
+    regions = model.attrs.get("material", {}).get("regions") or []
+    if not regions:
+        raise ValueError(f"{model.path}: no material regions: no mass to show")
+    a = read_artifact(model.path, datasets=VOLUME + MATERIALS, verify=False)
+    label = a["volume/material_region"]
+    stiffest = int(np.argmax([r["E"] for r in regions]))
+    vp, vt = a["volume/points"], a["volume/tets"]
+    e = vp[vt[:, 1:]] - vp[vt[:, :1]]
+    vol = np.abs(np.linalg.det(e)) / 6.0
+    inside = label == stiffest
+    centre = (vp[vt[inside]].mean(axis=1) * vol[inside, None]).sum(axis=0) / vol[inside].sum()
+    P = model.points
+    core = model.contact[model.core]
+    over = int(core[np.argmin(np.linalg.norm(P[core] - centre, axis=1))])
+    mirror_at = P[over].copy()
+    mirror_at[0] = 2.0 * P[core, 0].mean() - mirror_at[0]
+    mirror = int(core[np.argmin(np.linalg.norm(P[core] - mirror_at, axis=1))])
+    n = vertex_normals(P, model.triangles)
+    r = radius_factor * model.mean_edge_length
+    u = {v: vertex_pull(model, v, "linear", r, force=-force * n[v]) for v in (over, mirror)}
+    dent = {v: float(-u[v][v] @ n[v]) for v in (over, mirror)}
+    vmax = max(float(np.linalg.norm(x, axis=1).max()) for x in u.values()) * 1e3
+    up = n[model.triangles].mean(axis=1)[:, 2] > 0
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), layout="constrained")
+    for ax, v, what in ((axes[0], over, f"over the {regions[stiffest]['name']}"), (axes[1], mirror, "mirrored")):
+        tri = Triangulation(P[:, 0] * 1e3, P[:, 1] * 1e3, model.triangles[up])
+        pc = ax.tripcolor(tri, np.linalg.norm(u[v], axis=1) * 1e3, shading="gouraud", cmap="viridis", vmin=0, vmax=vmax)
+        ax.plot(*(P[v, :2] * 1e3), "w+", ms=12, mew=2)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.set_title(f"{force:g} N pressed {what}: indentation {dent[v] * 1e3:.2f} mm "
+                     f"({force / dent[v]:.0f} N/m)", fontsize=9)
+    fig.colorbar(pc, ax=axes, shrink=0.85, label="surface displacement [mm]")
+    fig.suptitle(f"{Path(model.path).name}: {regions[stiffest]['name']} E = {regions[stiffest]['E']:g} Pa in tissue "
+                 f"E = {model.attrs['material']['E']:g} Pa, seen from +z (cone mask, r = {radius_factor:g} × mean edge)",
+                 fontsize=10)
+    numbers = {"region": regions[stiffest]["name"], "force_N": force, "indentation_over_mm": 1e3 * dent[over],
+               "indentation_mirrored_mm": 1e3 * dent[mirror], "ratio": dent[over] / dent[mirror],
+               "vertex_over": over, "vertex_mirrored": mirror}
+    return _save(fig, out, tight=False), numbers

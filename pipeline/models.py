@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from functools import partial
 
-from pmask.meshes import halfspace, kidney, loop, palpation
+from pmask.meshes import halfspace, kidney, liver, loop, palpation
 
 from pmask.errors import InputError
 
@@ -12,6 +12,8 @@ MODELS = {
     "kidney": (kidney.build, "kidney-shaped solid, 11 x 6 x 4 cm, fixed at the hilum (~1,500 free vertices)"),
     "palpation": (palpation.build, "block of soft tissue with a 10x stiffer ball 10 mm under its upper face (materials "
                                    "by region)"),
+    "liver": (liver.build, "liver lobe, 15 x 10 x 5.5 cm, held on its flat posterior face, with a 5x stiffer 20 mm "
+                           "mass under the anterior surface (materials by region)"),
     "halfspace": (halfspace.build, "hemisphere standing in for a half-space, graded mesh at the load point"),
     **{f"loop{k}": (partial(loop.build, level=k),
                     f"Figure 5 ellipsoid, Loop level {k} ({[34, 130, 514, 2050][k]} surface vertices)")

@@ -391,7 +391,8 @@ class Stiffness(SurfaceStiffness):
         one), three lists of three: the block function of :func:`zeta_compliance`.
 
         From the ζ table when it has been formed; otherwise from Ξ's blocks of mask m's columns at row i
-        (compressed Ξ: the exact near field, or the far field's low-rank factors, O(|M| k) work whatever n),
+        (compressed Ξ: the exact near field, or the far field's low-rank factors, work of the mask's size
+        times the rank whatever n),
         kept in a bounded cache, since contacts stay on the same vertices for many ticks.  This is how
         contacts on a compressed artifact couple without the ζ table, which is as large as Ξ."""
         if self._zeta_table is not None:
