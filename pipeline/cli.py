@@ -70,6 +70,10 @@ def add_precompute(sub) -> None:
                    help="Young's modulus of each --inclusion [Pa] (one for all, or one per inclusion)")
     p.add_argument("--inclusion-nu", action="append", type=float, default=[], metavar="NU",
                    help="Poisson ratio of each --inclusion (default: the body's)")
+    p.add_argument("--no-display", dest="display", action="store_false",
+                   help="do not keep the input surface as the display surface (by default a --surface file or a "
+                        "label image's surface, up to 2M triangles, is kept at its own resolution and deformed with "
+                        "the simulation surface: pmask view shows it)")
     p.add_argument("--shell", type=int, metavar="K",
                    help="with --surface: precompute the K-th largest shell (by area; 1 = the largest) of a file that "
                         "holds several bodies (pmask inspect lists them)")
@@ -164,7 +168,7 @@ def cmd_precompute(args) -> int:
                 element=args.element, reactions=args.reactions, mesh_timeout=args.mesh_timeout,
                 solve_timeout=args.solve_timeout,
                 segmentation=args.segmentation, label=args.label, repair=args.repair, shell=args.shell,
-                inclusions=tuple(args.inclusion),
+                inclusions=tuple(args.inclusion), display=args.display,
                 compress=args.compress,
                 solver=args.solver, scheduler=args.scheduler, workers=args.workers, worker_memory=args.worker_memory)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"

@@ -104,6 +104,7 @@ class Spec:
     repair: str | None = None
     shell: int | None = None
     inclusions: tuple = ()
+    display: bool = True
     compress: float | None = None
     solver: str = "factor"
     scheduler: str | None = None
@@ -213,7 +214,8 @@ def stage_keys(spec: Spec) -> dict:
                      | ({"solver": d["solver"]} if d["solver"] != "factor" else {})
                      | ({"materials": d["materials"]} if d.get("materials") else {}))
     artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION}
-                       | ({"compress": d["compress"]} if d["compress"] else {}))
+                       | ({"compress": d["compress"]} if d["compress"] else {})
+                       | ({"display": bool(d["display"])} if d["surface"] or d["segmentation"] else {}))
     return {"mesh": mesh, "factor": factor, "artifact": artifact}
 
 
@@ -630,8 +632,32 @@ def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor, *, work: Pa
     return Xi, element.lump_reactions(d, surf.vertices[surf.regions.fixed], surf.held_facets(), R)
 
 
+def display_stage(spec: Spec, mesh: ModelMesh, surf: Surface) -> dict | None:
+    """Stage 4b: the display surface (:mod:`pmask.precompute.display`): the ``--surface`` file as given (the
+    ``--shell`` chosen), or a label image's smoothed surface, embedded in the simulation surface; None for
+    models, ``--volume`` meshes and ``--no-display``."""
+    from pmask.precompute import display, meshing
+
+    if not spec.display or not (spec.surface or spec.segmentation):
+        return None
+    if spec.segmentation:
+        from pmask.precompute.segmentation import label_surface
+
+        pts, tris, _ = label_surface(Path(spec.segmentation), spec.label, spec.units)
+    else:
+        m = meshing.read_mesh_file(Path(spec.surface))
+        tris = [c.data[:, :3] for c in m.cells if c.type == "triangle"]
+        tris += [c.data[:, [0, 2, 3]] for c in m.cells if c.type == "quad"]
+        tris += [c.data[:, [0, 1, 2]] for c in m.cells if c.type == "quad"]
+        pts, tris = np.asarray(m.points, float)[:, :3], np.concatenate(tris).astype(np.int64)
+        if spec.shell is not None:
+            pts, tris = meshing.select_shell(pts, tris, spec.shell, spec.surface)
+    return display.display_surface(pts * spec.scale, tris, mesh.points[surf.vertices], surf.triangles,
+                                   spec.surface or spec.segmentation)
+
+
 def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, reactions, *, keys, factor_stats,
-                timings, resumed) -> None:
+                timings, resumed, display: dict | None = None) -> None:
     """Stage 5: the artifact, written atomically with its checksums and provenance."""
     from pmask.precompute.writer import write_artifact
 
@@ -650,7 +676,7 @@ def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, react
     }
     write_artifact(out, meta=meta, volume_points=mesh.points, tets=mesh.tets, surface_vertices=surf.vertices,
                    triangles=surf.triangles, areas=surf.areas, regions=surf.regions, Xi=Xi, reactions=reactions,
-                   dtype=np.dtype(spec.dtype))
+                   dtype=np.dtype(spec.dtype), display=display)
 
 
 # ------------------------------------------------------------------------------- orchestration
@@ -806,9 +832,11 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         if saving is not None:
             with st.timed("checkpoint"):  # what is left of the factor checkpoint's write (usually nothing)
                 saving.join()
+        with st.timed("display"):
+            display = display_stage(spec, mesh, surf)
         with st.timed("write"):
             write_stage(spec, out, mesh, surf, Xi, reactions, keys=keys, factor_stats=factor.stats,
-                        timings=st.timings, resumed=st.resumed)
+                        timings=st.timings, resumed=st.resumed, display=display)
         ok = True
     finally:
         solve.close()

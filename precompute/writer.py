@@ -12,7 +12,7 @@ from pmask.runtime.files import atomic_write, check_interrupt
 
 
 def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, triangles, areas, regions,
-                   Xi, reactions, dtype=np.float64) -> None:
+                   Xi, reactions, dtype=np.float64, display: dict | None = None) -> None:
     """Write one artifact atomically; ``meta`` holds model, input_hash, E, nu, r_max, parameters,
     provenance and timings (and ``tolerance`` when ``Xi`` is the compressed form's dict of arrays).  ``dtype`` float32 halves Ξ's size (measured effect: see README)."""
     small = {
@@ -54,6 +54,12 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         big["greens/Xi"] = (Xi, dtype)
     if reactions is not None:
         big["greens/reactions"] = (reactions, dtype)
+    if display is not None:  # the display surface and its embedding (pmask.precompute.display)
+        for k, dt in (("points", np.float64), ("triangles", np.int64), ("vertices", np.int64), ("bary", np.float64),
+                      ("lift", np.float64)):
+            big[f"display/{k}"] = (display[k], dt)
+        attrs["display"] = json.dumps({"vertices": int(len(display["points"])), "triangles": int(len(display["triangles"])),
+                                       "folded": int(display["folded"]), "max_lift_m": float(display["max_lift"])})
     digests = {name: array_digest(arr) for name, arr in small.items()}
 
     def fill(tmp):

@@ -19,6 +19,11 @@ Layout (format 1.x)::
     /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
+Format 1.3 adds the display surface (optional; :mod:`pmask.runtime.display`): the user's surface at the
+scan's resolution and its embedding in the simulation surface, the root attribute ``display`` (JSON: vertices,
+triangles, folded, max_lift_m) and ``/display/{points (m, 3), triangles (k, 3), vertices (m, 3): the simulation
+surface vertices of each display vertex's triangle, bary (m, 3), lift (m, 3)}``.
+
 Format 1.2 adds Ξ in compressed form (``pmask precompute --compress``): the root attributes
 ``greens_form = "hmatrix"`` and ``tolerance``, and the group ``/greens/hmatrix`` in place of
 ``/greens/Xi`` (layout: :mod:`pmask.runtime.compressed`).  Dense files are unchanged; a 1.1 reader
@@ -47,7 +52,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.2.0"
+FORMAT_VERSION = "1.3.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -63,9 +68,11 @@ RUNTIME = SURFACE + ("greens/Xi",)
 HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V"))
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
+#: the display surface (optional, format 1.3): read only when asked for (Model.display)
+DISPLAY = tuple(f"display/{k}" for k in ("points", "triangles", "vertices", "bary", "lift"))
 #: materials by region (optional): each tetrahedron's index into attrs material["regions"], -1 the body's
 MATERIALS = ("volume/material_region",)
-JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings", "sha256_covers")
+JSON_ATTRS = ("units", "material", "parameters", "provenance", "timings", "sha256_covers", "display")
 #: format 1.0: the digest covered every attribute and these datasets
 LEGACY_SMALL = SURFACE
 
@@ -172,7 +179,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
             if attrs.get("greens_form") == "hmatrix" and "greens/Xi" in datasets:  # Ξ in compressed form
                 datasets = [d for d in datasets if d != "greens/Xi"] + list(HMATRIX)
             wanted = list(datasets) + ([d for d in LEGACY_SMALL if d not in datasets] if legacy and verify else [])
-            missing = [d for d in wanted if d not in f and d not in REACTIONS + MATERIALS]
+            missing = [d for d in wanted if d not in f and d not in REACTIONS + MATERIALS + DISPLAY]
             if missing:
                 raise ArtifactError(f"{path}: incomplete artifact, missing {', '.join(missing)}")
             data = {d: (f[d][()] if d in f else None) for d in wanted}

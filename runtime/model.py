@@ -65,6 +65,13 @@ class Model:
         d = read_artifact(self.path, datasets=VOLUME, verify=getattr(self, "verify", True))
         return d["volume/points"], d["volume/tets"]
 
+    def display(self):
+        """The display surface at the scan's resolution (:class:`pmask.runtime.display.DisplaySurface`), read on
+        demand; None when the artifact has none (a built-in model, a --volume mesh, --no-display)."""
+        from pmask.runtime.display import DisplaySurface
+
+        return DisplaySurface.from_artifact(self.path) if self.path else None
+
     def reactions(self) -> np.ndarray | None:
         """Support reactions (3 n_u, 3 n_c), per unit traction at each contact dof; None if the
         artifact was written without them.  Read on demand."""

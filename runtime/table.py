@@ -35,6 +35,11 @@ lengths           1 x 2        mean edge length, bounding-box diagonal
 zeta              3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
                                the deformation of eq. 16
 contact_row       n_s x 1      with zeta: each surface vertex's row block, -1 for none
+display_points    n_d x 3      optional (1.2): the display surface at the scan's resolution (:mod:`pmask.runtime.display`)
+display_triangles n_dt x 3     with display_points: its triangles
+display_vertices  n_d x 3      with display_points: each display vertex's simulation triangle's vertices
+display_bary      n_d x 3      with display_points: the barycentric weights of its closest point there
+display_lift      n_d x 3      with display_points: the display vertex minus that closest point
 meta              bytes        JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
 ================= ============ ==========================================================================
 
@@ -59,7 +64,7 @@ from pmask.errors import InputError
 from pmask.runtime.files import atomic_write
 
 MAGIC = b"PMASKTBL"
-TABLE_MAJOR, TABLE_MINOR = 1, 1
+TABLE_MAJOR, TABLE_MINOR = 1, 2
 HEADER, ENTRY, NAME = 64, 64, 32
 F64, I64, BYTES = 1, 2, 3
 
@@ -68,8 +73,9 @@ class TableError(InputError):
     """A file that is not a runtime table this version reads (foreign, newer, truncated, corrupt)."""
 
 
-def surface_sections(surface, zeta: bool = True) -> dict:
-    """The sections of a table for a :class:`pmask.runtime.contact.ContactSurface` (without ``meta``)."""
+def surface_sections(surface, zeta: bool = True, display=None) -> dict:
+    """The sections of a table for a :class:`pmask.runtime.contact.ContactSurface` (without ``meta``), with a
+    :class:`pmask.runtime.display.DisplaySurface` as the ``display_*`` sections (table 1.2)."""
     s = surface
     out = {
         "points": s.P, "triangles": s.T, "neighbours": s.neighbours, "frames": s.tri_geom,
@@ -83,6 +89,9 @@ def surface_sections(surface, zeta: bool = True) -> dict:
         Zt, row = coupling
         out["zeta"] = Zt
         out["contact_row"] = np.asarray(row, np.int64)[:, None]
+    if display is not None:
+        out.update({"display_points": display.points, "display_triangles": display.triangles,
+                    "display_vertices": display.vertices, "display_bary": display.bary, "display_lift": display.lift})
     return out
 
 
@@ -127,9 +136,9 @@ def table_bytes(sections: dict, meta: dict) -> bytearray:
     return out
 
 
-def write_table(path, surface, meta: dict, zeta: bool = True) -> Path:
+def write_table(path, surface, meta: dict, zeta: bool = True, display=None) -> Path:
     """Write a table for ``surface`` atomically (a killed export leaves no partial file)."""
-    data = table_bytes(surface_sections(surface, zeta), meta)
+    data = table_bytes(surface_sections(surface, zeta, display), meta)
     path = Path(path)
     if not path.parent.is_dir():
         raise InputError(f"the folder {path.parent} does not exist; create it or write the table elsewhere (-o)")
@@ -258,7 +267,7 @@ def export_table(artifact, out, *, mask: str = "linear", radius: float | None = 
                                                               "stiffness": "N/m"},
             "source": str(getattr(model, "path", "")), "source_digest": str(model.attrs.get("metadata_sha256", "")),
             "pmask_version": _version()}
-    return write_table(out, surface, meta, zeta)
+    return write_table(out, surface, meta, zeta, display=model.display())
 
 
 def _version() -> str:

@@ -113,6 +113,7 @@ class ViewerSession:
                        "fixed": np.isin(np.arange(len(P)), model.fixed).astype(float),
                        "contact": np.isin(np.arange(len(P)), model.contact[model.core]).astype(float)}
         self.contacts = None
+        self.display = model.display()  # the scan's surface at its own resolution, if the artifact keeps one
         try:
             self._build(radius)
         except BadRequest as exc:
@@ -156,7 +157,11 @@ class ViewerSession:
                 "mask": self.mask, "radius": self.radius, "radius_range": list(self.radius_range),
                 "mean_edge": m.mean_edge_length, "diag": self.diag, "n_probes": N_PROBES,
                 "engine": self.contacts.engine, "rate": self.rate,
-                "fields": {k: v.tolist() for k, v in self.fields.items()}}
+                "fields": {k: v.tolist() for k, v in self.fields.items()},
+                "display": None if self.display is None else {
+                    "points": _b64(self.display.points, np.float32), "triangles": _b64(self.display.triangles, np.uint32),
+                    "vertices": _b64(self.display.vertices, np.uint32), "bary": _b64(self.display.bary, np.float32),
+                    "lift": _b64(self.display.lift, np.float32)}}
 
     def probe(self, probes: list, deform: bool, client: str = "") -> dict:
         """Set the probes (None: lifted) and return the servo thread's latest contacts.  ``client``: the page's
@@ -231,7 +236,12 @@ class ViewerSession:
             client = msg.get("client", "")
             if not isinstance(client, str) or len(client) > 64:
                 raise BadRequest("client must be a string of at most 64 characters (the page's id)")
-            return _json(200, self.probe(probes, deform, client))
+            try:
+                return _json(200, self.probe(probes, deform, client))
+            except InputError:  # the servo stopped under the request: the server is closing
+                if self.contacts is not None and self.contacts.running:
+                    raise
+                return _json(503, {"error": "the servo has stopped: the server is shutting down"})
         if method == "POST" and path == "/api/radius":
             r = _message(body).get("radius")
             if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r):
@@ -261,6 +271,11 @@ def _message(body: bytes) -> dict:
 
 def _json(status: int, obj) -> tuple[int, str, bytes]:
     return status, "application/json", json.dumps(obj, allow_nan=False).encode()
+
+
+def _b64(a: np.ndarray, dtype) -> str:
+    """An array as base64 of its little-endian values (the page reads them as typed arrays)."""
+    return base64.b64encode(np.ascontiguousarray(a, np.dtype(dtype).newbyteorder("<")).tobytes()).decode()
 
 
 def _norms(K: np.ndarray) -> np.ndarray:

@@ -62,6 +62,16 @@ def load_table(source):
         raise TableError(f"{where}{exc}") from None
 
 
+def display_deform(table, u, contacts=(), radius: float = 0.0) -> np.ndarray:
+    """The native core's :meth:`pmask.runtime.display.DisplaySurface.deform` for a table exported with a
+    display surface (``pm_display_deform``): (m, 3) displaced display points."""
+    n = table.display_counts()[0]
+    out = np.empty((n, 3))
+    c = np.ascontiguousarray([x for x in contacts if x is not None] or np.zeros((0, 3)), float).reshape(-1, 3)
+    table.display_deform(np.ascontiguousarray(u, float), c, float(radius), out)
+    return out
+
+
 def _native_table(surface, zeta: bool):
     """The surface's table in the C core, made once per surface (with or without the ζ table)."""
     cache = surface.__dict__.setdefault("_native_tables", {})

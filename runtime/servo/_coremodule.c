@@ -220,8 +220,40 @@ static PyObject *Table_stiffness(TableObject *self, PyObject *args)
     return res;
 }
 
+static PyObject *Table_display_deform(TableObject *self, PyObject *args)
+{
+    Py_buffer u, c, o;
+    double radius;
+    if (!PyArg_ParseTuple(args, "y*y*dw*", &u, &c, &radius, &o)) return NULL;
+    PyObject *res = NULL;
+    const int64_t nd = pm_display_vertices(self->table);
+    if (u.len != pm_table_vertices(self->table) * 24 || c.len % 24 != 0 || c.len / 24 > INT32_MAX ||
+        o.len != nd * 24) {
+        PyErr_SetString(PyExc_ValueError, "display_deform: buffer sizes do not match");
+    } else {
+        Py_BEGIN_ALLOW_THREADS
+        pm_display_deform(self->table, (const double *)u.buf, (int32_t)(c.len / 24), (const double *)c.buf, radius,
+                          (double *)o.buf);
+        Py_END_ALLOW_THREADS
+        res = Py_None;
+        Py_INCREF(res);
+    }
+    PyBuffer_Release(&u);
+    PyBuffer_Release(&c);
+    PyBuffer_Release(&o);
+    return res;
+}
+
+static PyObject *Table_display_counts(TableObject *self, PyObject *unused)
+{
+    return Py_BuildValue("LL", (long long)pm_display_vertices(self->table), (long long)pm_display_triangles(self->table));
+}
+
 static PyMethodDef Table_methods[] = {
     {"counts", (PyCFunction)Table_counts, METH_NOARGS, "(vertices, triangles, has_zeta)"},
+    {"display_counts", (PyCFunction)Table_display_counts, METH_NOARGS, "(display vertices, display triangles)"},
+    {"display_deform", (PyCFunction)Table_display_deform, METH_VARARGS,
+     "the display surface deformed: (u bytes, contacts bytes, radius, out buffer)"},
     {"meta", (PyCFunction)Table_meta, METH_NOARGS, "the table's JSON metadata"},
     {"nearest", (PyCFunction)Table_nearest, METH_O, "the triangle nearest a point (bounding-volume hierarchy)"},
     {"stiffness", (PyCFunction)Table_stiffness, METH_VARARGS, "K(x) for a batch, into a buffer"},

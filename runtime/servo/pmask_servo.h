@@ -121,6 +121,18 @@ PM_API void pm_table_bounds(const pm_table *table, double *lo, double *hi);
 /* The table's metadata: a JSON object (mask, radius, k_rigid, units, source artifact). */
 PM_API const char *pm_table_meta(const pm_table *table);
 
+/* The display surface at the scan's resolution (a table exported from an artifact that has one; 0 vertices
+ * otherwise): its points (m x 3) and triangles (k x 3) as stored, and its deformation for the surface
+ * displacement u (n_vertices x 3, e.g. pm_servo_deformation's): out (m x 3) = x_d + Σ b_k u_{v_k} − w_d ℓ_d,
+ * w_d = max over the n_contacts proxy points p_c of smoothstep(1 − |x_d − p_c| / radius) (pmask.runtime.display).
+ * Allocates nothing; out may not alias u. */
+PM_API int64_t pm_display_vertices(const pm_table *table);
+PM_API int64_t pm_display_triangles(const pm_table *table);
+PM_API const double *pm_display_points(const pm_table *table);
+PM_API const int64_t *pm_display_triangle_indices(const pm_table *table);
+PM_API void pm_display_deform(const pm_table *table, const double *u, int32_t n_contacts, const double *contacts,
+                              double radius, double *out);
+
 /* K(x) = Σ b_k K_{t_k} (eq. 15) for n points: out (n x 9, row-major 3x3 each).  No validation. */
 PM_API void pm_table_stiffness(const pm_table *table, int64_t n, const int64_t *triangles, const double *bary,
                                double *out);

@@ -66,6 +66,26 @@ async function main() {
   geom.computeVertexNormals();
   const mesh = new THREE.Mesh(geom, new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }));
   scene.add(mesh);
+  // the scan's surface at its own resolution, carried by the simulation surface (pmask.runtime.display)
+  const typed = (b64, T) => new T(Uint8Array.from(atob(b64), (ch) => ch.charCodeAt(0)).buffer);
+  let scan = null;
+  if (model.display) {
+    const d = model.display;
+    scan = { base: typed(d.points, Float32Array), tris: typed(d.triangles, Uint32Array),
+      v: typed(d.vertices, Uint32Array), b: typed(d.bary, Float32Array), lift: typed(d.lift, Float32Array) };
+    scan.n = scan.base.length / 3;
+    scan.geom = new THREE.BufferGeometry();
+    scan.geom.setAttribute('position', new THREE.BufferAttribute(scan.base.slice(), 3));
+    scan.geom.setAttribute('color', new THREE.BufferAttribute(new Float32Array(3 * scan.n), 3));
+    scan.geom.setIndex(new THREE.BufferAttribute(scan.tris, 1));
+    scan.geom.computeVertexNormals();
+    scan.mesh = new THREE.Mesh(scan.geom, new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }));
+    scene.add(scan.mesh);
+    mesh.visible = false;
+    $('scanBox').hidden = false;
+    $('scanCount').textContent = (scan.tris.length / 3).toLocaleString('en');
+    $('scan').addEventListener('change', () => { scan.mesh.visible = $('scan').checked; mesh.visible = !$('scan').checked; });
+  }
   // picking uses the undeformed surface: the probe is where the hand is, not where the tissue went
   const pickGeom = new THREE.BufferGeometry();
   pickGeom.setAttribute('position', new THREE.BufferAttribute(base, 3));
@@ -122,6 +142,15 @@ async function main() {
       col[3 * i] = c[0]; col[3 * i + 1] = c[1]; col[3 * i + 2] = c[2];
     }
     geom.attributes.color.needsUpdate = true;
+    if (scan) {   // the scan's vertices take the colour of their closest point on the simulation surface
+      const dc = scan.geom.attributes.color.array;
+      for (let d = 0; d < scan.n; d++)
+        for (let c = 0; c < 3; c++) {
+          dc[3 * d + c] = scan.b[3 * d] * col[3 * scan.v[3 * d] + c] + scan.b[3 * d + 1] * col[3 * scan.v[3 * d + 1] + c]
+            + scan.b[3 * d + 2] * col[3 * scan.v[3 * d + 2] + c];
+        }
+      scan.geom.attributes.color.needsUpdate = true;
+    }
     $('legendTitle').textContent = FIELD_INFO[name][0];
     const unit = FIELD_INFO[name][1];
     $('cmin').textContent = name === 'fixed' || name === 'contact' ? 'no' : `${fmt(lo * scale, 4)} ${unit}`;
@@ -257,8 +286,31 @@ async function main() {
       geom.computeVertexNormals();
       for (let i = 0; i < n; i++) umax = Math.max(umax, Math.hypot(u[3 * i], u[3 * i + 1], u[3 * i + 2]));
       $('umax').textContent = `${fmt(umax * mm, 3)} ${lenUnit}`;
+      if (scan) deformScan(u, e, reply);
     }
     return umax;
+  }
+  // x_d' = x_d + e Σ_k b_k u_{v_k} − w_d ℓ_d, w_d = max over the contacts' proxies of smoothstep(1 − |x_d − p| / r):
+  // the scan lies on the deformed simulation surface where the tool presses (pmask.runtime.display)
+  function deformScan(u, e, reply) {
+    const proxies = reply.contacts.filter((c) => c.proxy && (c.status === 'CONTACT' || c.status === 'REGION_EDGE'
+      || c.status === 'DEEP')).map((c) => c.proxy);
+    const r = reply.radius, pos = scan.geom.attributes.position.array;
+    for (let d = 0; d < scan.n; d++) {
+      let w = 0;
+      for (const p of proxies) {
+        const s = Math.min(1, Math.max(0, 1 - Math.hypot(scan.base[3 * d] - p[0], scan.base[3 * d + 1] - p[1],
+          scan.base[3 * d + 2] - p[2]) / r));
+        w = Math.max(w, s * s * (3 - 2 * s));
+      }
+      const v0 = 3 * scan.v[3 * d], v1 = 3 * scan.v[3 * d + 1], v2 = 3 * scan.v[3 * d + 2];
+      const b0 = scan.b[3 * d], b1 = scan.b[3 * d + 1], b2 = scan.b[3 * d + 2];
+      for (let c = 0; c < 3; c++)
+        pos[3 * d + c] = scan.base[3 * d + c] + e * (b0 * u[v0 + c] + b1 * u[v1 + c] + b2 * u[v2 + c])
+          - w * scan.lift[3 * d + c];
+    }
+    scan.geom.attributes.position.needsUpdate = true;
+    scan.geom.computeVertexNormals();
   }
   function serverLost(message) {   // no stale force on show, and no request every frame to a stopped server
     stats.failures++;
@@ -329,6 +381,8 @@ async function main() {
       const hits = raycaster.intersectObject(pickMesh, false);
       return hits.length > 0 && hits[0].point.distanceTo(p) < 0.5 * model.mean_edge;
     },
+    scanVertices() { return scan ? scan.n : 0; },
+    scanPosition(d) { return scan ? Array.from(scan.geom.attributes.position.array.slice(3 * d, 3 * d + 3)) : null; },
     displacement() {   // the largest displacement shown (before exaggeration), for a scripted release
       let d = 0;
       for (let i = 0; i < n; i++) d = Math.max(d, Math.hypot(disp[3 * i] - base[3 * i], disp[3 * i + 1] - base[3 * i + 1],

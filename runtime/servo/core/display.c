@@ -111,3 +111,32 @@ int pm_servo_deformation(pm_servo *s, double *out)
 #endif
     return rc;
 }
+
+/* The display surface at the scan's resolution carried by the simulation surface (pmask.runtime.display):
+ * out_d = x_d + Σ b_dk u_{v_dk} − w_d ℓ_d, w_d the largest smoothstep(1 − |x_d − p_c| / r) over the contacts. */
+void pm_display_deform(const pm_table *t, const double *u, int32_t nc, const double *contacts, double radius,
+                       double *out)
+{
+    const int64_t nd = t->nd;
+    const int snap = nc > 0 && contacts && radius > 0.0;
+    for (int64_t d = 0; d < nd; d++) {
+        const int64_t *v = t->dV + 3 * d;
+        const double *b = t->dbary + 3 * d, *x = t->dP + 3 * d;
+        double w = 0.0;
+        if (snap) {
+            for (int32_t c = 0; c < nc; c++) {
+                const double *p = contacts + 3 * c;
+                const double dx = x[0] - p[0], dy = x[1] - p[1], dz = x[2] - p[2];
+                const double dist = sqrt(dx * dx + dy * dy + dz * dz);
+                double q = 1.0 - dist / radius;
+                if (q <= 0.0) continue;
+                if (q > 1.0) q = 1.0;
+                q = q * q * (3.0 - 2.0 * q);
+                if (q > w) w = q;
+            }
+        }
+        for (int k = 0; k < 3; k++)
+            out[3 * d + k] = x[k] + (b[0] * u[3 * v[0] + k] + b[1] * u[3 * v[1] + k] + b[2] * u[3 * v[2] + k])
+                             - w * t->dlift[3 * d + k];
+    }
+}

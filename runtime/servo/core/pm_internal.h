@@ -77,6 +77,9 @@ struct pm_table {
     double lo[3], hi[3], mean_edge, diag;
     const int64_t *row;           /* surface vertex -> contact row, -1 (NULL without ζ) */
     const double *zeta;           /* (3 nc, 3 nc): rows 3m..3m+2 = ζ_mᵀ (NULL without) */
+    int64_t nd, ndt;              /* display surface: vertices, triangles (0 without) */
+    const double *dP, *dbary, *dlift;  /* its points, embedding weights, lifts (nd x 3 each) */
+    const int64_t *dT, *dV;       /* its triangles (ndt x 3), its vertices' simulation vertices (nd x 3) */
     char *meta;
     unsigned char *blob;
     size_t size;

@@ -284,6 +284,29 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
             goto bad;
         }
     }
+    if (want(blob, nsec, "display_points", DT_F64, -1, 3, 1, &s, err, errlen)) goto bad;
+    if (s.found) {  /* the display surface (optional): all five sections, checked */
+        t->nd = (int64_t)s.rows;
+        t->dP = (const double *)s.data;
+        NEED("display_triangles", DT_I64, -1, 3, 0);
+        t->ndt = (int64_t)s.rows;
+        t->dT = (const int64_t *)s.data;
+        NEED("display_vertices", DT_I64, t->nd, 3, 0);
+        t->dV = (const int64_t *)s.data;
+        NEED("display_bary", DT_F64, t->nd, 3, 0);
+        t->dbary = (const double *)s.data;
+        NEED("display_lift", DT_F64, t->nd, 3, 0);
+        t->dlift = (const double *)s.data;
+        if (!in_range(t->dT, 3 * (uint64_t)t->ndt, 0, t->nd) || !in_range(t->dV, 3 * (uint64_t)t->nd, 0, t->nv)) {
+            fmt(err, errlen, "corrupt runtime table: a display index is out of range", NULL, 0, 0);
+            goto bad;
+        }
+        if (!all_finite(t->dP, 3 * (uint64_t)t->nd) || !all_finite(t->dbary, 3 * (uint64_t)t->nd) ||
+            !all_finite(t->dlift, 3 * (uint64_t)t->nd)) {
+            fmt(err, errlen, "corrupt runtime table: a non-finite number in the display surface", NULL, 0, 0);
+            goto bad;
+        }
+    }
     if (want(blob, nsec, "meta", DT_BYTES, -1, 1, 1, &s, err, errlen)) goto bad;
     t->meta = malloc(s.found ? (size_t)s.rows + 1 : 3);
     if (!t->meta) {
@@ -380,6 +403,10 @@ void pm_table_free(pm_table *t)
 int64_t pm_table_vertices(const pm_table *t) { return t->nv; }
 int64_t pm_table_triangles(const pm_table *t) { return t->nt; }
 int32_t pm_table_has_zeta(const pm_table *t) { return t->zeta != NULL; }
+int64_t pm_display_vertices(const pm_table *t) { return t->nd; }
+int64_t pm_display_triangles(const pm_table *t) { return t->ndt; }
+const double *pm_display_points(const pm_table *t) { return t->dP; }
+const int64_t *pm_display_triangle_indices(const pm_table *t) { return t->dT; }
 const char *pm_table_meta(const pm_table *t) { return t->meta; }
 
 void pm_table_bounds(const pm_table *t, double *lo, double *hi)
