@@ -114,12 +114,16 @@ def section_only(section: str) -> None:
     res = json.loads(stored.read_text())
     work = Path(tempfile.mkdtemp(prefix="pmask-bench-"))
     arts = []
-    for size in SIZES:
+    for size in SIZES if section != "display" else ():
         print(f"precompute kidney size={size} ...", flush=True)
         precompute(size, work / f"kidney_{size}.h5")
         arts.append(work / f"kidney_{size}.h5")
     print(f"{section} ...", flush=True)
-    if section == "haptics":
+    if section == "display":
+        import display_bench
+
+        res["display"] = display_bench.run(work)
+    elif section == "haptics":
         import runtime_bench
 
         res["haptics"] = runtime_bench.run({len(Model.load(p).points): p for p in arts},
@@ -141,8 +145,8 @@ def section_only(section: str) -> None:
 def main() -> None:
     if "--only" in sys.argv:
         part = sys.argv[sys.argv.index("--only") + 1:][:1]
-        if part not in (["haptics"], ["viewer"]):
-            sys.exit("bench: --only takes 'haptics' or 'viewer' (the other sections run as one: `make bench`)")
+        if part not in (["haptics"], ["viewer"], ["display"]):
+            sys.exit("bench: --only takes 'haptics', 'viewer' or 'display' (the other sections run as one: `make bench`)")
         return section_only(part[0])
 
     work = Path(tempfile.mkdtemp(prefix="pmask-bench-"))
@@ -203,6 +207,10 @@ def main() -> None:
 
     res["viewer"] = viewer_bench.run({n: p for n, p in ((len(Model.load(p).points), p) for p in arts.values()) if n > 1000})
     res["check_cost"] = check_cost(work / "kidney_0.005.h5")
+    import display_bench
+
+    res["display"] = display_bench.run(work)
+    res["display"]["date"] = res["date"]
     import shutil
 
     shutil.rmtree(work, ignore_errors=True)
@@ -402,6 +410,11 @@ def markdown(res: dict) -> str:
     L += ["", runtime_bench.markdown(res["haptics"])]
     import viewer_bench
 
+    if res.get("display"):
+        import display_bench
+
+        L += ["", f"The display surface was measured {res['display']['date']} on the same machine.", "",
+              display_bench.markdown(res["display"])]
     if res["viewer"].get("date"):
         L += ["", f"The viewer below was measured again on its own, {res['viewer']['date']} on the same machine "
                   "(`make bench ONLY=viewer`)."]

@@ -328,6 +328,13 @@ def cmd_figures(args) -> int:
               f"{mass['indentation_over_mm']:.2f} mm, mirrored {mass['indentation_mirrored_mm']:.2f} mm "
               f"({mass['ratio']:.2f}x)")
         numbers[f"mass_{path.stem}"] = mass
+    if "display" in model.attrs:  # a scan kept at its resolution: pressed by a probe
+        from pmask.pipeline.figures import scan_figure
+
+        png, scan = scan_figure(model, Path(args.out) / f"scan_{path.stem}.png")
+        print(f"wrote {png}: the scan ({scan['display_triangles']:,} triangles) pressed {scan['depth_mm']:.2f} mm lies "
+              f"{scan['probe_to_scan_mm']:.3f} mm from the probe (the simulation surface {scan['probe_to_simulation_mm']:.3f} mm)")
+        numbers[f"scan_{path.stem}"] = scan
     if not args.no_loop:
         from pmask.pipeline.figures import loop_figures
 

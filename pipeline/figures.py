@@ -258,3 +258,68 @@ def mass_figure(model, out: Path, radius_factor: float = 2.0, force: float = 0.2
                "indentation_mirrored_mm": 1e3 * dent[mirror], "ratio": dent[over] / dent[mirror],
                "vertex_over": over, "vertex_mirrored": mirror}
     return _save(fig, out, tight=False), numbers
+
+
+# ------------------------------------------------------------------ a scan pressed by a probe
+def scan_figure(model, out: Path, depth: float | None = None) -> tuple[Path, dict]:
+    """The artifact's display surface (the scan at its own resolution, :mod:`pmask.runtime.display`) pressed by
+    a probe: a single contact driven from outside into the flattest upward-facing free vertex to ``depth``
+    (default 1.5 mean edges), the servo's deformation carried to the scan and laid onto it at the contact; two
+    views, the scan coloured by its displacement.  Returns the PNG and its numbers (the distance from the
+    probe to the pressed scan beside the simulation surface's own, the displacement at the contact)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from pmask.precompute.meshing import surface_distance
+    from pmask.runtime import HapticContact
+    from pmask.runtime.geometry import vertex_normals
+
+    ds = model.display()
+    if ds is None:
+        raise ValueError(f"{model.path}: no display surface (precomputed from a model, a --volume mesh or with "
+                         "--no-display)")
+    stiff = model.stiffness("linear", model.default_radius)
+    h = HapticContact(stiff)
+    P, n = model.points, vertex_normals(model.points, model.triangles)
+    core = model.contact[model.core]
+    up = core[n[core, 2] > 0.9]
+    up = up if len(up) else core
+    v = int(up[np.argmin(np.linalg.norm(P[up, :2] - P[core, :2].mean(axis=0), axis=1))])  # the top, mid-body
+    depth = 2.0 * model.mean_edge_length if depth is None else depth
+    for s in np.linspace(-1.0, depth / model.mean_edge_length, 400):
+        _, status = h.step(P[v] - s * model.mean_edge_length * n[v])
+    probe = P[v] - depth * n[v]
+    u = h.deformation()
+    proxy = np.asarray(h.proxy)
+    x = ds.deform(u, [proxy], stiff.masks.radius)
+    mag = np.linalg.norm(x - ds.points, axis=1)
+    numbers = {"status": str(status.name), "depth_mm": 1e3 * depth, "display_triangles": int(len(ds.triangles)),
+               "simulation_vertices": int(len(P)),
+               "probe_to_scan_mm": 1e3 * float(surface_distance(probe[None], x, ds.triangles)[0]),
+               "probe_to_simulation_mm": 1e3 * float(surface_distance(probe[None], P + u, model.triangles)[0]),
+               "largest_displacement_mm": 1e3 * float(mag.max())}
+    fig = plt.figure(figsize=(12, 5.2), layout="constrained")
+    cmap = plt.get_cmap("viridis")
+    face = mag[ds.triangles].mean(axis=1)
+    lo, hi = x.min(axis=0) * 1e3, x.max(axis=0) * 1e3
+    for k, (elev, azim, title) in enumerate(((20, -60, "the scan pressed"), (75, -90, "from above"))):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(x[ds.triangles] * 1e3, facecolors=cmap(face / max(mag.max(), 1e-30)),
+                                             linewidths=0, shade=True, lightsource=matplotlib.colors.LightSource(
+                                                 azdeg=225, altdeg=45)))
+        tool = np.array([probe, probe + 6.0 * model.mean_edge_length * n[v]]) * 1e3  # the tool's shaft, in red
+        ax.plot(*tool.T, color="red", lw=2.5)
+        ax.set_xlim(lo[0], hi[0]); ax.set_ylim(lo[1], hi[1]); ax.set_zlim(lo[2], hi[2])
+        ax.set_box_aspect(tuple(hi - lo))
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_axis_off()
+        ax.set_title(title, fontsize=9)
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1e3 * mag.max()))
+    fig.colorbar(sm, ax=fig.axes, shrink=0.7, label="displacement of the scan [mm]")
+    fig.suptitle(f"{Path(model.path).name}: the scan ({len(ds.triangles):,} triangles) carried by the "
+                 f"{len(P):,}-vertex simulation surface, a probe (red) pressed {1e3 * depth:.1f} mm in; the scan lies "
+                 f"{numbers['probe_to_scan_mm']:.2f} mm from it", fontsize=10)
+    return _save(fig, out, tight=False), numbers
