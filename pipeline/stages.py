@@ -356,6 +356,16 @@ def check_selectors_before_meshing(spec: Spec, points: np.ndarray, triangles: np
                               "free to touch; choose a smaller support region")
 
 
+def segmentation_inclusions(spec: Spec) -> list[int]:
+    """A multi-label segmentation's inner labels: the ``--materials`` entries whose name is a label value
+    (``--materials 2:5e4:0.45`` makes label 2, inside ``--label``'s organ, a region of its own)."""
+    if not (spec.segmentation and spec.materials):
+        return []
+    from pmask.precompute.materials import parse_materials
+
+    return [int(name) for name in parse_materials(spec.materials) if name.isdigit() and int(name) != spec.label]
+
+
 def mesh_stage(spec: Spec) -> ModelMesh:
     """Stage 1: the volume mesh (metres) and its named groups, from a model or a user's file."""
     from pmask.pipeline.models import get_model
@@ -364,21 +374,29 @@ def mesh_stage(spec: Spec) -> ModelMesh:
     if spec.segmentation:
         from pmask.precompute.segmentation import label_surface
 
-        pts, tris, report = label_surface(Path(spec.segmentation), spec.label, spec.units)
+        inner = segmentation_inclusions(spec)
+        pts, tris, report = label_surface(Path(spec.segmentation), spec.label, spec.units, with_labels=inner)
         check_selectors_before_meshing(spec, pts, tris)
         import meshio
 
-        ply = Path(tempfile.mkdtemp(prefix="pmask-label-")) / f"label{spec.label}.ply"  # the --surface route's input
+        folder = Path(tempfile.mkdtemp(prefix="pmask-label-"))
+        ply = folder / f"label{spec.label}.ply"  # the --surface route's input
         meshio.write_points_cells(ply, pts, [("triangle", tris.astype(np.int32))])
+        inclusions = []
+        for lab in inner:  # a multi-label segmentation: each inner label's surface an inclusion of its own
+            p, t, _ = label_surface(Path(spec.segmentation), lab, spec.units)
+            inclusions.append(folder / f"label{lab}.ply")
+            meshio.write_points_cells(inclusions[-1], p, [("triangle", t.astype(np.int32))])
         try:
-            points, tets, change = meshing.remesh_bounded(ply, edge_length=spec.edge_length * spec.scale,
-                                                          scale=spec.scale, units_given=True,
-                                                          timeout=spec.mesh_timeout, repair=spec.repair,
-                                                          xi_of_all=spec.contact is None)
+            points, tets, change, regions = meshing.remesh_bounded(
+                ply, edge_length=spec.edge_length * spec.scale, scale=spec.scale, units_given=True,
+                timeout=spec.mesh_timeout, repair=spec.repair, xi_of_all=spec.contact is None,
+                inclusions=inclusions, with_regions=True, region_names=[str(lab) for lab in inner])
         finally:
-            shutil.rmtree(ply.parent, ignore_errors=True)
-        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "",
-                         info={"source": Path(spec.segmentation).name, "segmentation": report, "remesh": change})
+            shutil.rmtree(folder, ignore_errors=True)
+        return ModelMesh(points=points, tets=tets, fixed=spec.fixed or "", regions=regions,
+                         info={"source": Path(spec.segmentation).name, "segmentation": report, "remesh": change}
+                         | ({"labels": [spec.label, *inner]} if inner else {}))
     if spec.surface:
         m = None
         with contextlib.suppress(meshing.MeshError):  # an unreadable file is the remesh's to report
@@ -643,7 +661,8 @@ def display_stage(spec: Spec, mesh: ModelMesh, surf: Surface) -> dict | None:
     if spec.segmentation:
         from pmask.precompute.segmentation import label_surface
 
-        pts, tris, _ = label_surface(Path(spec.segmentation), spec.label, spec.units)
+        pts, tris, _ = label_surface(Path(spec.segmentation), spec.label, spec.units,
+                                     with_labels=segmentation_inclusions(spec))
     else:
         m = meshing.read_mesh_file(Path(spec.surface))
         tris = [c.data[:, :3] for c in m.cells if c.type == "triangle"]

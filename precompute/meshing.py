@@ -240,7 +240,7 @@ def check_extent(points: np.ndarray, units_given: bool, name, edge_length: float
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
                    timeout: float = 600.0, repair: str | None = None, xi_of_all: bool = False,
-                   shell: int | None = None, inclusions=(), with_regions: bool = False):
+                   shell: int | None = None, inclusions=(), with_regions: bool = False, region_names=None):
     """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
     after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
@@ -295,8 +295,8 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
             points, tets, label = z["points"], z["tets"], z["label"]
         if not with_regions:
             return points, tets, result["report"]
-        return points, tets, result["report"], {name: label == k + 1
-                                                for k, name in enumerate(inclusion_names(len(inclusions)))}
+        names = list(region_names) if region_names is not None else inclusion_names(len(inclusions))
+        return points, tets, result["report"], {name: label == k + 1 for k, name in enumerate(names)}
 
 
 def inclusion_names(n: int) -> list[str]:

@@ -95,8 +95,10 @@ def mask_surface(mask: np.ndarray, affine: np.ndarray, *, field: np.ndarray | No
     return mesh, raw_volume
 
 
-def label_surface(path: Path, label: int, units: str | None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The closed surface of ``label`` (points in the image's length unit, triangles) and a report."""
+def label_surface(path: Path, label: int, units: str | None, with_labels=()) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The closed surface of ``label`` (points in the image's length unit, triangles) and a report.
+    ``with_labels``: labels inside it that belong to the body (a multi-label segmentation's inclusions): the
+    surface is that of their union, so that an inclusion is not a cavity."""
     data, affine, header_unit = read_label_image(path)
     if data.ndim != 3:
         raise MeshError(f"{path}: a 3-D label image is needed, this one has shape {data.shape}")
@@ -105,7 +107,12 @@ def label_surface(path: Path, label: int, units: str | None) -> tuple[np.ndarray
     if header_unit is not None and units is not None and header_unit != units:
         raise MeshError(f"{path}: the header says the spacing is in {header_unit}, --units says {units}; "
                         "leave --units out to use the header's")
-    mask = np.asarray(data) == label
+    for extra in with_labels:
+        if not np.any(np.asarray(data) == extra):
+            present = np.unique(np.asarray(data))
+            raise MeshError(f"{path}: --materials names label {extra}, but no voxel has it; the labels present are "
+                            + ", ".join(str(v) for v in present[:20]))
+    mask = np.isin(np.asarray(data), [label, *with_labels])
     if not mask.any():
         present = np.unique(np.asarray(data))
         shown = ", ".join(str(v) for v in present[:20]) + (" ..." if len(present) > 20 else "")

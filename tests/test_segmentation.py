@@ -96,3 +96,35 @@ def test_label_image_refusals_are_one_line(nifti, tmp_path, capsys):
         code = main(["precompute", *argv, "--edge-length", "3", "--fixed", "x>25", "-o", str(tmp_path / "x.h5")])
         err = capsys.readouterr().err
         assert code == 2 and msg in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_multi_label_segmentation_gives_each_inner_label_its_material(tmp_path):
+    """The tumour issue's item 1 on a label image: an ellipsoidal organ (label 2) holding a ball of label 7,
+    `--label 2 --materials 7:5e4:0.45`: the body is the union of both labels (no cavity where the mass is), the
+    ball's tetrahedra are the region "7" with its material, all inside the ball (its corners within its radius
+    plus a voxel and the smoothing), and its volume within 10 % of the ball's (marching cubes on 1 mm voxels
+    and a 3 mm remesh of a 12 mm ball).  A label the image does not hold is one line."""
+    from pmask.runtime.artifact import MATERIALS, VOLUME
+
+    data, affine = labels()
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in data.shape], indexing="ij"), axis=-1).reshape(-1, 3)
+    world = (ijk @ affine[:3, :3].T + affine[:3, 3]).reshape(*data.shape, 3)
+    centre, radius = np.array(CENTRE) + [5.0, 0.0, 0.0], 6.0
+    data = data.copy()
+    data[np.linalg.norm(world - centre, axis=-1) <= radius] = 7
+    img = nibabel.Nifti1Image(data, affine)
+    img.header.set_xyzt_units("mm")
+    path = tmp_path / "two.nii.gz"
+    nibabel.save(img, str(path))
+    out = tmp_path / "organ.h5"
+    run(Spec(model="organ", segmentation=str(path), label=2, edge_length=3.0, fixed="x>25",
+             materials="7:5e4:0.45"), out)
+    a = read_artifact(out, datasets=VOLUME + MATERIALS)
+    (region,) = a["attrs"]["material"]["regions"]
+    assert region["name"] == "7" and region["E"] == 5e4
+    assert abs(region["volume_m3"] / (4.0 / 3.0 * np.pi * (1e-3 * radius) ** 3) - 1) < 0.10
+    r = np.linalg.norm(a["volume/points"][a["volume/tets"]] * 1e3 - centre, axis=2)
+    assert r[a["volume/material_region"] == 0].max() <= radius + 1.5
+    with pytest.raises(Exception, match="no voxel has it"):
+        run(Spec(model="organ", segmentation=str(path), label=2, edge_length=3.0, fixed="x>25",
+                 materials="9:5e4:0.45"), tmp_path / "x.h5")
