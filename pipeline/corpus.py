@@ -32,6 +32,34 @@ def join(*parts):
     return np.vstack(P), np.vstack(T)
 
 
+def voxel_faces(inside: np.ndarray, spacing: float = 1.0):
+    """The boundary faces of a voxel set as an outward triangle surface (two triangles per face, corners shared):
+    a label image exported as its voxels' faces, every edge between faces a 90° crease."""
+    pad = np.pad(np.asarray(inside, bool), 1)
+    quads = []
+    for axis in range(3):
+        a, b = [k for k in range(3) if k != axis]
+        for side in (0, 1):
+            neighbour = np.roll(pad, -1 if side else 1, axis=axis)
+            for i in np.argwhere(pad & ~neighbour) - 1:
+                base = i.astype(float)
+                base[axis] += side
+                c = []
+                for da, db in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                    q = base.copy()
+                    q[a] += da
+                    q[b] += db
+                    c.append(q)
+                normal = np.cross(c[1] - c[0], c[3] - c[0])
+                if normal[axis] * (1 if side else -1) < 0:
+                    c = c[::-1]
+                quads.append(c)
+    q = np.asarray(quads).reshape(-1, 3)
+    pts, inverse = np.unique(q, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1, 4)
+    return spacing * pts, np.vstack([inverse[:, [0, 1, 2]], inverse[:, [0, 2, 3]]])
+
+
 def corpus() -> dict:
     """Case name -> (vertices, triangles)."""
     import trimesh
@@ -61,6 +89,11 @@ def corpus() -> dict:
     # two organs' surfaces exported together and running into each other: the body is their union
     cases["overlapping shells"] = join(sphere(), sphere(r=OVERLAP[0], at=(OVERLAP[1], 0, 0)))
     cases["debris"] = join(sphere(), sphere(r=0.4, sub=1, at=(30.0, 0, 0)), sphere(r=0.4, sub=1, at=(0, 30.0, 0)))
+    # a label image's voxel faces exported unsmoothed (a ball of radius 14 voxels of 1.25 mm, centred): gmsh kept
+    # every 90° crease as a feature curve, 37x the vertices --edge-length asked for
+    g = np.indices((36, 36, 36)).reshape(3, -1).T - 17.5
+    vp, vf = voxel_faces((np.linalg.norm(g, axis=1) <= 14.0).reshape(36, 36, 36), 1.25)
+    cases["voxel staircase"] = (vp - 1.25 * 18.0, vf)
     big = trimesh.creation.icosphere(subdivisions=7, radius=20.0)  # 327,680 triangles
     cases["over 300,000 triangles"] = (np.asarray(big.vertices), np.asarray(big.faces))
     return cases

@@ -4,15 +4,16 @@ Shells (connected pieces) with their share of the area, defects (non-finite vert
 triangles, boundary edges, non-manifold edges, inconsistently oriented edges, inward orientation), the
 bounding box in the file's units, and the ``--edge-length`` that gives a chosen number of surface
 vertices after remeshing: a closed triangulation with n vertices has about 2n triangles, each about
-(√3/4) h² for edge length h, so h ≈ √(2A / (√3 n)) for area A.
+(√3/4) h² for edge length h, so n ≈ 2A / (√3 h²) for area A, times the 1.28 that gmsh's edges between half
+and all of h add (:data:`pmask.precompute.meshing.GMSH_COUNT_FACTOR`, measured).
 """
 from __future__ import annotations
 
 import math
 import numpy as np
 
-from pmask.precompute.meshing import (MeshError, check_face_indices, edge_defects, pinched_vertices, read_mesh_file,
-                                      shells, stl_damage)
+from pmask.precompute.meshing import (GMSH_COUNT_FACTOR, MeshError, check_face_indices, edge_defects,
+                                      pinched_vertices, read_mesh_file, shells, stl_damage)
 
 
 def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -> dict:
@@ -50,7 +51,8 @@ def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -
     out["extent"] = float(np.linalg.norm(hi - lo))
     out["units"] = units or "m (not given)"
     main_area = float(shell_area[order[0]])  # the largest shell's
-    out["edge_length_for"] = {int(t): math.sqrt(2.0 * main_area / (math.sqrt(3.0) * t)) for t in targets}
+    out["edge_length_for"] = {int(t): math.sqrt(GMSH_COUNT_FACTOR * 2.0 * main_area / (math.sqrt(3.0) * t))
+                              for t in targets}
     return out
 
 
