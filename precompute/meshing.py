@@ -240,7 +240,8 @@ def check_extent(points: np.ndarray, units_given: bool, name, edge_length: float
 
 def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_given: bool = True,
                    timeout: float = 600.0, repair: str | None = None, xi_of_all: bool = False,
-                   shell: int | None = None, inclusions=(), with_regions: bool = False, region_names=None):
+                   shell: int | None = None, inclusions=(), with_regions: bool = False, region_names=None,
+                   angle_deg: float = 40.0):
     """:func:`remesh_surface` in a worker process (``python -m pmask.precompute.meshing``) that is stopped
     after ``timeout`` seconds or on Ctrl-C; returns (points, tets, geometry change).
 
@@ -251,7 +252,8 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
 
     ``inclusions``: closed surface files inside this one, meshed conformally as regions of their own
     (:func:`remesh_surface`); ``with_regions``: return (points, tets, change, regions) with regions
-    {name: bool over tets}."""
+    {name: bool over tets}; ``angle_deg``: gmsh's feature angle (180: no feature edges, for a label image's
+    surface, whose creases are its voxels')."""
     import json
     import subprocess
     import sys
@@ -259,7 +261,7 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
 
     job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
            "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout, "shell": shell,
-           "inclusions": [str(q) for q in inclusions]}
+           "inclusions": [str(q) for q in inclusions], "angle_deg": angle_deg}
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
@@ -336,7 +338,8 @@ def _worker(argv) -> int:
         points, tets, *rest = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
                                              units_given=job["units_given"], report=report, repair=job["repair"],
                                              xi_of_all=job["xi_of_all"], shell=job.get("shell"),
-                                             inclusions=[Path(q) for q in job.get("inclusions", [])])
+                                             inclusions=[Path(q) for q in job.get("inclusions", [])],
+                                             angle_deg=job.get("angle_deg", 40.0))
         label = rest[0] if rest else np.zeros(len(tets), np.int64)
         np.savez(out, points=points, tets=tets, label=label)
         result = {"kind": "ok", "report": report}

@@ -128,3 +128,33 @@ def test_a_multi_label_segmentation_gives_each_inner_label_its_material(tmp_path
     with pytest.raises(Exception, match="no voxel has it"):
         run(Spec(model="organ", segmentation=str(path), label=2, edge_length=3.0, fixed="x>25",
                  materials="9:5e4:0.45"), tmp_path / "x.h5")
+
+
+def test_a_thick_slice_label_image_honours_the_edge_length(tmp_path, caplog):
+    """The scans issue's item 4: a label image with 2.5 mm slices and 0.8 mm pixels gives a surface of stairs,
+    whose edges gmsh kept as feature curves (a liver ran out the 600 s mesh timeout; an ellipsoid here gave
+    2.1x the vertices asked for with edges of 0.03 h, then a second remesh).  A label image's surface is
+    remeshed without feature edges at once: no retry, its surface vertices within 1.3x of the prediction from
+    its area (pmask inspect's), no edge shorter than 0.25 h (see test_robustness's staircase), and the
+    ellipsoid's volume within 3 % (smoothing, slices and a 7 mm remesh)."""
+    sp = np.array([0.8, 0.8, 2.5])
+    shape = (170, 120, 34)
+    affine = np.diag([*sp, 1.0])
+    affine[:3, 3] = -sp * np.array(shape) / 2
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+    axes = np.array([60.0, 40.0, 35.0])
+    data = (np.sum(((ijk * sp + affine[:3, 3]) / axes) ** 2, axis=1) <= 1).astype(np.uint8).reshape(shape)
+    img = nibabel.Nifti1Image(data, affine)
+    img.header.set_xyzt_units("mm")
+    path = tmp_path / "thick.nii.gz"
+    nibabel.save(img, str(path))
+    out = tmp_path / "thick.h5"
+    run(Spec(model="thick", segmentation=str(path), label=1, edge_length=7.0, fixed="x>50"), out)
+    assert "remeshing without feature edges" not in caplog.text
+    m = Model.load(out)
+    got = m.attrs["parameters"]["model_info"]["remesh"]["edge_length"]
+    assert 1 / 1.3 <= got["count_ratio"] <= 1.3 and got["shortest_edge_ratio"] >= 0.25, got
+    p, t = m.volume()
+    e = p[t[:, 1:]] - p[t[:, :1]]
+    volume = np.abs(np.linalg.det(e)).sum() / 6.0 * 1e9
+    assert abs(volume / (4.0 / 3.0 * np.pi * axes.prod()) - 1) < 0.03
