@@ -128,6 +128,20 @@ def _attr_bytes(value) -> bytes:
     return np.asarray(value).tobytes() + str(np.asarray(value).dtype.str).encode()
 
 
+def stored_bytes(path, names) -> int | None:
+    """The bytes of these datasets' values in an artifact, or None when it lacks one of them (or there is no
+    readable file: :func:`read_artifact` says what is wrong with it)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            if not all(k in f for k in names):
+                return None
+            return int(sum(f[k].size * f[k].dtype.itemsize for k in names))
+    except OSError:
+        return None
+
+
 def stored_input_hash(path) -> str | None:
     """The input hash an existing artifact records (attribute ``input_hash``), or None when there is no
     readable artifact at ``path``.  The pipeline compares it with the hash of the inputs it was given to
@@ -150,13 +164,43 @@ def _major_minor(version: str) -> tuple[int, int]:
         return -1, -1
 
 
-def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, verify: bool = True) -> dict:
+class FileArray:
+    """A dataset left in the artifact and read in slices when needed (a large organ's far field): ``a[i:j]``
+    reads those values.  Its SHA-256 is not checked at load (that would read it all); HDF5 checks the
+    Fletcher-32 of every chunk it reads, which names a corrupt chunk."""
+
+    def __init__(self, path, name: str):
+        import h5py
+
+        self._file = h5py.File(path, "r")
+        self._data = self._file[name]
+        self.shape, self.dtype = self._data.shape, self._data.dtype
+        self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
+
+    def __len__(self) -> int:
+        return int(self.shape[0])
+
+    def __getitem__(self, key):
+        try:
+            return self._data[key]
+        except OSError as exc:
+            raise ArtifactError(f"{self._file.filename}: cannot read {self._data.name} ({exc}); it is corrupt, "
+                                "recompute it with --force") from exc
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, verify: bool = True,
+                  in_file=()) -> dict:
     """Read and check an artifact; return the requested datasets and the decoded attributes.
 
     ``datasets``: the names to read (default: everything this reader knows; the runtime asks for
     :data:`RUNTIME` only).  An optional dataset the file does not have (``greens/reactions``) is
-    returned as None.  Raises :class:`ArtifactError` for a missing, truncated, corrupt, altered or
-    foreign file, or one whose major format version this reader does not know.
+    returned as None.  ``in_file``: names among them returned as :class:`FileArray` (read when sliced,
+    checked by HDF5's Fletcher-32 rather than by their SHA-256).  Raises :class:`ArtifactError` for a
+    missing, truncated, corrupt, altered or foreign file, or one whose major format version this reader
+    does not know.
     """
     import h5py
 
@@ -182,7 +226,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
             missing = [d for d in wanted if d not in f and d not in REACTIONS + MATERIALS + DISPLAY]
             if missing:
                 raise ArtifactError(f"{path}: incomplete artifact, missing {', '.join(missing)}")
-            data = {d: (f[d][()] if d in f else None) for d in wanted}
+            data = {d: (f[d][()] if d in f else None) for d in wanted if d not in in_file}
     except ArtifactError:
         raise
     except (OSError, KeyError, RuntimeError) as exc:
@@ -198,6 +242,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
                 raise ArtifactError(f"{path}: attribute {key} is not valid JSON") from exc
     data = {k: v for k, v in data.items() if k in datasets}
     _check_shapes(path, data)
+    data.update({d: FileArray(path, d) for d in in_file if d in datasets})
     return {"attrs": attrs, **data}
 
 
@@ -240,7 +285,8 @@ def _check_shapes(path, d) -> None:
         perm = d["greens/hmatrix/perm"]
         if len(perm) != nc or not np.array_equal(np.sort(perm), np.arange(nc)):
             problems.append("the compressed Green's functions' vertex order is not a permutation of the contact vertices")
-        elif not all(np.all(np.isfinite(d[f"greens/hmatrix/{k}"])) for k in ("dense", "U", "V")):
+        elif not all(np.all(np.isfinite(d[f"greens/hmatrix/{k}"])) for k in ("dense", "U", "V")
+                     if f"greens/hmatrix/{k}" in d):  # (a far field left in the file is checked as it is read)
             problems.append("Xi holds NaN or inf")
     if d.get("greens/reactions") is not None and nu is not None and nc is not None:
         if d["greens/reactions"].shape != (3 * nu, 3 * nc):

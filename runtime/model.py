@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
-from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact
+from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact, stored_bytes
 from pmask.runtime.compressed import CompressedXi
 from pmask.runtime.device import Device
 from pmask.runtime.geometry import mean_edge_length
@@ -50,12 +50,25 @@ class Model:
         self.mean_edge_length = mean_edge_length(self.points, self.triangles)
         self.load_seconds = None
 
+    #: far fields larger than this stay in the file (far_field="auto")
+    FAR_FIELD_IN_MEMORY = 512 * 2**20
+
     @classmethod
-    def load(cls, path, *, verify: bool = True) -> "Model":
+    def load(cls, path, *, verify: bool = True, far_field: str = "auto") -> "Model":
         """Read what the runtime uses (the surface and Ξ) and check it; refuses foreign, corrupt,
-        altered or newer-major files (``ArtifactError``)."""
+        altered or newer-major files (``ArtifactError``).
+
+        far_field: for a compressed artifact, where its low-rank far field lives: "memory", "file" (read in
+        slices when a deformation or a coupling needs them, :class:`pmask.runtime.artifact.FileArray`; the
+        near field, all K_i need, is read either way), or "auto": in the file when larger than
+        :data:`FAR_FIELD_IN_MEMORY` (an organ at 20,000 vertices: 2 GiB that a single contact never reads)."""
+        if far_field not in ("auto", "memory", "file"):
+            raise InputError(f"far_field must be 'auto', 'memory' or 'file', got {far_field!r}")
         t0 = time.perf_counter()
-        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify), str(path))
+        in_file = ()
+        if far_field != "memory":
+            in_file = cls._far_field_in_file(path, far_field)
+        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify, in_file=in_file), str(path))
         m.verify = verify
         m.load_seconds = time.perf_counter() - t0
         return m
@@ -64,6 +77,15 @@ class Model:
         """The tetrahedral mesh the Green's functions came from: (points, tets), read on demand."""
         d = read_artifact(self.path, datasets=VOLUME, verify=getattr(self, "verify", True))
         return d["volume/points"], d["volume/tets"]
+
+    @classmethod
+    def _far_field_in_file(cls, path, far_field: str) -> tuple:
+        """The far-field datasets to leave in the file (none for a dense artifact)."""
+        far = ("greens/hmatrix/U", "greens/hmatrix/V")
+        size = stored_bytes(path, far)
+        if size is None:
+            return ()
+        return far if far_field == "file" or size > cls.FAR_FIELD_IN_MEMORY else ()
 
     def display(self):
         """The display surface at the scan's resolution (:class:`pmask.runtime.display.DisplaySurface`), read on
