@@ -118,8 +118,10 @@ class Spec:
 
 
 @dataclass
-class Surface:
-    """The boundary surface of the mesh and its regions (stage 2).
+class SimulationSurface:
+    """The simulation surface: the boundary of the volume mesh and its regions (stage 2), as distinct from the
+    display surface (the scan at its own resolution, :mod:`pmask.precompute.display`) and the runtime's contact
+    surface (:class:`pmask.runtime.contact.ContactSurface`).
 
     vertices : volume indices of the surface vertices (sorted); triangles : into ``vertices``,
     counter-clockwise from outside; areas : a_i = ∫ φ_i dΓ; regions : free/fixed/contact/core sets
@@ -466,7 +468,7 @@ def _check_support_share(share: float, n_fixed: int, selector: str, units: str |
                     selector, 100 * share, n_fixed)
 
 
-def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
+def surface_stage(spec: Spec, mesh: ModelMesh) -> SimulationSurface:
     """Stage 2: the boundary surface, its vertex areas, and the fixed, free and contact regions."""
     from pmask.precompute import regions, selectors, supports, surface
     from pmask.runtime.geometry import mean_edge_length, triangle_areas, vertex_areas
@@ -501,7 +503,7 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> Surface:
              int(held.sum()), held_area, 100 * held_area / facet_areas.sum())
     if spec.surface or spec.segmentation or (spec.volume and not spec.volume.endswith(".npz")):  # a user's selector
         _check_support_share(held_area / float(facet_areas.sum()), len(reg.fixed), fixed_sel, spec.units)
-    return Surface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "", held)
+    return SimulationSurface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "", held)
 
 
 @functools.lru_cache(maxsize=16)
@@ -595,7 +597,7 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
     return need
 
 
-def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
+def factor_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface):
     """Stage 3: assemble the element's stiffness and load, factorise K_FF.  Returns (factor, timings)."""
     from pmask.precompute import elements, greens
 
@@ -625,7 +627,7 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: Surface):
     return factor, {"assemble": t_assemble, "factor": time.perf_counter() - t0}
 
 
-def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor, *, work: Path | None = None, key: str = ""):
+def greens_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface, factor, *, work: Path | None = None, key: str = ""):
     """Stage 4: Ξ and the support reactions per fixed vertex from the factor.  With ``spec.compress``: Ξ's
     compressed arrays (tiles on Dask, their store in ``work``), no reactions."""
     from pmask.precompute import elements, greens
@@ -652,7 +654,7 @@ def greens_stage(spec: Spec, mesh: ModelMesh, surf: Surface, factor, *, work: Pa
     return Xi, element.lump_reactions(d, surf.vertices[surf.regions.fixed], surf.held_facets(), R)
 
 
-def display_stage(spec: Spec, mesh: ModelMesh, surf: Surface) -> dict | None:
+def display_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface) -> dict | None:
     """Stage 4b: the display surface (:mod:`pmask.precompute.display`): the ``--surface`` file as given (the
     ``--shell`` chosen), or a label image's smoothed surface, embedded in the simulation surface; None for
     models, ``--volume`` meshes and ``--no-display``."""
@@ -677,7 +679,7 @@ def display_stage(spec: Spec, mesh: ModelMesh, surf: Surface) -> dict | None:
                                    spec.surface or spec.segmentation)
 
 
-def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: Surface, Xi, reactions, *, keys, factor_stats,
+def write_stage(spec: Spec, out: Path, mesh: ModelMesh, surf: SimulationSurface, Xi, reactions, *, keys, factor_stats,
                 timings, resumed, display: dict | None = None) -> None:
     """Stage 5: the artifact, written atomically with its checksums and provenance."""
     from pmask.precompute.writer import write_artifact
