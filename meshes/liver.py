@@ -15,7 +15,7 @@ import numpy as np
 
 from pmask.errors import InputError
 from pmask.meshes.common import ModelMesh
-from pmask.precompute.meshing import compact, gmsh_session
+from pmask.precompute.meshing import gmsh_session, tets_by_volume
 
 AXES = (0.075, 0.050, 0.040)  # m: semi-axes of the lobe
 CUT = -0.015  # m: the flat posterior face (the support) at this z
@@ -48,18 +48,11 @@ def build(size: float = 0.005, depth: float = 0.020, radius: float = 0.010, offs
         gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         gmsh.option.setNumber("Mesh.MeshSizeMin", 0.3 * size)
         gmsh.model.mesh.generate(3)
-        tags, coords, _ = gmsh.model.mesh.getNodes()
-        order = np.argsort(tags)
-        tags, coords = tags[order], coords.reshape(-1, 3)[order]
-        tets, inside = [], []
-        for _, vol in gmsh.model.getEntities(3):
-            types, _, nodes = gmsh.model.mesh.getElements(3, vol)
-            t = np.concatenate([n.reshape(-1, 4) for ty, n in zip(types, nodes) if ty == 4])
-            bb = gmsh.model.getBoundingBox(3, vol)
-            tets.append(np.searchsorted(tags, t))
-            inside.append(np.full(len(t), bb[3] - bb[0] < 2.5 * radius))  # the ball's box, not the lobe's
-    mass = np.concatenate(inside)
-    points, tets, _ = compact(coords, np.concatenate(tets))
+        volumes = [v for _, v in gmsh.model.getEntities(3)]
+        boxes = [gmsh.model.getBoundingBox(3, v) for v in volumes]
+        ball = [k for k, b in enumerate(boxes) if b[3] - b[0] < 2.5 * radius]  # the ball's box, not the lobe's
+        points, tets, label = tets_by_volume(gmsh, volumes)
+    mass = np.isin(label, ball)
     E, nu = 5.0e3, 0.45
     return ModelMesh(points=points, tets=tets, fixed=f"z<{CUT + 1e-4!r}",
                      material={"E": E, "nu": nu, "regions": {"mass": [contrast * E, nu]}},

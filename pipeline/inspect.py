@@ -13,16 +13,15 @@ import math
 import numpy as np
 
 from pmask.precompute.meshing import (GMSH_COUNT_FACTOR, MeshError, check_face_indices, edge_defects,
-                                      pinched_vertices, read_mesh_file, shells, stl_damage)
+                                      pinched_vertices, read_mesh_file, shells, stl_damage,
+                                      triangle_blocks)
 
 
 def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -> dict:
     """Facts about a surface file (in the file's own units)."""
     m = read_mesh_file(path)
     cells = {c.type: len(c.data) for c in m.cells}
-    tris = [c.data for c in m.cells if c.type == "triangle"]
-    tris += [c.data[:, [0, 1, 2]] for c in m.cells if c.type == "quad"]
-    tris += [c.data[:, [0, 2, 3]] for c in m.cells if c.type == "quad"]
+    tris = triangle_blocks(m)
     if len(m.points) == 0 or not tris:
         raise MeshError(f"{path}: no triangles in this file (cell types: {sorted(cells) or 'none'}"
                         f"{stl_damage(path, '; ')})")

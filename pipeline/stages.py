@@ -402,18 +402,14 @@ def mesh_stage(spec: Spec) -> ModelMesh:
                          info={"source": Path(spec.segmentation).name, "segmentation": report, "remesh": change}
                          | ({"labels": [spec.label, *inner]} if inner else {}))
     if spec.surface:
-        m = None
+        read = None
         with contextlib.suppress(meshing.MeshError):  # an unreadable file is the remesh's to report
-            m = meshing.read_mesh_file(Path(spec.surface))
-        tris = [c.data[:, :3] for c in m.cells if c.type in ("triangle", "quad")] if m is not None else []
-        if tris and len(m.points):
-            tris = np.concatenate(tris)
-            pts = np.asarray(m.points, float)[:, :3]
-            if tris.min() >= 0 and tris.max() < len(m.points) and np.all(np.isfinite(pts)):
-                # the unit first: a file in another unit misses every selector, and the unit is the cause
-                meshing.check_extent(pts * spec.scale, spec.units is not None, spec.surface,
-                                     spec.edge_length * spec.scale)
-                check_selectors_before_meshing(spec, pts, tris)
+            read = meshing.read_surface_file(Path(spec.surface))
+        if read is not None:
+            pts, tris = read
+            # the unit first: a file in another unit misses every selector, and the unit is the cause
+            meshing.check_extent(pts * spec.scale, spec.units is not None, spec.surface, spec.edge_length * spec.scale)
+            check_selectors_before_meshing(spec, pts, tris)
         points, tets, change, regions = meshing.remesh_bounded(
             Path(spec.surface), edge_length=spec.edge_length * spec.scale, scale=spec.scale,
             units_given=spec.units is not None, timeout=spec.mesh_timeout, repair=spec.repair,
@@ -668,11 +664,7 @@ def display_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface) -> dict 
         pts, tris, _ = label_surface(Path(spec.segmentation), spec.label, spec.units,
                                      with_labels=segmentation_inclusions(spec))
     else:
-        m = meshing.read_mesh_file(Path(spec.surface))
-        tris = [c.data[:, :3] for c in m.cells if c.type == "triangle"]
-        tris += [c.data[:, [0, 2, 3]] for c in m.cells if c.type == "quad"]
-        tris += [c.data[:, [0, 1, 2]] for c in m.cells if c.type == "quad"]
-        pts, tris = np.asarray(m.points, float)[:, :3], np.concatenate(tris).astype(np.int64)
+        pts, tris = meshing.read_surface_file(Path(spec.surface))
         if spec.shell is not None:
             pts, tris = meshing.select_shell(pts, tris, spec.shell, spec.surface)
     return display.display_surface(pts * spec.scale, tris, mesh.points[surf.vertices], surf.triangles,

@@ -585,19 +585,8 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
     """
     if not (np.isfinite(edge_length) and edge_length > 0):
         raise MeshError(f"the target edge length must be > 0, got {edge_length}")
-    m = read_mesh_file(path)
-    blocks = [c.data for c in m.cells if c.type == "triangle"]
-    # quadrilaterals (OBJ, PLY exports) as two triangles each, instead of dropping them
-    blocks += [q[:, [0, 1, 2]] for q in (c.data for c in m.cells if c.type == "quad")]
-    blocks += [q[:, [0, 2, 3]] for q in (c.data for c in m.cells if c.type == "quad")]
-    if len(m.points) == 0 or not blocks:
-        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted({c.type for c in m.cells}) or 'none'}"
-                        f"{stl_damage(path, '; ')}); give a closed triangle surface (STL, OBJ, PLY, ...)")
-    check_face_indices(blocks, len(m.points), path)
-    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
-    check_finite(raw, path)
+    raw, tris = read_surface_file(path, scale)
     check_extent(raw, units_given, path, edge_length)
-    tris = np.concatenate(blocks)
     if shell is not None:
         raw, tris = select_shell(raw, tris, shell, path)
     if inclusions:
@@ -623,16 +612,8 @@ def read_inclusion(path: Path, scale: float, outer, edge_length: float):
     outer one: wholly inside it (a generalised winding number of its vertices), not touching it (half an
     edge length of tissue at least: an element between the two surfaces), and not thinner than an element
     (3 V / A, the radius of a ball, against half an edge length)."""
-    m = read_mesh_file(path)
-    blocks = [c.data for c in m.cells if c.type == "triangle"]
-    blocks += [q[:, [0, 1, 2]] for q in (c.data for c in m.cells if c.type == "quad")]
-    blocks += [q[:, [0, 2, 3]] for q in (c.data for c in m.cells if c.type == "quad")]
-    if len(m.points) == 0 or not blocks:
-        raise MeshError(f"--inclusion {path}: no triangles in this file; give a closed triangle surface")
-    check_face_indices(blocks, len(m.points), path)
-    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
-    check_finite(raw, path)
-    pts, tris = check_surface(raw, np.concatenate(blocks), f"--inclusion {path}")
+    raw, tris = read_surface_file(path, scale)
+    pts, tris = check_surface(raw, tris, f"--inclusion {path}")
     op, ot = outer
     rng = np.random.default_rng(0)
     sample = pts if len(pts) <= 2000 else pts[rng.choice(len(pts), 2000, replace=False)]
@@ -993,6 +974,27 @@ def read_mesh_file(path):
     except (Exception, SystemExit) as exc:  # meshio raises several types for unreadable files, and SystemExit
         why = stl_damage(path) or (str(exc) if str(exc) not in ("", "1") else type(exc).__name__)
         raise MeshError(f"{path}: cannot read this file as a triangle surface ({why})") from None
+
+
+def triangle_blocks(m) -> list:
+    """A meshio mesh's triangles, its quadrilaterals (OBJ, PLY exports) as two triangles each."""
+    quads = [c.data for c in m.cells if c.type == "quad"]
+    return ([c.data for c in m.cells if c.type == "triangle"] + [q[:, [0, 1, 2]] for q in quads]
+            + [q[:, [0, 2, 3]] for q in quads])
+
+
+def read_surface_file(path, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle surface file as (points in metres, triangles), its face indices and coordinates checked:
+    one line for a file without triangles, an index past the vertices, or a non-finite coordinate."""
+    m = read_mesh_file(path)
+    blocks = triangle_blocks(m)
+    if len(m.points) == 0 or not blocks:
+        raise MeshError(f"{path}: no triangles in this file (cell types: {sorted({c.type for c in m.cells}) or 'none'}"
+                        f"{stl_damage(path, '; ')}); give a closed triangle surface (STL, OBJ, PLY, ...)")
+    check_face_indices(blocks, len(m.points), path)
+    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
+    check_finite(raw, path)
+    return raw, np.concatenate(blocks).astype(np.int64)
 
 
 def check_face_indices(blocks, n_points: int, path) -> None:

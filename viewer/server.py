@@ -199,7 +199,7 @@ class ViewerSession:
         if not owner:
             reply["notice"] = NOT_OWNER
         if u is not None:
-            reply["deformation"] = base64.b64encode(np.ascontiguousarray(u, np.float32).tobytes()).decode()
+            reply["deformation"] = _b64(u, np.float32)
         return reply
 
     # ------------------------------------------------------------------ requests
