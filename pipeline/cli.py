@@ -20,7 +20,7 @@ log = logging.getLogger("pmask")
 
 #: what each extra brings (pyproject.toml), checked before a command that needs it
 EXTRAS = {"precompute": ("scipy", "skfem", "gmsh", "meshio", "trimesh", "cvxopt", "tqdm"), "figures": ("matplotlib",),
-          "segmentation": ("nibabel", "nrrd", "skimage"), "repair": ("pymeshfix",)}
+          "segmentation": ("nibabel", "nrrd", "skimage", "highdicom"), "repair": ("pymeshfix",)}
 
 
 def require_extra(*extras: str) -> None:
@@ -52,8 +52,8 @@ def add_precompute(sub) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--surface", help="closed triangle surface (STL, OBJ, PLY, ...), remeshed by gmsh")
     src.add_argument("--volume", help="tetrahedral mesh (.msh, .vtu, ...)")
-    src.add_argument("--segmentation", help="label image (NIfTI .nii/.nii.gz or NRRD): the organ of --label becomes "
-                                            "the surface (needs the segmentation extra)")
+    src.add_argument("--segmentation", help="label image (NIfTI .nii/.nii.gz, NRRD or DICOM SEG .dcm): the organ of --label "
+                                            "(a DICOM SEG's segment number) becomes the surface (needs the segmentation extra)")
     p.add_argument("--label", type=int, help="with --segmentation: the organ's label value")
     p.add_argument("--repair", nargs="?", const="meshfix", choices=("meshfix", "voxel", "auto"), default=None,
                    help="repair the surface first, with a report of what changed: meshfix (the default; pymeshfix: "

@@ -1,12 +1,12 @@
 """Label images as input: ``--segmentation FILE --label N`` (NIfTI ``.nii``/``.nii.gz`` through nibabel, NRRD
-through pynrrd).
+through pynrrd, DICOM Segmentation objects through highdicom; the label of a DICOM SEG is its segment number).
 
 The voxels equal to the label become a closed surface by scikit-image's marching cubes on the padded
 mask, placed in space by the image's own voxel-to-world matrix (spacing, direction and origin; a matrix
 with a negative determinant mirrors the voxels, and the triangles are turned back outwards), in NIfTI's
 right-anterior-superior world: an NRRD's ``space`` (left-posterior-superior as ITK and 3D Slicer write it,
-or RAS, LAS) is converted to it.  The
-staircase of the voxels is smoothed by Taubin's λ|μ filter (trimesh), which does not shrink a surface as
+or RAS, LAS) and DICOM's patient space (LPS) are converted to it, and a NIfTI is placed by its sform or
+qform as their codes say (:func:`nifti_affine`).  The staircase of the voxels is smoothed by Taubin's λ|μ filter (trimesh), which does not shrink a surface as
 Laplacian smoothing does; the volume change of the smoothing is measured and reported (more than 1 % is
 refused), and so is the volume against the voxel count.  The surface then takes the ``--surface`` route (checks, debris, gmsh remesh to
 ``--edge-length``).  Lengths are in the header's unit; a header that names none needs ``--units``.
@@ -37,6 +37,34 @@ NRRD_TO_RAS = {"left-posterior-superior": (-1.0, -1.0, 1.0), "lps": (-1.0, -1.0,
                "left-anterior-superior": (-1.0, 1.0, 1.0), "las": (-1.0, 1.0, 1.0)}
 
 
+def nifti_affine(header, shape, path) -> np.ndarray:
+    """A NIfTI image's voxel-to-world matrix by its codes (the NIfTI-1 standard's methods): the sform
+    when ``sform_code`` > 0 (method 3: what 3D Slicer and ITK write, with the same qform), else the qform
+    when ``qform_code`` > 0 (method 2: rotation, voxel sizes, origin and the qfac mirror), else the voxel
+    sizes alone (method 1, ANALYZE's: the image is not placed in any world, said in a warning).  When
+    both codes are set and the two matrices place the image's corners more than half a voxel apart, the
+    sform is used and a warning says by how much they differ."""
+    sform, scode = header.get_sform(coded=True)
+    qform, qcode = header.get_qform(coded=True)
+    if scode:
+        if qcode:
+            corners = np.array([[i, j, k, 1.0] for i in (0, shape[0] - 1) for j in (0, shape[1] - 1)
+                                for k in (0, shape[2] - 1)]) if len(shape) >= 3 else np.eye(4)
+            apart = float(np.abs(corners @ (sform - qform).T)[:, :3].max())
+            voxel = float(np.min(np.linalg.norm(sform[:3, :3], axis=0)))
+            if apart > 0.5 * voxel:
+                log.warning("%s: its sform (code %d) and qform (code %d) place the image up to %.3g units apart; "
+                            "the sform is used (NIfTI-1 method 3, as 3D Slicer and ITK write it)", path, int(scode),
+                            int(qcode), apart)
+        return np.asarray(sform, float)
+    if qcode:
+        return np.asarray(qform, float)
+    log.warning("%s: neither its sform nor its qform code is set, so the image has no place in the world; it is "
+                "placed by its voxel sizes alone (NIfTI-1 method 1), corner voxel at the origin", path)
+    zooms = np.asarray(header.get_zooms()[:3], float)
+    return np.diag([*zooms, 1.0])
+
+
 def read_label_image(path: Path):
     """(labels, affine 4x4 voxel index -> world, unit or None) of a NIfTI or NRRD file."""
     name = path.name.lower()
@@ -47,7 +75,7 @@ def read_label_image(path: Path):
             img = nibabel.load(str(path))
             data = np.asanyarray(img.dataobj)
             unit = img.header.get_xyzt_units()[0]
-            return data, np.asarray(img.affine, float), _UNIT_NAMES.get(str(unit).lower())
+            return data, nifti_affine(img.header, data.shape, path), _UNIT_NAMES.get(str(unit).lower())
         if name.endswith((".nrrd", ".nhdr")):
             import nrrd
 
@@ -65,12 +93,48 @@ def read_label_image(path: Path):
             units = header.get("space units")
             unit = _UNIT_NAMES.get(str(units[0]).lower()) if units else None
             return data, affine, unit
+        if name.endswith(".dcm") or _is_dicom(path):
+            return dicom_seg_labels(path)
     except ImportError as exc:
         raise MeshError(f"{path}: reading label images needs the segmentation extra ({exc.name} is not "
                         "installed): pip install 'pmask[segmentation]'") from None
     except Exception as exc:  # the readers raise many types for damaged files
         raise MeshError(f"{path}: cannot read this file as a label image ({exc})") from exc
-    raise MeshError(f"{path}: a label image must be NIfTI (.nii, .nii.gz) or NRRD (.nrrd, .nhdr)")
+    raise MeshError(f"{path}: a label image must be NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr) or a DICOM "
+                    "Segmentation (.dcm)")
+
+
+def _is_dicom(path: Path) -> bool:
+    """A DICOM Part 10 file (the 'DICM' mark after the 128-byte preamble), whatever its name."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(132)[128:] == b"DICM"
+    except OSError:
+        return False
+
+
+def dicom_seg_labels(path: Path):
+    """(labels, affine, 'mm') of a DICOM Segmentation (as 3D Slicer exports it), read by highdicom: the
+    segments' frames combined into one volume whose labels are the segment numbers, placed by the frames'
+    positions, orientation and pixel spacing (highdicom sorts the frames and checks they are evenly
+    spaced), in DICOM's patient space (left-posterior-superior, mm) taken to RAS like an NRRD's."""
+    import highdicom
+    import pydicom
+
+    from pydicom.uid import SegmentationStorage
+
+    ds = pydicom.dcmread(str(path))
+    if ds.get("SOPClassUID") != SegmentationStorage:
+        raise MeshError(f"{path}: a DICOM file, but not a Segmentation (its SOP class is "
+                        f"{ds.get('SOPClassUID', 'missing')}); export the segmentation as DICOM SEG, NIfTI or NRRD")
+    seg = highdicom.seg.Segmentation.from_dataset(ds)
+    try:
+        vol = seg.get_volume(combine_segments=True, relabel=False, dtype=np.uint16)
+    except (ValueError, RuntimeError) as exc:
+        raise MeshError(f"{path}: its segments cannot be read as one labelled volume ({exc}); export the segments "
+                        "without overlap, or as NIfTI or NRRD") from None
+    affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(vol.affine, float)  # LPS -> RAS
+    return np.asarray(vol.array), affine, "mm"
 
 
 def mask_surface(mask: np.ndarray, affine: np.ndarray, *, field: np.ndarray | None = None, level: float = 0.5):

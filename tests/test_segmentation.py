@@ -86,6 +86,127 @@ def test_nrrd_gives_the_same_surface_as_nifti(nifti, tmp_path, space, signs):
     assert np.allclose(p2.mean(axis=0), CENTRE, atol=0.6)  # where the organ is, not its mirror image
 
 
+@pytest.mark.parametrize("codes", ["sform", "qform", "both", "both, qform off", "none"])
+def test_nifti_is_placed_by_its_sform_and_qform_codes(nifti, tmp_path, caplog, codes):
+    """#25 item 3: the same ellipsoid (x mirrored, so the qform needs its qfac) written with only an sform,
+    only a qform (the rotation, voxel sizes and origin as a quaternion), both, both with a qform 20 mm off (the
+    sform wins, a warning says by how much they differ), and neither: every coded placement gives the
+    fixture's surface in world millimetres; with no code the image has no world, and the surface is placed by
+    its voxel sizes (corner voxel at the origin, the mirror lost) with a warning that says so."""
+    from pmask.precompute.segmentation import label_surface
+
+    data, affine = labels()
+    img = nibabel.Nifti1Image(data, None)
+    hdr = img.header
+    hdr.set_xyzt_units("mm")
+    shifted = affine.copy()
+    shifted[:3, 3] += [20.0, 0.0, 0.0]
+    sform = {"sform": (affine, 1), "qform": (affine, 0), "both": (affine, 1), "both, qform off": (affine, 2),
+             "none": (affine, 0)}[codes]
+    qform = {"sform": (affine, 0), "qform": (affine, 1), "both": (affine, 1), "both, qform off": (shifted, 1),
+             "none": (affine, 0)}[codes]
+    hdr.set_sform(sform[0], code=sform[1])
+    hdr.set_qform(qform[0], code=qform[1])
+    path = tmp_path / "coded.nii.gz"
+    nibabel.save(nibabel.Nifti1Image(data, None, hdr), str(path))
+    assert nibabel.load(str(path)).header.get_sform(coded=True)[1] == sform[1]  # the file holds what we meant
+    p_ref, t_ref, _ = label_surface(nifti, 2, None)
+    with caplog.at_level("WARNING"):
+        pts, tris, _ = label_surface(path, 2, None)
+    warned = " ".join(r.getMessage() for r in caplog.records if r.levelname == "WARNING")
+    if codes != "none":
+        # 1e-4 mm: the qform is stored as a float32 quaternion and offsets
+        assert np.array_equal(tris, t_ref) and np.allclose(pts, p_ref, atol=1e-4)
+        assert np.allclose(pts.mean(axis=0), CENTRE, atol=0.6)
+        assert ("20 units apart" in warned) == (codes == "both, qform off"), warned
+    else:
+        centre_ijk = np.linalg.solve(affine[:3, :3], CENTRE - affine[:3, 3])
+        assert np.allclose(pts.mean(axis=0), centre_ijk * SPACING, atol=0.6)
+        assert "no place in the world" in warned
+
+
+def _ct_series(rows=64, cols=72, slices=30):
+    """A synthetic CT series in DICOM patient space (LPS, mm) around the ellipsoid: rows and columns turned
+    30° about the body axis, 0.7 x 0.8 mm pixels, 1.2 mm slices written top-down; and its labels (2 inside
+    the ellipsoid, 1 inside a ball beside it), computed from each pixel's position by the DICOM equation
+    (position + column·spacing·row direction + row·spacing·column direction), not by any reader."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    th = np.deg2rad(30.0)
+    along_row, along_col = np.array([np.cos(th), np.sin(th), 0.0]), np.array([-np.sin(th), np.cos(th), 0.0])
+    normal = np.cross(along_row, along_col)
+    spacing = (0.7, 0.8)  # between rows, between columns
+    to_lps = np.array([-1.0, -1.0, 1.0])
+    origin = CENTRE * to_lps - cols / 2 * spacing[1] * along_row - rows / 2 * spacing[0] * along_col \
+        - slices / 2 * 1.2 * normal
+    study, series, frame = generate_uid(), generate_uid(), generate_uid()
+    images, labels = [], []
+    r, c = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    for k in range(slices)[::-1]:
+        position = origin + k * 1.2 * normal
+        ras = (position + c[..., None] * spacing[1] * along_row + r[..., None] * spacing[0] * along_col) * to_lps
+        lab = np.zeros((rows, cols), np.uint8)
+        lab[np.sum(((ras - CENTRE) / AXES) ** 2, axis=-1) <= 1.0] = 2
+        lab[np.linalg.norm(ras - [-12.0, 10.0, 0.0], axis=-1) <= 3.0] = 1
+        ds = Dataset()
+        ds.file_meta = FileMetaDataset()
+        ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds.file_meta.MediaStorageSOPClassUID = ds.SOPClassUID = CTImageStorage
+        ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID = generate_uid()
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
+        ds.PatientID, ds.PatientName, ds.PatientBirthDate, ds.PatientSex = "1", "Phantom^Kidney", "20000101", "O"
+        ds.StudyDate, ds.StudyTime, ds.ReferringPhysicianName, ds.AccessionNumber, ds.StudyID = \
+            "20260101", "120000", "", "1", "1"
+        ds.Modality, ds.SeriesNumber, ds.InstanceNumber = "CT", 1, k + 1
+        ds.Rows, ds.Columns, ds.PixelSpacing, ds.SliceThickness = rows, cols, list(spacing), 1.2
+        ds.ImageOrientationPatient, ds.ImagePositionPatient = [*along_row, *along_col], list(position)
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+        ds.PixelData = (lab.astype(np.uint16) * 100).tobytes()
+        images.append(ds)
+        labels.append(lab)
+    return images, np.stack(labels)
+
+
+def test_a_dicom_seg_as_3d_slicer_exports_it_is_placed_in_world_millimetres(tmp_path, capsys):
+    """#25 item 3: a DICOM Segmentation (highdicom writes it as Slicer's exporter does: binary frames per
+    segment over a source CT series, in LPS patient space) of the ellipsoid, its rows turned 30° and its
+    slices written top-down: segment 2's surface spans the ellipsoid's axes within a voxel and the remesh's
+    chordal error, sits at its RAS centre (a lost LPS->RAS flip would put it 11.7 mm off) and encloses its
+    analytic volume within 3 %.  A DICOM file that is not a segmentation is one line."""
+    hd = pytest.importorskip("highdicom")
+    from highdicom.sr import CodedConcept
+    from pydicom.uid import generate_uid
+
+    from pmask.precompute.segmentation import label_surface
+
+    images, labels_ = _ct_series()
+    segments = [hd.seg.SegmentDescription(
+        segment_number=n, segment_label=name, algorithm_type=hd.seg.SegmentAlgorithmTypeValues.MANUAL,
+        segmented_property_category=CodedConcept("91723000", "SCT", "Anatomical structure"),
+        segmented_property_type=CodedConcept("64033007", "SCT", "Kidney")) for n, name in ((1, "ball"), (2, "organ"))]
+    seg = hd.seg.Segmentation(
+        source_images=images, pixel_array=labels_, segmentation_type=hd.seg.SegmentationTypeValues.BINARY,
+        segment_descriptions=segments, series_instance_uid=generate_uid(), series_number=2,
+        sop_instance_uid=generate_uid(), instance_number=1, manufacturer="pmask tests",
+        manufacturer_model_name="synthetic", software_versions="0", device_serial_number="0")
+    path = tmp_path / "organ-seg.dcm"
+    seg.save_as(str(path))
+    pts, _, report = label_surface(path, 2, None)
+    assert report["unit"] == "mm" and report["voxels"] == np.sum(labels_ == 2)
+    assert np.allclose(pts.mean(axis=0), CENTRE, atol=0.3)
+    assert np.allclose(np.ptp(pts, axis=0), 2 * AXES, atol=0.8 + 0.3)  # a voxel (≤ 0.8 mm in-plane, 1.2 mm
+    assert abs(np.ptp(pts, axis=0)[2] - 2 * AXES[2]) <= 1.2 + 0.3       # along the slices) + smoothing
+    assert report["smoothed_volume"] / (4.0 / 3.0 * np.pi * np.prod(AXES)) - 1 == pytest.approx(0.0, abs=0.03)
+    ct = tmp_path / "slice.dcm"
+    images[0].save_as(str(ct), enforce_file_format=True)
+    code = main(["precompute", "--segmentation", str(ct), "--label", "2", "--edge-length", "3", "--fixed", "x>25",
+                 "-o", str(tmp_path / "x.h5")])
+    err = capsys.readouterr().err
+    assert code == 2 and "not a Segmentation" in err and len(err.strip().splitlines()) == 1, err
+
+
 def test_label_image_refusals_are_one_line(nifti, tmp_path, capsys):
     data, affine = labels()
     bare = tmp_path / "nounit.nii.gz"
