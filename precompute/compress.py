@@ -13,11 +13,15 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    Otherwise both are split; pairs of leaves are stored densely.
 3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices, fewer for large
    n so that a panel stays near :data:`PANEL_BYTES`).  One task per panel computes the columns of Ξ it
-   holds and compresses each of the panel's blocks: a randomized range finder grown until
+   holds and compresses its share of each block: a randomized range finder grown until
    :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of :math:`Q^TB` truncated to the
    smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is computed, not estimated: B is
    at hand).  A block whose factors would not be smaller stays dense.  Only one panel, 3n x 3 #J
-   numbers, exists at a time on a worker.
+   numbers, exists at a time on a worker.  The blocks are the tree's, not the panels': a far block
+   whose column cluster holds several panels comes back from each as a *piece* (compressed within ε/2)
+   and :func:`assemble` merges the pieces (:func:`merge_pieces`, within the other ε/2).  So the stored
+   size is the hierarchical matrix's, ~k n log n, whatever the panel width; blocks cut at the panels
+   would store ~3n·k numbers per panel, n³ as the panels shrink like 1/n.
 
    The columns come from the selected inversion's W (:mod:`pmask.precompute.selinv`): with P1's load
    :math:`\Xi = W^T W\,\mathrm{diag}(a)`, W = L⁻¹PE, so :math:`\Xi_{:,J} = \sum_s X_s X_{s,J}^T a_J`
@@ -68,6 +72,10 @@ PANEL_BYTES = 256 * 2**20
 READ_BYTES = 64 * 2**20
 #: the W store's file layout (a store of another layout is swept again)
 LAYOUT = "X_s row-major, supernodes in postorder"
+#: the tile store's layout (a store of another layout is computed again): pieces of the tree's blocks
+TILE_LAYOUT = "tree blocks, pieces per panel"
+#: seconds a client waits for a lost scheduler to come back before the run stops (a rerun resumes)
+SCHEDULER_WAIT = 10.0
 #: a tile is run again at most this often when workers are lost (then the run stops with the error)
 TILE_ATTEMPTS = 4
 
@@ -152,19 +160,35 @@ def admissible(tree: ClusterTree, i: int, j: int, r_max: float, eta: float | Non
     return dist > r_max and diam <= (eta or ETA) * dist
 
 
+def _split(tree: ClusterTree, i: int, j: int) -> list[tuple[int, int]]:
+    """The pairs a non-admissible, non-leaf pair (I, J) is split into: the larger cluster's children
+    (one rule for the whole matrix, so that any panel's share of the partition is the same blocks)."""
+    if tree.leaf(j) or (not tree.leaf(i) and tree.size(i) >= tree.size(j)):
+        return [(c, j) for c in tree.kids[i]]
+    return [(i, c) for c in tree.kids[j]]
+
+
 def partition(tree: ClusterTree, column: int, r_max: float, eta: float | None = None) -> list[tuple[int, int, bool]]:
-    """The blocks (I, J, low-rank?) covering Ξ's columns of cluster ``column`` (all rows)."""
-    out, stack = [], [(0, column)]
+    """The blocks (I, J, low-rank?) of Ξ's partition that hold the columns of cluster ``column`` (all rows).
+
+    The partition is the cluster tree's over the whole matrix, from (root, root): an admissible pair is a
+    block, a pair of leaves a dense block, any other pair split (:func:`_split`).  Its blocks are set by
+    the tree, not by the panels the columns are computed in: a far block's J may hold many panels
+    (then J is an ancestor of ``column`` and the panel computes its piece Ξ_{I,column}), which is what
+    keeps the stored size near n log n (a block per panel would store ~3n·k numbers per panel: n³ as
+    panels shrink like 1/n)."""
+    out, stack = [], [(0, 0)]
+    c0, c1 = tree.start[column], tree.stop[column]
     while stack:
         i, j = stack.pop()
+        if tree.stop[j] <= c0 or tree.start[j] >= c1:
+            continue  # this pair holds none of the panel's columns
         if admissible(tree, i, j, r_max, eta):
             out.append((i, j, True))
         elif tree.leaf(i) and tree.leaf(j):
             out.append((i, j, False))
-        elif tree.leaf(j) or (not tree.leaf(i) and tree.size(i) >= tree.size(j)):
-            stack.extend((c, j) for c in tree.kids[i])
         else:
-            stack.extend((i, c) for c in tree.kids[j])
+            stack.extend(_split(tree, i, j))
     return out
 
 
@@ -254,6 +278,19 @@ class SweepStore:
         return out
 
 
+def sweep_reusable(path: Path, key: str) -> bool:
+    """Whether W's store at ``path`` holds this factor's W (``key``) in this layout, complete (its index is
+    written last)."""
+    path = Path(path)
+    if not (SweepStore.index_path(path).exists() and path.exists()):
+        return False
+    try:
+        store = SweepStore(path)
+    except (OSError, ValueError, KeyError):
+        return False  # a damaged index: sweep again
+    return store.key == key and str(store.index.get("layout")) == LAYOUT
+
+
 def sweep(factor, path: Path, key: str) -> SweepStore:
     """W = L⁻¹PE of a P1 factor, supernode by supernode, into ``path`` (:class:`SweepStore`); reused when
     its index holds ``key`` (a rerun after a crash does not sweep again).  Both files are written
@@ -263,13 +300,8 @@ def sweep(factor, path: Path, key: str) -> SweepStore:
 
     path = Path(path)
     index = SweepStore.index_path(path)
-    if index.exists():
-        try:
-            store = SweepStore(path)
-            if store.key == key and str(store.index.get("layout")) == LAYOUT and path.exists():
-                return store
-        except (OSError, ValueError, KeyError):
-            pass  # a damaged index: sweep again
+    if sweep_reusable(path, key):
+        return SweepStore(path)
     tree = selinv._Tree(factor.L)
     nobs = factor.n_observed
     offset = np.zeros(tree.ns, np.int64)
@@ -329,7 +361,10 @@ def panel_columns(factor, perm: np.ndarray, c0: int, c1: int) -> np.ndarray:
 
 def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
-    reader's layout with offsets relative to this tile (:func:`assemble` shifts them)."""
+    reader's layout with offsets relative to this tile (:func:`assemble` shifts them), the low-rank
+    index with an eighth column: the block's column cluster J.  Where J is wider than the panel the
+    entry is a *piece* Ξ_{I,column} of the block, compressed within ``tol``/2 with V's columns
+    orthonormal; :func:`assemble` merges a block's pieces (:func:`merge_pieces`) within the other half."""
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     X = panel_columns(factor, tree.perm, c0, c1)
@@ -338,56 +373,129 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
     d_off = u_off = v_off = 0
     for i, j, far in blocks:
-        r0, r1, b0, b1 = (int(x) for x in (tree.start[i], tree.stop[i], tree.start[j], tree.stop[j]))
+        r0, r1 = int(tree.start[i]), int(tree.stop[i])
+        b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
+        piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
         B = X[3 * r0:3 * r1, 3 * (b0 - c0):3 * (b1 - c0)]
-        uv = low_rank(B, tol, rng) if far else None
+        uv = low_rank(B, tol / 2 if piece else tol, rng) if far else None
+        if uv is None and piece:  # a piece is merged in low-rank form: its exact columns, V = I
+            uv = (np.array(B), np.eye(B.shape[1]))
         if uv is None:
             dense_index.append((r0, r1, b0, b1, d_off))
             dense.append(np.ascontiguousarray(B).ravel())
             d_off += B.size
         else:
             U, V = uv
-            lr_index.append((r0, r1, b0, b1, U.shape[1], u_off, v_off))
+            lr_index.append((r0, r1, b0, b1, U.shape[1], u_off, v_off, j))
             Us.append(U.ravel()), Vs.append(V.ravel())
             u_off += U.size
             v_off += V.size
     cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731
     return {"column": int(column), "dense_index": np.array(dense_index, np.int64).reshape(-1, 5),
-            "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 7), "U": cat(Us),
+            "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 8), "U": cat(Us),
             "V": cat(Vs), "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid()}
 
 
-def assemble(tree: ClusterTree, store: "TileStore", dtype=np.float64) -> tuple[dict, dict]:
+def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tuple[np.ndarray, np.ndarray]:
+    r"""One low-rank block U Vᵀ from its pieces (U_p, V_p) over adjacent column ranges, left to right,
+    each V_p with orthonormal columns: merged in pairs up a balanced tree, each merge
+    :math:`[U_a\;U_b]\,\mathrm{diag}(V_a, V_b)^T = Q X S Y^T \mathrm{diag}(V_a, V_b)^T` (QR of the stacked
+    U, SVD of its R) truncated within ``tol``/(2 L) of the merged block's norm, L the tree's levels.  The
+    pieces were compressed within ``tol``/2 each; their errors lie in disjoint columns and add in
+    squares, and so do one level's truncations; over L levels the block is within ``tol`` (Frobenius,
+    relative).  V stays orthonormal; a block is never wider than the pieces' ranks."""
+    level_tol = tol / (2 * max(1, int(np.ceil(np.log2(max(len(pieces), 1))))))
+    while len(pieces) > 1:
+        out = []
+        for q in range(0, len(pieces) - 1, 2):
+            (Ua, Va), (Ub, Vb) = pieces[q], pieces[q + 1]
+            ka, kb = Ua.shape[1], Ub.shape[1]
+            if ka + kb == 0:  # both pieces zero (a block beyond the support's reach)
+                out.append((Ua, np.zeros((Va.shape[0] + Vb.shape[0], 0))))
+                continue
+            Q, R = np.linalg.qr(np.hstack([Ua, Ub]))
+            X, S, Yt = np.linalg.svd(R, full_matrices=False)
+            norm2 = float(np.sum(S * S))
+            tail = np.concatenate([np.cumsum((S * S)[::-1])[::-1], [0.0]])
+            r = int(np.argmax(tail <= level_tol * level_tol * norm2))
+            V = np.zeros((Va.shape[0] + Vb.shape[0], r))
+            V[:Va.shape[0]] = Va @ Yt[:r, :ka].T
+            V[Va.shape[0]:] = Vb @ Yt[:r, ka:ka + kb].T
+            out.append((Q @ (X[:, :r] * S[:r]), V))
+        if len(pieces) % 2:
+            out.append(pieces[-1])
+        pieces = out
+    return pieces[0]
+
+
+def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtype=np.float64) -> tuple[dict, dict]:
     """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from the finished tiles
-    in ``store``, filled into arrays allocated once at their final size, one tile read at a time (the
-    client holds the compressed Ξ once, not the tiles and their concatenation).  Also the tiles'
-    summed timings."""
+    in ``store``: whole blocks copied, the pieces of blocks wider than a panel merged
+    (:func:`merge_pieces`, within ``tol``), one block's pieces at a time; the tiles' own arrays are read
+    one tile at a time into arrays allocated once at their final size.  Also the tiles' summed timings
+    and the merge's."""
     names = sorted(store.file, key=lambda g: tree.start[int(g.split("-")[1])])
     groups = [store.file[g] for g in names]
-    size = {k: sum(g[k].shape[0] for g in groups) for k in TileStore.FIELDS}
+    index = [g["lowrank_index"][()].reshape(-1, 8) for g in groups]
+    whole = [(li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]]) for li in index]
+    t0 = time.perf_counter()
+    blocks: dict[tuple[int, int, int], list] = {}  # (r0, r1, J) -> [(c0, tile, entry)]
+    for t, (li, w) in enumerate(zip(index, whole)):
+        for e in np.flatnonzero(~w):
+            blocks.setdefault((int(li[e, 0]), int(li[e, 1]), int(li[e, 7])), []).append((int(li[e, 2]), t, e))
+    merged = []  # (r0, r1, c0, c1, k, U, V)
+    for (r0, r1, j), parts in blocks.items():
+        pieces = []
+        for _, t, e in sorted(parts):
+            _, _, c0, c1, k, uo, vo, _ = (int(x) for x in index[t][e])
+            pieces.append((groups[t]["U"][uo:uo + 3 * (r1 - r0) * k].reshape(-1, k),
+                           groups[t]["V"][vo:vo + 3 * (c1 - c0) * k].reshape(-1, k)))
+        U, V = merge_pieces(pieces, tol)
+        merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1], U.ravel(), V.ravel()))
+    merge_s = time.perf_counter() - t0
+    size = {"dense_index": sum(g["dense_index"].shape[0] for g in groups),
+            "dense": sum(g["dense"].shape[0] for g in groups),
+            "lowrank_index": sum(int(w.sum()) for w in whole) + len(merged)}
+    size["U"], size["V"] = sum(m[5].size for m in merged), sum(m[6].size for m in merged)
+    for li, w in zip(index, whole):
+        size["U"] += int(np.sum(3 * (li[w, 1] - li[w, 0]) * li[w, 4]))
+        size["V"] += int(np.sum(3 * (li[w, 3] - li[w, 2]) * li[w, 4]))
     out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
            "dense_index": np.zeros((size["dense_index"], 5), np.int64),
            "lowrank_index": np.zeros((size["lowrank_index"], 7), np.int64),
            **{k: np.empty(size[k], dtype) for k in ("dense", "U", "V")}}
     at = dict.fromkeys(TileStore.FIELDS, 0)
     times = {"solve_s": 0.0, "compress_s": 0.0}
-    for g in groups:
-        di, li = g["dense_index"][()].reshape(-1, 5), g["lowrank_index"][()].reshape(-1, 7)
+
+    def put_lowrank(r0, r1, c0, c1, k, U, V):
+        out["lowrank_index"][at["lowrank_index"]] = (r0, r1, c0, c1, k, at["U"], at["V"])
+        out["U"][at["U"]:at["U"] + len(U)] = U
+        out["V"][at["V"]:at["V"] + len(V)] = V
+        at["lowrank_index"] += 1
+        at["U"] += len(U)
+        at["V"] += len(V)
+
+    for g, li, w in zip(groups, index, whole):
+        di = g["dense_index"][()].reshape(-1, 5)
         di[:, 4] += at["dense"]
-        li[:, 5] += at["U"]
-        li[:, 6] += at["V"]
-        for k, a in (("dense_index", di), ("lowrank_index", li)):
-            out[k][at[k]:at[k] + len(a)] = a
-            at[k] += len(a)
-        for k in ("dense", "U", "V"):
-            n = g[k].shape[0]
-            if n and out[k].dtype == g[k].dtype:
-                g[k].read_direct(out[k], dest_sel=np.s_[at[k]:at[k] + n])
-            elif n:  # --float32: cast one tile at a time
-                out[k][at[k]:at[k] + n] = g[k][()]
-            at[k] += n
+        out["dense_index"][at["dense_index"]:at["dense_index"] + len(di)] = di
+        at["dense_index"] += len(di)
+        n = g["dense"].shape[0]
+        if n and out["dense"].dtype == g["dense"].dtype:
+            g["dense"].read_direct(out["dense"], dest_sel=np.s_[at["dense"]:at["dense"] + n])
+        elif n:  # --float32: cast one tile at a time
+            out["dense"][at["dense"]:at["dense"] + n] = g["dense"][()]
+        at["dense"] += n
+        if w.any():
+            U, V = g["U"][()], g["V"][()]
+            for r0, r1, c0, c1, k, uo, vo, _ in li[w]:
+                put_lowrank(r0, r1, c0, c1, k, U[uo:uo + 3 * (r1 - r0) * k], V[vo:vo + 3 * (c1 - c0) * k])
         for k in times:
             times[k] += float(g.attrs[k])
+    for m in merged:
+        put_lowrank(*m)
+    times.update({"merge_s": merge_s, "merged_blocks": len(merged),
+                  "merged_pieces": int(sum(len(p) for p in blocks.values()))})
     return out, times
 
 
@@ -473,6 +581,20 @@ def connect(scheduler: str | None, workers: int | None, memory_limit: int | None
     return Client(cluster)
 
 
+def check_scheduler(client, scheduler: str | None, done: int, total: int, store: Path,
+                    wait: float = SCHEDULER_WAIT) -> None:
+    """One line, instead of a traceback, when the client has lost its scheduler (a killed `dask scheduler`,
+    a dropped network) and it has not come back within ``wait`` seconds: how far the run got, and that a
+    rerun resumes from what the work folder keeps (the finished tiles and W's store)."""
+    until = time.monotonic() + wait
+    while client.status != "running" and time.monotonic() < until:
+        time.sleep(0.1)  # the client reconnects by itself when the scheduler is back soon
+    if client.status != "running":
+        raise ResourceError(f"lost the Dask scheduler ({scheduler or 'local cluster'}) after {done} of {total} tiles; "
+                            f"the finished tiles and W's store are kept in {Path(store).parent}: run the same command "
+                            "again to resume (with --scheduler of a running scheduler, or without it on this machine)")
+
+
 def tile_bytes(held: float, n_contact: int, panel: int = PANEL) -> float:
     """A worker's memory for one tile: the panel (3n x 3·panel doubles) with its reordered copy, and
     ``held`` bytes (:func:`source_bytes`: what the panel's columns are computed from)."""
@@ -488,14 +610,19 @@ def source_bytes(source) -> float:
     return 2.0 * factor_bytes(source)
 
 
-def check_worker_memory(limits: list[int | None], need: float) -> None:
-    """Refuse, before the tiles start, workers whose memory limit is below one tile."""
-    small = [m for m in limits if m and m < need]
+def check_worker_memory(limits: list[int | None], need: float, threads: list[int] | None = None) -> None:
+    """Refuse, before the tiles start, workers whose memory limit is below one tile per thread (a worker
+    runs as many tiles at once as it has threads: `dask worker --nthreads 4 --memory-limit 1G` would run
+    four 400 MiB tiles in 1 GiB, be restarted by its nanny and lose them)."""
+    threads = threads or [1] * len(limits)
+    small = [(m, t) for m, t in zip(limits, threads) if m and m < need * max(t, 1)]
     if small:
-        raise ResourceError(f"{len(small)} of {len(limits)} Dask workers have a memory limit "
-                            f"({min(small) / 2**20:.0f} MiB) below one tile ({need / 2**20:.0f} MiB: the factor, a "
-                            "panel of Ξ and the selected inversion's work arrays); give them more (--worker-memory) "
-                            "or use fewer, larger workers")
+        m, t = min(small)
+        per = f"{t} threads, so {t} tiles at once" if t > 1 else "one tile at a time"
+        raise ResourceError(f"{len(small)} of {len(limits)} Dask workers have a memory limit ({m / 2**20:.0f} MiB) "
+                            f"below what they would run ({per}, {need / 2**20:.0f} MiB each: the factor's or W's "
+                            "share, a panel of Ξ and the work arrays); give them more (--worker-memory), fewer "
+                            "threads (dask worker --nthreads 1), or use fewer, larger workers")
 
 
 def factor_bytes(factor) -> int:
@@ -523,7 +650,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     tree = cluster_tree(points)
     cols = panels(tree, panel)
     plan = {c: partition(tree, c, r_max) for c in cols}
-    ts = TileStore(store, key)
+    ts = TileStore(store, f"{key}|{TILE_LAYOUT}")
     todo = [c for c in cols if c not in ts.done()]
     stats = {"tiles": len(cols), "tiles_reused": len(cols) - len(todo), "leaf": LEAF, "eta": ETA, "panel": panel,
              "tolerance": tol, "scheduler": scheduler or "local"}
@@ -537,16 +664,18 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 if getattr(factor, "load", True) is None and hasattr(factor, "L"):  # a P1 factor: W once, tiles
                     # read it (module docstring); the AMG system (--solver amg, no factor) solves per panel
                     t1 = time.perf_counter()
+                    reused = sweep_reusable(w_path, key)
                     source = sweep(factor, w_path, key)
-                    stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1,
+                    stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1, "W_reused": reused,
                                   "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
                                   "gram_flops": float(source.index["gram_flops"])})
                 else:
                     stats["route"] = "solve per panel"
                 client = client or connect(scheduler, workers, memory_limit)
-                limits = [w.get("memory_limit") for w in client.scheduler_info()["workers"].values()]
+                info = list(client.scheduler_info()["workers"].values())
+                limits = [w.get("memory_limit") for w in info]
                 stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel)
-                check_worker_memory(limits, stats["tile_bytes"])
+                check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
                 stats["workers"] = len(limits)
                 if isinstance(source, SweepStore):
                     seen = client.run(os.path.exists, str(source.path))
@@ -558,6 +687,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 done = len(cols) - len(todo)
                 fac = None
                 while todo:
+                    check_scheduler(client, scheduler, done, len(cols), store)
                     if fac is None or fac.status != "finished":
                         fac = client.scatter(source, broadcast=True, hash=False)
                     futures = {client.submit(tile, fac, tree, c, plan[c], tol, key=f"pmask-tile-{c}-{attempts[c]}",
@@ -568,6 +698,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                         try:
                             t = fut.result()
                         except Exception as exc:  # a lost worker took every copy of the inputs, or the task failed
+                            check_scheduler(client, scheduler, done, len(cols), store)
                             attempts[c] += 1
                             if attempts[c] >= TILE_ATTEMPTS or isinstance(exc, (MemoryError, InputError)):
                                 raise
@@ -591,7 +722,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client.close()
                 if cluster is not None:
                     cluster.close()
-        out, times = assemble(tree, ts, dtype)
+        out, times = assemble(tree, ts, tol, dtype)
     finally:
         ts.close()
     stats.update({"seconds": time.perf_counter() - t0, **times,
