@@ -763,10 +763,11 @@ class _Stages:
             for p in self.work.glob("*"):
                 if p.name.startswith("."):
                     p.unlink(missing_ok=True)
-            kept = sorted([*self.work.glob("*.npz"), *self.work.glob("tiles-*.h5")]) if self.work.exists() else []
+            kept = sorted([*self.work.glob("*.npz"), *self.work.glob("tiles-*.h5"), *self.work.glob("W-tiles-*.bin")]
+                          ) if self.work.exists() else []
             if kept:
                 log.warning("kept the finished stages (%s) in %s, %s: the next run with the same geometry reuses "
-                            "them; delete the folder to free the space", ", ".join(p.name.split("-")[0] for p in kept),
+                            "them; delete the folder to free the space", ", ".join(dict.fromkeys(p.name.split("-")[0] for p in kept)),
                             self.work, _bytes(sum(p.stat().st_size for p in kept)))
         for folder in (self.work, self.work.parent):  # when empty
             with contextlib.suppress(OSError):
@@ -801,8 +802,11 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         return {"up_to_date": True, "artifact": str(out), "input_hash": keys["artifact"]}
     st = _Stages(spec, out, keys, progress)
     st.work.mkdir(parents=True, exist_ok=True)
-    for stale in [*st.work.glob("*.npz"), *st.work.glob("tiles-*.h5")]:  # other inputs': not reusable by this run
-        if stale not in (st.checkpoint("mesh"), st.checkpoint("factor"), st.work / f"tiles-{keys['artifact'][:16]}.h5"):
+    tiles = st.work / f"tiles-{keys['artifact'][:16]}.h5"  # the compressed route's tile store and W's (its name)
+    reusable = (st.checkpoint("mesh"), st.checkpoint("factor"), tiles, tiles.with_name(f"W-{tiles.stem}.bin"),
+                tiles.with_name(f"W-{tiles.stem}.index.npz"))
+    for stale in [*st.work.glob("*.npz"), *st.work.glob("tiles-*.h5"), *st.work.glob("W-tiles-*")]:
+        if stale not in reusable:  # other inputs': not reusable by this run
             stale.unlink(missing_ok=True)
     ok = False
     solve = contextlib.ExitStack()
