@@ -20,8 +20,11 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    numbers, exists at a time on a worker.  The blocks are the tree's, not the panels': a far block
    whose column cluster holds several panels comes back from each as a *piece* (compressed within ε/2)
    and :func:`assemble` merges the pieces (:func:`merge_pieces`, within the other ε/2).  So the stored
-   size is the hierarchical matrix's, ~k n log n, whatever the panel width; blocks cut at the panels
-   would store ~3n·k numbers per panel, n³ as the panels shrink like 1/n.
+   blocks are the hierarchical matrix's whatever the panel width (blocks cut at the panels stored ~3n·k
+   numbers per panel; measured at 20,427 vertices that was 1 % of the total: the near field dominates).
+   For P1, Ξ = G diag(a) with G symmetric and the partition symmetric, so only the blocks on and above the
+   diagonal are computed into the store (:func:`is_symmetric`; the reader transposes the rest): half the
+   bytes, near field and far field alike.
 
    The columns come from the selected inversion's W (:mod:`pmask.precompute.selinv`): with P1's load
    :math:`\Xi = W^T W\,\mathrm{diag}(a)`, W = L⁻¹PE, so :math:`\Xi_{:,J} = \sum_s X_s X_{s,J}^T a_J`
@@ -76,6 +79,8 @@ LAYOUT = "X_s row-major, supernodes in postorder"
 TILE_LAYOUT = "tree blocks, pieces per panel"
 #: seconds a client waits for a lost scheduler to come back before the run stops (a rerun resumes)
 SCHEDULER_WAIT = 10.0
+#: tolerances at least this large store the far field's factors in float32 (:func:`far_dtype`)
+FLOAT32_TOLERANCE = 1e-5
 #: a tile is run again at most this often when workers are lost (then the run stops with the error)
 TILE_ATTEMPTS = 4
 
@@ -161,11 +166,13 @@ def admissible(tree: ClusterTree, i: int, j: int, r_max: float, eta: float | Non
 
 
 def _split(tree: ClusterTree, i: int, j: int) -> list[tuple[int, int]]:
-    """The pairs a non-admissible, non-leaf pair (I, J) is split into: the larger cluster's children
-    (one rule for the whole matrix, so that any panel's share of the partition is the same blocks)."""
-    if tree.leaf(j) or (not tree.leaf(i) and tree.size(i) >= tree.size(j)):
-        return [(c, j) for c in tree.kids[i]]
-    return [(i, c) for c in tree.kids[j]]
+    """The pairs a non-admissible pair (I, J), not both leaves, is split into: both clusters' children, or
+    the one that is not a leaf's.  One rule for the whole matrix (so any panel's share of the partition is
+    the same blocks) and symmetric ((J, I) splits into the transposes), so that a symmetric Ξ stores each
+    pair of blocks once."""
+    ki = [i] if tree.leaf(i) else list(tree.kids[i])
+    kj = [j] if tree.leaf(j) else list(tree.kids[j])
+    return [(a, b) for a in ki for b in kj]
 
 
 def partition(tree: ClusterTree, column: int, r_max: float, eta: float | None = None) -> list[tuple[int, int, bool]]:
@@ -252,7 +259,18 @@ class SweepStore:
             while s >= 0 and not reached[s]:
                 reached[s] = True
                 s = parent[s]
+        need = np.zeros(len(pos), bool)
+        need[pos[rows]] = True  # only the rows asked for are multiplied (a symmetric Ξ's tile: those above it)
         D = np.zeros((len(pos), len(cols)), order="F")
+
+        def add(at, X, XJ):  # D[at .. at + len(X)] += X XJᵀ on the needed rows
+            want = need[at:at + len(X)]
+            if want.all():
+                D[at:at + len(X), sel] += X @ XJ.T
+            elif want.any():
+                k = np.flatnonzero(want)
+                D[at + k[:, None], sel] += X[k] @ XJ.T
+
         with open(self.path, "rb") as f:
             for s in np.flatnonzero(reached):
                 sel = np.flatnonzero((pj >= lo[s]) & (pj < hi[s]))
@@ -261,7 +279,7 @@ class SweepStore:
                 if m <= step:
                     f.seek(8 * off)
                     X = np.fromfile(f, np.float64, m * nc).reshape(m, nc)
-                    D[lo[s]:hi[s], sel] += X @ X[pj[sel] - lo[s]].T
+                    add(int(lo[s]), X, X[pj[sel] - lo[s]])
                     continue
                 XJ = np.empty((len(sel), nc))
                 for q, r in enumerate(pj[sel] - lo[s]):  # the panel's rows of X_s
@@ -269,9 +287,11 @@ class SweepStore:
                     XJ[q] = np.fromfile(f, np.float64, nc)
                 for r0 in range(0, m, step):
                     r1 = min(m, r0 + step)
+                    if not need[lo[s] + r0:lo[s] + r1].any():
+                        continue
                     f.seek(8 * (off + r0 * nc))
                     X = np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc)
-                    D[lo[s] + r0:lo[s] + r1, sel] += X @ XJ.T
+                    add(int(lo[s]) + r0, X, XJ)
         out = D[pos[rows]]
         del D
         out *= ix["scale"][cols][None, :]
@@ -345,15 +365,28 @@ def solved_columns(factor, dcols: np.ndarray) -> np.ndarray:
     return X
 
 
-def panel_columns(factor, perm: np.ndarray, c0: int, c1: int) -> np.ndarray:
+def is_symmetric(factor) -> bool:
+    r"""Whether Ξ = G diag(a) with G symmetric, so that :math:`\Xi_{JI} = \mathrm{diag}(a_J)^{-1}\,\Xi_{IJ}^T
+    \mathrm{diag}(a_I)` and only the blocks on and above the diagonal need storing: a P1 factor (its load is the
+    unit columns times the vertex areas, the same area for a vertex's three dofs).  P2's consistent load
+    (Ξ = Eᵀ K⁻¹ B, B ≠ E diag(a)) is not, nor are the AMG route's iterates to the last digit."""
+    scale = getattr(factor, "scale", None)
+    if not hasattr(factor, "L") or getattr(factor, "load", True) is not None or scale is None:
+        return False
+    per_dof = np.asarray(scale, float).reshape(-1, 3)
+    return bool(np.all(per_dof == per_dof[:, :1]))
+
+
+def panel_columns(factor, perm: np.ndarray, c0: int, c1: int, upto: int | None = None) -> np.ndarray:
     """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order: from W's store
-    (:class:`SweepStore`), or solved from the factor or the AMG system."""
+    (:class:`SweepStore`), or solved from the factor or the AMG system.  ``upto``: W's store computes only
+    the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the blocks above the diagonal)."""
     from pmask.precompute.amg import AmgSystem
 
     rows = (3 * perm[:, None] + np.arange(3)).ravel()  # contact dofs in cluster order
     dcols = rows[3 * c0:3 * c1]  # the panel's traction columns
     if isinstance(factor, SweepStore):
-        return factor.columns(rows, dcols)
+        return factor.columns(rows if upto is None else rows[:3 * upto], dcols)
     if isinstance(factor, AmgSystem):  # no factor: block PCG with smoothed aggregation (--solver amg)
         return factor.columns(dcols)[rows]
     return solved_columns(factor, dcols)[rows]
@@ -367,7 +400,8 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     orthonormal; :func:`assemble` merges a block's pieces (:func:`merge_pieces`) within the other half."""
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
-    X = panel_columns(factor, tree.perm, c0, c1)
+    upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # the lowest row any block needs
+    X = panel_columns(factor, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
     t_solve = time.perf_counter() - t0
     rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
@@ -428,7 +462,16 @@ def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tup
     return pieces[0]
 
 
-def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtype=np.float64) -> tuple[dict, dict]:
+def far_dtype(tol: float, dtype=np.float64):
+    """The far field's factors' dtype: float32 where its rounding (2⁻²⁴ ≈ 6e-8 relative, on U and V) is at most
+    1 % of the tolerance they were truncated to (``tol`` ≥ :data:`FLOAT32_TOLERANCE`): eight digits of a
+    float64 below a 1e-4 truncation are noise, and the far field's bytes halve.  The near field stays in
+    ``dtype`` (float64: exact)."""
+    return np.dtype(np.float32) if tol >= FLOAT32_TOLERANCE else np.dtype(dtype)
+
+
+def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtype=np.float64,
+             lowrank_dtype=None) -> tuple[dict, dict]:
     """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from the finished tiles
     in ``store``: whole blocks copied, the pieces of blocks wider than a panel merged
     (:func:`merge_pieces`, within ``tol``), one block's pieces at a time; the tiles' own arrays are read
@@ -460,10 +503,11 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     for li, w in zip(index, whole):
         size["U"] += int(np.sum(3 * (li[w, 1] - li[w, 0]) * li[w, 4]))
         size["V"] += int(np.sum(3 * (li[w, 3] - li[w, 2]) * li[w, 4]))
+    lowrank_dtype = lowrank_dtype or dtype
     out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
            "dense_index": np.zeros((size["dense_index"], 5), np.int64),
            "lowrank_index": np.zeros((size["lowrank_index"], 7), np.int64),
-           **{k: np.empty(size[k], dtype) for k in ("dense", "U", "V")}}
+           "dense": np.empty(size["dense"], dtype), **{k: np.empty(size[k], lowrank_dtype) for k in ("U", "V")}}
     at = dict.fromkeys(TileStore.FIELDS, 0)
     times = {"solve_s": 0.0, "compress_s": 0.0}
 
@@ -649,11 +693,13 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     panel = panel or panel_size(len(points))
     tree = cluster_tree(points)
     cols = panels(tree, panel)
-    plan = {c: partition(tree, c, r_max) for c in cols}
-    ts = TileStore(store, f"{key}|{TILE_LAYOUT}")
+    symmetric = is_symmetric(factor)
+    plan = {c: [b for b in partition(tree, c, r_max) if not symmetric or tree.start[b[0]] <= tree.start[b[1]]]
+            for c in cols}  # symmetric: the blocks on and above the diagonal (the reader transposes the rest)
+    ts = TileStore(store, f"{key}|{TILE_LAYOUT}|symmetric={symmetric}")
     todo = [c for c in cols if c not in ts.done()]
     stats = {"tiles": len(cols), "tiles_reused": len(cols) - len(todo), "leaf": LEAF, "eta": ETA, "panel": panel,
-             "tolerance": tol, "scheduler": scheduler or "local"}
+             "tolerance": tol, "scheduler": scheduler or "local", "symmetric": symmetric}
     t0 = time.perf_counter()
     own = client is None
     w_path = store.with_name(f"W-{store.stem}.bin")
@@ -722,7 +768,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client.close()
                 if cluster is not None:
                     cluster.close()
-        out, times = assemble(tree, ts, tol, dtype)
+        out, times = assemble(tree, ts, tol, dtype, far_dtype(tol, dtype))
+        out["scale"] = factor.scale[0::3].astype(np.float64) if symmetric else np.zeros(0)
     finally:
         ts.close()
     stats.update({"seconds": time.perf_counter() - t0, **times,

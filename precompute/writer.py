@@ -46,10 +46,10 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
     big = {"volume/points": (volume_points, np.float64), "volume/tets": (tets, np.int64)}
     if meta.get("materials"):  # materials by region: each tetrahedron's region in material["regions"], -1 the body
         big["volume/material_region"] = (meta["materials"]["label"], np.int64)
-    if isinstance(Xi, dict):  # compressed (pmask.precompute.compress): its arrays, values in ``dtype``
+    if isinstance(Xi, dict):  # compressed (pmask.precompute.compress): its arrays in the dtypes it chose
         attrs.update({"greens_form": "hmatrix", "tolerance": float(meta["tolerance"])})
-        for k, arr in Xi.items():
-            big[f"greens/hmatrix/{k}"] = (arr, dtype if arr.dtype.kind == "f" else np.int64)
+        for k, arr in Xi.items():  # (the near field in ``dtype``, the far field's factors maybe narrower)
+            big[f"greens/hmatrix/{k}"] = (arr, arr.dtype if arr.dtype.kind == "f" else np.int64)
     else:
         big["greens/Xi"] = (Xi, dtype)
     if reactions is not None:

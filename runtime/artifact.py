@@ -19,6 +19,10 @@ Layout (format 1.x)::
     /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
+Format 1.4 stores a symmetric compressed Ξ (P1: Ξ = G diag(a), G symmetric) once per pair of blocks:
+``/greens/hmatrix/scale`` (the areas a) says so (:mod:`pmask.runtime.compressed`); a file without it (1.2,
+1.3) has every block and is read as before.
+
 Format 1.3 adds the display surface (optional; :mod:`pmask.runtime.display`): the user's surface at the
 scan's resolution and its embedding in the simulation surface, the root attribute ``display`` (JSON: vertices,
 triangles, folded, max_lift_m) and ``/display/{points (m, 3), triangles (k, 3), vertices (m, 3): the simulation
@@ -52,7 +56,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.3.0"
+FORMAT_VERSION = "1.4.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -65,7 +69,10 @@ SURFACE = ("surface/points", "surface/triangles", "surface/vertex_areas", "surfa
 #: what the runtime reads: the surface and Ξ (for a compressed artifact, ``greens_form = "hmatrix"``, the
 #: reader reads :data:`HMATRIX` in Ξ's place)
 RUNTIME = SURFACE + ("greens/Xi",)
-HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V"))
+HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V",
+                                                 "scale"))
+#: of these, optional (before format 1.4 every block was stored: no scale)
+HMATRIX_OPTIONAL = ("greens/hmatrix/scale",)
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
 #: the display surface (optional, format 1.3): read only when asked for (Model.display)
@@ -223,7 +230,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
             if attrs.get("greens_form") == "hmatrix" and "greens/Xi" in datasets:  # Ξ in compressed form
                 datasets = [d for d in datasets if d != "greens/Xi"] + list(HMATRIX)
             wanted = list(datasets) + ([d for d in LEGACY_SMALL if d not in datasets] if legacy and verify else [])
-            missing = [d for d in wanted if d not in f and d not in REACTIONS + MATERIALS + DISPLAY]
+            missing = [d for d in wanted if d not in f and d not in REACTIONS + MATERIALS + DISPLAY + HMATRIX_OPTIONAL]
             if missing:
                 raise ArtifactError(f"{path}: incomplete artifact, missing {', '.join(missing)}")
             data = {d: (f[d][()] if d in f else None) for d in wanted if d not in in_file}

@@ -25,7 +25,14 @@ Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in 
                             row-major at ``dense[offset:]``
     dense          (·,)     the dense blocks' values
     lowrank_index  (nl, 7)  r0, r1, c0, c1, rank k, offset in U, offset in V
-    U, V           (·,)     U (3(r1-r0), k) and V (3(c1-c0), k), row-major, block ≈ U Vᵀ
+    U, V           (·,)     U (3(r1-r0), k) and V (3(c1-c0), k), row-major, block ≈ U Vᵀ (float32 when
+                            the tolerance is 1e-5 or more: their rounding is then ≤ 1 % of it)
+    scale          (n,)     optional; when not empty Ξ = G diag(a) with G symmetric, a = scale (contact order),
+                            and only the blocks on and above the diagonal (r0 ≤ c0) are stored: the block
+                            below is :math:`\Xi_{JI} = \mathrm{diag}(a_J)^{-1}\,\Xi_{IJ}^T\,\mathrm{diag}(a_I)`
+
+A P1 artifact is stored that way (half the bytes: K_i's near field and the far field alike); the
+partition is symmetric ((J, I) is a block whenever (I, J) is), so the pair of blocks is one stored block.
 """
 from __future__ import annotations
 
@@ -41,7 +48,7 @@ class CompressedXi:
     The runtime's access layer for Ξ: :meth:`blocks` (3x3 blocks of vertex pairs: eq. 12's sums and the
     coupling of contacts), :meth:`matvec` (Ξ x: the deformation of eq. 16), :meth:`to_dense` (tests)."""
 
-    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U, V, *, tolerance: float):
+    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U, V, *, tolerance: float, scale=None):
         self.perm = np.asarray(perm, np.int64)
         n = len(self.perm)
         self.n = n
@@ -54,17 +61,29 @@ class CompressedXi:
         self.dtype = np.result_type(dense.dtype, U.dtype) if len(U) else dense.dtype
         self.position = np.empty(n, np.int64)
         self.position[self.perm] = np.arange(n)
+        self.symmetric = scale is not None and len(scale) > 0
+        if self.symmetric and len(scale) != n:
+            raise InputError("the compressed Green's functions' scale does not match their vertices; recompute the "
+                             "artifact (pmask precompute --force)")
+        self.scale = np.asarray(scale, float) if self.symmetric else None  # a, contact order
+        self._dof_scale = np.repeat(self.scale[self.perm], 3) if self.symmetric else None  # a per dof, cluster order
         # the leaf cluster of each position, and the block that owns each pair of leaf clusters
         self.leaf_of = np.repeat(np.arange(len(self.leaves) - 1), np.diff(self.leaves))
         nl = len(self.leaves) - 1
         owner = np.full((nl, nl), -1, np.int64)
+        flip = np.zeros((nl, nl), bool)  # (symmetric) the pair is read from the stored block above, transposed
         nd = len(self.dense_index)
         for b, (r0, r1, c0, c1) in enumerate(np.vstack([self.dense_index[:, :4], self.lowrank_index[:, :4]])):
-            owner[self.leaf_of[r0]:self.leaf_of[r1 - 1] + 1, self.leaf_of[c0]:self.leaf_of[c1 - 1] + 1] = b
+            rows = slice(self.leaf_of[r0], self.leaf_of[r1 - 1] + 1)
+            cols = slice(self.leaf_of[c0], self.leaf_of[c1 - 1] + 1)
+            owner[rows, cols] = b
+            if self.symmetric and r0 != c0:
+                owner[cols, rows] = b
+                flip[cols, rows] = True
         if n and (owner < 0).any():
             raise InputError("the compressed Green's functions do not cover every pair of vertices; recompute the "
                              "artifact (pmask precompute --force)")
-        self.owner, self._nd = owner, nd
+        self.owner, self.flip, self._nd = owner, flip, nd
 
     @property
     def nbytes(self) -> int:
@@ -78,13 +97,25 @@ class CompressedXi:
     def near_fraction(self) -> float:
         """Share of Ξ's entries in dense (near-field) blocks."""
         d = self.dense_index
-        return float(np.sum((d[:, 1] - d[:, 0]) * (d[:, 3] - d[:, 2]))) / max(self.n ** 2, 1)
+        twice = 1 + (self.symmetric & (d[:, 0] != d[:, 2]))  # a stored block above the diagonal stands for two
+        return float(np.sum(twice * (d[:, 1] - d[:, 0]) * (d[:, 3] - d[:, 2]))) / max(self.n ** 2, 1)
 
     def blocks(self, i, j) -> np.ndarray:
-        """Ξ_ij (pairs, 3, 3) for contact indices ``i`` and ``j`` (arrays of the same length): exact where the
-        pair lies in a dense block (every pair within r_max), U_i V_jᵀ (3x3 rows of the factors) elsewhere."""
-        p, q = self.position[np.asarray(i, np.int64)], self.position[np.asarray(j, np.int64)]
+        r"""Ξ_ij (pairs, 3, 3) for contact indices ``i`` and ``j`` (arrays of the same length): exact where the
+        pair lies in a dense block (every pair within r_max), U_i V_jᵀ (3x3 rows of the factors) elsewhere;
+        a pair below a symmetric form's diagonal from the stored one, :math:`\Xi_{ij} = (a_j/a_i)\,\Xi_{ji}^T`."""
+        i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+        p, q = self.position[i], self.position[j]
         b = self.owner[self.leaf_of[p], self.leaf_of[q]]
+        t = self.flip[self.leaf_of[p], self.leaf_of[q]]
+        if t.any():
+            out = self._stored(np.where(t, q, p), np.where(t, p, q), b)
+            out[t] = out[t].transpose(0, 2, 1) * (self.scale[j[t]] / self.scale[i[t]])[:, None, None]
+            return out
+        return self._stored(p, q, b)
+
+    def _stored(self, p, q, b) -> np.ndarray:
+        """The 3x3 blocks of positions (p, q) from the stored blocks ``b`` that hold them."""
         out = np.empty((len(p), 3, 3))
         three = np.arange(3)
         dense = b < self._nd
@@ -105,8 +136,8 @@ class CompressedXi:
                 r0, r1, c0, c1, k, uo, vo = self.lowrank_index[lb[grp[0]]]
                 U = self.U[uo:uo + 3 * (r1 - r0) * k].reshape(3 * (r1 - r0), k)
                 V = self.V[vo:vo + 3 * (c1 - c0) * k].reshape(3 * (c1 - c0), k)
-                Ur = U[3 * (p[far[grp]] - r0)[:, None] + three]  # (g, 3, k)
-                Vr = V[3 * (q[far[grp]] - c0)[:, None] + three]
+                Ur = U[3 * (p[far[grp]] - r0)[:, None] + three].astype(np.float64)  # (g, 3, k); float32 factors
+                Vr = V[3 * (q[far[grp]] - c0)[:, None] + three].astype(np.float64)  # are summed in float64
                 out[far[grp]] = np.einsum("grk,gck->grc", Ur, Vr)
         return out
 
@@ -118,15 +149,27 @@ class CompressedXi:
         X = x.reshape(self.n, 3, -1)[self.perm].reshape(3 * self.n, -1)  # cluster order
         Y = np.zeros_like(X)
         nz = np.concatenate([[0], np.cumsum(np.any(X.reshape(self.n, -1) != 0, axis=1))])
-        for r0, r1, c0, c1, off in self.dense_index[(nz[self.dense_index[:, 3]] - nz[self.dense_index[:, 2]]) > 0]:
+        loaded = lambda a, b: (nz[b] - nz[a]) > 0  # noqa: E731  (positions a..b carry load)
+        di, li = self.dense_index, self.lowrank_index
+        for r0, r1, c0, c1, off in di[loaded(di[:, 2], di[:, 3])]:
             m, w = 3 * (r1 - r0), 3 * (c1 - c0)
             Y[3 * r0:3 * r1] += self.dense[off:off + m * w].reshape(m, w) @ X[3 * c0:3 * c1]
-        li = self.lowrank_index
-        for r0, r1, c0, c1, k, uo, vo in li[(nz[li[:, 3]] - nz[li[:, 2]]) > 0]:
+        for r0, r1, c0, c1, k, uo, vo in li[loaded(li[:, 2], li[:, 3])]:
             m, w = 3 * (r1 - r0), 3 * (c1 - c0)
             U = self.U[uo:uo + m * k].reshape(m, k)
             V = self.V[vo:vo + w * k].reshape(w, k)
             Y[3 * r0:3 * r1] += U @ (V.T @ X[3 * c0:3 * c1])
+        if self.symmetric:  # the blocks below the diagonal: Ξ_JI x_I = diag(a_J)⁻¹ Ξ_IJᵀ diag(a_I) x_I
+            a = self._dof_scale[:, None]
+            for r0, r1, c0, c1, off in di[(di[:, 0] != di[:, 2]) & loaded(di[:, 0], di[:, 1])]:
+                m, w = 3 * (r1 - r0), 3 * (c1 - c0)
+                B = self.dense[off:off + m * w].reshape(m, w)
+                Y[3 * c0:3 * c1] += (B.T @ (a[3 * r0:3 * r1] * X[3 * r0:3 * r1])) / a[3 * c0:3 * c1]
+            for r0, r1, c0, c1, k, uo, vo in li[(li[:, 0] != li[:, 2]) & loaded(li[:, 0], li[:, 1])]:
+                m, w = 3 * (r1 - r0), 3 * (c1 - c0)
+                U = self.U[uo:uo + m * k].reshape(m, k)
+                V = self.V[vo:vo + w * k].reshape(w, k)
+                Y[3 * c0:3 * c1] += (V @ (U.T @ (a[3 * r0:3 * r1] * X[3 * r0:3 * r1]))) / a[3 * c0:3 * c1]
         out = np.empty_like(Y)
         out.reshape(self.n, 3, -1)[self.perm] = Y.reshape(self.n, 3, -1)
         return out.ravel() if vec else out
@@ -134,13 +177,16 @@ class CompressedXi:
     def to_dense(self) -> np.ndarray:
         """The (3n, 3n) array in contact order (for tests and small models)."""
         D = np.zeros(self.shape)
-        for r0, r1, c0, c1, off in self.dense_index:
-            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
-            D[3 * r0:3 * r1, 3 * c0:3 * c1] = self.dense[off:off + m * w].reshape(m, w)
-        for r0, r1, c0, c1, k, uo, vo in self.lowrank_index:
-            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
-            D[3 * r0:3 * r1, 3 * c0:3 * c1] = (self.U[uo:uo + m * k].reshape(m, k)
-                                               @ self.V[vo:vo + w * k].reshape(w, k).T)
+        a = self._dof_scale
+        blocks = [(r0, r1, c0, c1, self.dense[off:off + 9 * (r1 - r0) * (c1 - c0)].reshape(3 * (r1 - r0), -1))
+                  for r0, r1, c0, c1, off in self.dense_index]
+        blocks += [(r0, r1, c0, c1, self.U[uo:uo + 3 * (r1 - r0) * k].reshape(-1, k).astype(np.float64)
+                    @ self.V[vo:vo + 3 * (c1 - c0) * k].reshape(-1, k).T)
+                   for r0, r1, c0, c1, k, uo, vo in self.lowrank_index]
+        for r0, r1, c0, c1, B in blocks:
+            D[3 * r0:3 * r1, 3 * c0:3 * c1] = B
+            if self.symmetric and r0 != c0:
+                D[3 * c0:3 * c1, 3 * r0:3 * r1] = B.T * a[3 * r0:3 * r1][None, :] / a[3 * c0:3 * c1][:, None]
         dofs = (3 * self.perm[:, None] + np.arange(3)).ravel()
         out = np.empty_like(D)
         out[np.ix_(dofs, dofs)] = D
@@ -149,9 +195,9 @@ class CompressedXi:
     @classmethod
     def from_datasets(cls, data: dict, tolerance: float) -> "CompressedXi":
         """From the artifact's datasets (:data:`DATASETS`, keyed by their full names)."""
-        g = {k.rsplit("/", 1)[1]: data[k] for k in DATASETS}
+        g = {k.rsplit("/", 1)[1]: data.get(k) for k in DATASETS}
         return cls(g["perm"], g["leaves"], g["dense_index"], g["dense"], g["lowrank_index"], g["U"], g["V"],
-                   tolerance=tolerance)
+                   tolerance=tolerance, scale=g["scale"])
 
 
 def xi_blocks(Xi, i, j) -> np.ndarray:

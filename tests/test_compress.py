@@ -27,20 +27,42 @@ R_MAX = 0.01
 TOL = 1e-4
 
 
-@pytest.fixture(scope="module")
-def pair(tmp_path_factory):
-    """The default kidney with r_max = 10 mm, dense and compressed (2 local worker processes)."""
-    d = tmp_path_factory.mktemp("compress")
+def _pair(d, element=None):
     dense, comp = d / "dense.h5", d / "compressed.h5"
-    run(Spec(model="kidney", r_max=R_MAX), dense)
-    summary = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, workers=2), comp)
+    extra = {"element": element} if element else {}
+    run(Spec(model="kidney", r_max=R_MAX, **extra), dense)
+    summary = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, workers=2, **extra), comp)
     return Model.load(dense), Model.load(comp), summary
 
 
-def test_artifact_is_compressed_and_every_far_block_within_tolerance(pair):
-    dense, comp, summary = pair
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """The default kidney with r_max = 10 mm (P2, the default element: every block stored), dense and
+    compressed (2 local worker processes)."""
+    return _pair(tmp_path_factory.mktemp("compress"))
+
+
+@pytest.fixture(scope="module")
+def pair_p1(tmp_path_factory):
+    """The same with P1: Ξ = G diag(a), G symmetric, so only the blocks on and above the diagonal are stored
+    and the reader transposes the rest (format 1.4)."""
+    return _pair(tmp_path_factory.mktemp("compress_p1"), "P1")
+
+
+both = pytest.mark.parametrize("which", ["pair", "pair_p1"])
+
+
+@both
+def test_artifact_is_compressed_and_every_far_block_within_tolerance(which, request):
+    dense, comp, summary = request.getfixturevalue(which)
     C = comp.Xi
     assert isinstance(C, CompressedXi) and comp.attrs["greens_form"] == "hmatrix"
+    assert C.symmetric == (which == "pair_p1") == summary["factor_stats"]["compress"]["symmetric"]
+    # the near field exact (float64); the far field's factors in float32, whose rounding (6e-8) is far below TOL
+    assert C.dense.dtype == np.float64 and C.U.dtype == C.V.dtype == np.float32
+    if C.symmetric:  # the whole array, the transposed half too: within TOL of the dense route's
+        X = dense.Xi
+        assert np.linalg.norm(C.to_dense() - X) <= TOL * np.linalg.norm(X)
     assert summary["factor_stats"]["compress"]["lowrank_blocks"] > 0
     # stores less than the dense array (measured 2.9x here; grows with n: README)
     assert C.compression_ratio() > 2.0
@@ -59,14 +81,19 @@ def test_artifact_is_compressed_and_every_far_block_within_tolerance(pair):
         assert np.abs(C.dense[off:off + B.size].reshape(B.shape) - B).max() <= 1e-12 * np.abs(B).max()
 
 
-def test_near_field_is_exact_so_vertex_stiffness_matches_dense(pair):
-    dense, comp, _ = pair
+@both
+def test_near_field_is_exact_so_vertex_stiffness_matches_dense(which, request):
+    dense, comp, _ = request.getfixturevalue(which)
     pts = comp.points[comp.contact]
     C = comp.Xi
     # every pair within r_max lies in a dense block (the masks up to r_max read only those)
     i, j = np.nonzero(np.linalg.norm(pts[:, None] - pts[None], axis=2) <= R_MAX)
     owner = C.owner[C.leaf_of[C.position[i]], C.leaf_of[C.position[j]]]
     assert np.all(owner < len(C.dense_index))
+    # and read exactly, from above the diagonal or transposed from it (symmetric): the dense route's blocks
+    got = C.blocks(i, j)
+    Xd = dense.Xi.reshape(len(pts), 3, len(pts), 3)[i, :, j, :]
+    assert np.abs(got - Xd).max() <= 1e-12 * np.abs(Xd).max()
     for mask, radius in (("linear", R_MAX), ("gaussian", 0.6 * R_MAX), ("single", None)):
         Kd = dense.stiffness(mask, radius).K_full
         Kc = comp.stiffness(mask, radius).K_full
@@ -74,8 +101,9 @@ def test_near_field_is_exact_so_vertex_stiffness_matches_dense(pair):
         assert np.abs(Kc - Kd).max() <= 1e-10 * np.abs(Kd).max()
 
 
-def test_deformation_and_coupled_contacts_within_1e_3(pair):
-    dense, comp, _ = pair
+@both
+def test_deformation_and_coupled_contacts_within_1e_3(which, request):
+    dense, comp, _ = request.getfixturevalue(which)
     sd, sc = dense.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
     rng = np.random.default_rng(3)
     touch = np.flatnonzero(sd.touchable)
@@ -265,9 +293,10 @@ def test_w_store_columns_are_the_dense_routes_in_chunks_too(tmp_path, monkeypatc
     for read_bytes in (compress.READ_BYTES, 8 * 3 * 60):  # whole blocks; then ~3 rows per read
         monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
         store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
-        X = store.columns(rows, cols)
-        # round-off of sums of ~10³ products in another order
-        assert np.abs(X - Xi[np.ix_(rows, cols)]).max() <= 1e-12 * np.abs(Xi).max()
+        for some in (rows, rows[:len(rows) // 3]):  # all rows; a third of them (a symmetric Ξ's tile)
+            X = store.columns(some, cols)
+            # round-off of sums of ~10³ products in another order
+            assert np.abs(X - Xi[np.ix_(some, cols)]).max() <= 1e-12 * np.abs(Xi).max()
     # the same key reuses the store; another key sweeps again
     mtime = (tmp_path / f"W-{read_bytes}.bin").stat().st_mtime_ns
     assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k").path.stat().st_mtime_ns == mtime
