@@ -145,8 +145,16 @@ def section_only(section: str) -> None:
 def main() -> None:
     if "--only" in sys.argv:
         part = sys.argv[sys.argv.index("--only") + 1:][:1]
+        if part == ["compress"]:  # the compressed-Ξ section (its own results file and date), ~15 min
+            import compress_bench
+            import report
+
+            compress = compress_bench.main(HERE / "compress_results.json")
+            print(f"wrote {report.write(report.stored()[0], compress)}")
+            return None
         if part not in (["haptics"], ["viewer"], ["display"]):
-            sys.exit("bench: --only takes 'haptics', 'viewer' or 'display' (the other sections run as one: `make bench`)")
+            sys.exit("bench: --only takes 'haptics', 'viewer', 'display' or 'compress' (the other sections run as "
+                     "one: `make bench`)")
         return section_only(part[0])
 
     work = Path(tempfile.mkdtemp(prefix="pmask-bench-"))
