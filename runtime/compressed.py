@@ -73,13 +73,23 @@ class CompressedXi:
         owner = np.full((nl, nl), -1, np.int64)
         flip = np.zeros((nl, nl), bool)  # (symmetric) the pair is read from the stored block above, transposed
         nd = len(self.dense_index)
-        for b, (r0, r1, c0, c1) in enumerate(np.vstack([self.dense_index[:, :4], self.lowrank_index[:, :4]])):
-            rows = slice(self.leaf_of[r0], self.leaf_of[r1 - 1] + 1)
-            cols = slice(self.leaf_of[c0], self.leaf_of[c1 - 1] + 1)
-            owner[rows, cols] = b
-            if self.symmetric and r0 != c0:
-                owner[cols, rows] = b
-                flip[cols, rows] = True
+        box = np.vstack([self.dense_index[:, :4], self.lowrank_index[:, :4]])
+        if n and len(box):
+            lr0, lr1 = self.leaf_of[box[:, 0]], self.leaf_of[box[:, 1] - 1] + 1  # leaf ranges of each block
+            lc0, lc1 = self.leaf_of[box[:, 2]], self.leaf_of[box[:, 3] - 1] + 1
+            one = (lr1 - lr0 == 1) & (lc1 - lc0 == 1)  # a pair of leaves (every dense block): set at once
+            b = np.flatnonzero(one)
+            owner[lr0[b], lc0[b]] = b
+            if self.symmetric:
+                b = b[box[b, 0] != box[b, 2]]
+                owner[lc0[b], lr0[b]] = b
+                flip[lc0[b], lr0[b]] = True
+            for b in np.flatnonzero(~one):  # larger (low-rank) blocks: a rectangle of leaf pairs each
+                rows, cols = slice(lr0[b], lr1[b]), slice(lc0[b], lc1[b])
+                owner[rows, cols] = b
+                if self.symmetric and box[b, 0] != box[b, 2]:
+                    owner[cols, rows] = b
+                    flip[cols, rows] = True
         if n and (owner < 0).any():
             raise InputError("the compressed Green's functions do not cover every pair of vertices; recompute the "
                              "artifact (pmask precompute --force)")

@@ -117,6 +117,34 @@ def test_refuses_sign_flipped_greens_functions_with_valid_fletcher32(copy):
         Model.load(copy)
 
 
+def test_large_datasets_hashed_block_by_block_still_see_one_changed_value(artifact, copy, monkeypatch):
+    """Datasets above READ_BLOCK_BYTES are read in row blocks and hashed in a second thread while the next
+    block is read: with blocks of 4 KiB (thousands of blocks for this Ξ) the intact file loads with
+    the digests written whole, and one value changed in Ξ's last row (valid Fletcher-32) is refused."""
+    from pmask.runtime import artifact as art
+
+    monkeypatch.setattr(art, "READ_BLOCK_BYTES", 4096)
+    np.testing.assert_array_equal(Model.load(artifact).Xi, Model.load(artifact, verify=False).Xi)
+    with h5py.File(copy, "r+") as f:
+        f["greens/Xi"][-1, -1] = 2 * f["greens/Xi"][-1, -1]
+    with pytest.raises(ArtifactError, match="dataset greens/Xi was altered"):
+        Model.load(copy)
+
+
+def test_a_nan_anywhere_in_a_large_array_is_found():
+    """all_finite (one summing pass instead of isfinite's boolean array): a NaN or an inf anywhere is found,
+    and finite values whose sum overflows are not mistaken for one."""
+    from pmask.runtime.artifact import all_finite
+
+    x = np.zeros(10_001)
+    assert all_finite(x)
+    for bad in (np.nan, np.inf, -np.inf):
+        y = x.copy()
+        y[7_777] = bad
+        assert not all_finite(y) and not all_finite(y.astype(np.float32))
+    assert all_finite(np.full(4, 1e308))  # the sum overflows; every value is finite
+
+
 def test_the_runtime_reads_only_what_it_uses(copy):
     """Altering the volume mesh (which the runtime never reads) does not stop Model.load, but is
     caught when the volume is asked for."""
