@@ -49,6 +49,7 @@ class Model:
         self.r_max = float(a["r_max"])
         self.mean_edge_length = mean_edge_length(self.points, self.triangles)
         self.load_seconds = None
+        self.xi_rows = None  # Ξᵀ kept for repeated ζ tables (hold_transpose)
 
     #: far fields larger than this stay in the file (far_field="auto")
     FAR_FIELD_IN_MEMORY = 512 * 2**20
@@ -72,6 +73,15 @@ class Model:
         m.verify = verify
         m.load_seconds = time.perf_counter() - t0
         return m
+
+    def hold_transpose(self) -> None:
+        """Keep Ξᵀ (contiguous rows: the columns of Ξ) for every ζ table made from this model from now on
+        (:meth:`pmask.runtime.stiffness.Stiffness.zeta_table` transposes Ξ each time otherwise): for a caller
+        that changes the mask radius repeatedly, as the viewer does.  It costs the memory of a second Ξ;
+        a compressed Ξ has no ζ table, and nothing is kept."""
+        if self.xi_rows is None and isinstance(self.Xi, np.ndarray):
+            n3 = self.Xi.shape[0]
+            self.xi_rows = np.ascontiguousarray(self.Xi.T, dtype=float).reshape(n3 // 3, 3 * n3)
 
     def volume(self) -> tuple[np.ndarray, np.ndarray]:
         """The tetrahedral mesh the Green's functions came from: (points, tets), read on demand."""

@@ -338,7 +338,9 @@ class Stiffness(SurfaceStiffness):
         Xi = self.model.Xi
         n3 = Xi.shape[0]
         Zt = np.zeros((n3, n3))
-        XiT3 = np.ascontiguousarray(Xi.T, dtype=float).reshape(n3 // 3, 3 * n3)  # row j = Ξ[:, 3j:3j+3]ᵀ
+        XiT3 = getattr(self.model, "xi_rows", None)  # held by Model.hold_transpose (a viewer), or made here:
+        if XiT3 is None:
+            XiT3 = np.ascontiguousarray(Xi.T, dtype=float).reshape(n3 // 3, 3 * n3)  # row j = Ξ[:, 3j:3j+3]ᵀ
         Zt3 = Zt.reshape(n3 // 3, 3 * n3)
         masks = self.masks
         ptr, idx, val = masks.indptr, masks.indices, masks.values

@@ -108,6 +108,7 @@ class ViewerSession:
         h = model.mean_edge_length
         self.radius_range = (0.5 * h, float(min(model.r_max, 0.25 * self.diag)))
         radius = model.default_radius if radius is None else float(radius)
+        model.hold_transpose()  # every radius change makes a ζ table: Ξᵀ once, not per change
         single = model.stiffness("single")
         self.fields = {"single": _norms(single.K_vertex), "area": model.vertex_areas.astype(float),
                        "fixed": np.isin(np.arange(len(P)), model.fixed).astype(float),
