@@ -173,11 +173,15 @@ class Model:
                 check_positive_definite(K, self.contact[m.centres], cause=(
                     f"a point load observed at its own vertex on a mesh this coarse ({len(self.points)} surface "
                     f"vertices, mean edge {self.mean_edge_length:.3g}): use a mask (e.g. 'linear') or a finer mesh"))
-            # the point-force blocks Ξ_ii / a_i of an elastic body are positive definite: if they are, the
-            # mask is to blame (spread over it, the traction can move the centre against the force on a
-            # coarse or small body), not the Green's functions
-            single = self.masks("single")
-            check_positive_definite(vertex_stiffness(self.Xi, single), self.contact[single.centres])
+            # with P1 the point-force blocks Ξ_ii / a_i of an elastic body are positive definite: if they are,
+            # the mask is to blame (spread over it, the traction can move the centre against the force on a
+            # coarse or small body), not the Green's functions.  With P2 they need not be (above): a
+            # sign-flipped Ξ makes most K_i negative definite, a mask too large for its body some indefinite
+            if str(self.attrs.get("element", "P1")).upper() == "P1":
+                single = self.masks("single")
+                check_positive_definite(vertex_stiffness(self.Xi, single), self.contact[single.centres])
+            elif np.mean(np.linalg.eigvalsh(0.5 * (K + np.swapaxes(K, -1, -2)))[:, -1] < 0) > 0.5:
+                check_positive_definite(K, self.contact[m.centres])
             check_positive_definite(K, self.contact[m.centres], cause=(
                 f"the {mask} mask of radius {m.radius:.3g} (mean edge {self.mean_edge_length:.3g}) moves these "
                 "centres against the force it spreads, which a mask large for its body or mesh can do; use a "
