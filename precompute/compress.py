@@ -400,7 +400,7 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     orthonormal; :func:`assemble` merges a block's pieces (:func:`merge_pieces`) within the other half."""
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
-    upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # the lowest row any block needs
+    upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # one past the last row any block needs
     X = panel_columns(factor, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
     t_solve = time.perf_counter() - t0
     rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
