@@ -94,6 +94,16 @@ def corpus() -> dict:
     g = np.indices((36, 36, 36)).reshape(3, -1).T - 17.5
     vp, vf = voxel_faces((np.linalg.norm(g, axis=1) <= 14.0).reshape(36, 36, 36), 1.25)
     cases["voxel staircase"] = (vp - 1.25 * 18.0, vf)
+    # two chambers exported together, each closed, sharing a wall (the wall's rim is in four triangles): the
+    # body is their union, 40 x 20 x 20 mm
+    left, right = (trimesh.creation.box(extents=(20.0, 20.0, 20.0)) for _ in range(2))
+    left.apply_translation((-10.0, 0.0, 0.0))
+    right.apply_translation((10.0, 0.0, 0.0))
+    cases["shared wall"] = join((np.asarray(left.vertices), np.asarray(left.faces)),
+                                (np.asarray(right.vertices), np.asarray(right.faces)))
+    # a hollow organ: a 3 mm wall between an outer shell and an inner one facing inwards (a cavity)
+    inner = sphere(r=17.0)
+    cases["hollow wall"] = join(sphere(), (inner[0], inner[1][:, ::-1]))
     big = trimesh.creation.icosphere(subdivisions=7, radius=20.0)  # 327,680 triangles
     cases["over 300,000 triangles"] = (np.asarray(big.vertices), np.asarray(big.faces))
     return cases

@@ -486,6 +486,29 @@ class SeveralBodiesError(MeshError):
     """A surface of several bodies (not debris): which one is the organ is the user's choice (``--shell``)."""
 
 
+class CavityError(SeveralBodiesError):
+    """A closed shell inside the body facing inwards: a hollow organ's inner wall.  Not meshed as a cavity
+    (yet); every repair route would fill it, so ``--repair auto`` does not try them."""
+
+
+def check_not_a_cavity(pts, tris, tri_label, per, outer: int, inner: int, name) -> None:
+    """Refuse, naming it, a shell that lies wholly inside the outer one and faces inwards (negative enclosed
+    volume): the inner wall of a bladder, a stomach or a heart chamber.  A cavity is not meshed (the body
+    would have to be the volume between the walls), and filling it silently, as the voxel route's union
+    does, makes a stiffer organ than the hollow one."""
+    t_in = tris[tri_label == inner]
+    if enclosed_volume(pts, t_in) >= 0:
+        return
+    v = np.unique(t_in)
+    v = v if len(v) <= 64 else np.random.default_rng(0).choice(v, 64, replace=False)
+    if np.all(winding_numbers(pts, tris[tri_label == outer], pts[v]) > 0.5):
+        rank = {k: r + 1 for r, k in enumerate(np.argsort(-per))}
+        raise CavityError(f"{name}: shell {rank[inner]} ({100 * per[inner] / per.sum():.1f} % of the area) lies inside "
+                          f"shell {rank[outer]} and faces inwards: a cavity, as a hollow organ's inner wall is; pmask "
+                          f"meshes solid bodies only (a cavity is not supported yet): --shell {rank[outer]} takes the "
+                          "outer surface alone with the cavity filled, a stiffer organ than the hollow one")
+
+
 def shell_list(per: np.ndarray, tri_label: np.ndarray) -> str:
     """The shells largest first, as a refusal lists them: "1: 45.9 % of the area (2,560 triangles), ..."."""
     counts = np.bincount(tri_label, minlength=len(per))
@@ -518,6 +541,8 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     pieces = int(np.count_nonzero(np.bincount(tri_label, minlength=len(per)))) - 1
     if rest > DEBRIS_AREA_SHARE * per.sum():
         big = [k for k in np.argsort(-per) if k != main and per[k] > DEBRIS_AREA_SHARE * per.sum()]
+        for k in big:
+            check_not_a_cavity(pts, tris, tri_label, per, main, k, name)
         if any(shells_overlap(pts, tris, tri_label, main, k) for k in big):
             raise MeshError(f"{name}: the surface has {pieces + 1} shells that run into each other or lie one inside "
                             f"another (largest first: {shell_list(per, tri_label)}): the body is their union, which "

@@ -17,7 +17,7 @@ CASES = corpus()
 MENDED = {"meshfix": {"touching shells", "touching at a point", "holes", "flipped patch", "self-intersection",
                       "several shells", "overlapping shells"},
           "voxel": {"touching shells", "touching at a point", "holes", "flipped patch", "self-intersection",
-                    "several shells", "overlapping shells"}}
+                    "several shells", "overlapping shells", "shared wall"}}
 
 
 @pytest.mark.slow
@@ -113,6 +113,7 @@ def _solid_volume(path):
     ("holes", "meshfix", 4.0 / 3.0 * np.pi * 20.0 ** 3),
     ("flipped patch", "meshfix", 4.0 / 3.0 * np.pi * 20.0 ** 3),
     ("overlapping shells", "voxel", None),  # the union of the two balls (corpus.union_volume)
+    ("shared wall", "voxel", 2 * 20.0 ** 3),  # two chambers sharing a wall: their union (MeshFix keeps one, 83 %)
 ])
 def test_repair_auto_takes_the_first_route_that_works_and_says_what_it_did(tmp_path, capsys, name, route, volume):
     """The scans issue's item 1: --repair auto tries the surface as it is, MeshFix (when it keeps 95 % of the
@@ -128,6 +129,21 @@ def test_repair_auto_takes_the_first_route_that_works_and_says_what_it_did(tmp_p
     assert f"repair auto: route {route}" in out and "of the input (Hausdorff)" in out and "not used: as it is" in out
     expected = volume if volume is not None else union_volume()
     assert abs(_solid_volume(path) / expected - 1) < (0.04 if volume is not None else 0.05)
+
+
+def test_a_hollow_organ_is_named_a_cavity_not_filled_by_a_repair(tmp_path, capsys):
+    """#25 item 1: a wall between an outer shell and an inner one facing inwards (a bladder's, a stomach's)
+    was refused as "shells that run into each other ... --repair voxel builds their union", and --repair
+    auto then built a solid ball (the cavity filled: 33,000 mm³ where the wall holds 12,900).  Now, with or
+    without --repair auto, one line names the cavity and says what --shell 1 gives; following it works."""
+    v, f = CASES["hollow wall"]
+    for extra in ([], ["--repair", "auto"]):
+        code, _, err, _ = _precompute(tmp_path, capsys, v, f, "--fixed", "z<-8", *extra)
+        lines = [line for line in err.splitlines() if line.startswith("pmask: error")]
+        assert code == 2 and len(lines) == 1 and "a cavity" in lines[0] and "--shell 1" in lines[0], err
+    code, _, err, path = _precompute(tmp_path, capsys, v, f, "--fixed", "z<-8", "--shell", "1")
+    assert code == 0, err
+    assert abs(_solid_volume(path) / (4.0 / 3.0 * np.pi * 20.0 ** 3) - 1) < 0.04  # the outer ball, filled
 
 
 def test_repair_auto_on_a_sound_surface_changes_nothing(tmp_path, capsys):
