@@ -116,6 +116,23 @@ def test_masked_vertex_stiffness_is_inverse_of_full_solve(small, small_probe):
     assert np.linalg.norm(stiff.K_full[k], 2) > 1.2 * np.linalg.norm(single.K_full[k], 2)
 
 
+def test_masked_stiffness_gathered_in_passes_is_the_same_and_the_full_solves(small, small_probe, monkeypatch):
+    """#27 item 4 (all K_i in bounded memory): masked_flexibility gathers whole masks in passes of about
+    PAIRS_PER_PASS pairs.  With passes of 5 pairs (a pass per mask or two) every K_i is bitwise the one-pass
+    value (each mask's pairs are summed in the same order), and the probed one still inverts the full solve."""
+    from pmask.runtime import stiffness as st
+
+    model = small
+    stiff, k, cols, rho = small_probe
+    whole = model.stiffness(stiff.masks.kind, stiff.masks.radius).K_full
+    monkeypatch.setattr(st, "PAIRS_PER_PASS", 5)
+    passes = model.stiffness(stiff.masks.kind, stiff.masks.radius).K_full
+    assert np.array_equal(passes, whole)
+    u, vi = _full_displacements(model, cols, rho)
+    U = u[vi[model.contact[stiff.masks.centres[k]]]]
+    assert relerr(passes[k], np.linalg.inv(U)) < 1e-8
+
+
 def test_zeta_reproduces_full_displacement_field(small, small_probe):
     model = small
     stiff, k, cols, rho = small_probe
