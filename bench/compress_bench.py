@@ -130,9 +130,11 @@ def large(params: dict, work: Path, n_check: int = 8) -> dict:
         opens.append(time.perf_counter() - t0)
     out["open_s"], out["open_runs_s"] = float(np.median(opens)), opens
     out["far_field"] = type(c.Xi.U).__name__
-    t0 = time.perf_counter()
-    c.stiffness("linear", R_MAX).K_full  # every K_i: the near field only
-    out["all_K_s"] = time.perf_counter() - t0
+    with PeakRSS() as mk:
+        t0 = time.perf_counter()
+        c.stiffness("linear", R_MAX).K_full  # every K_i: the near field only
+        out["all_K_s"] = time.perf_counter() - t0
+    out["all_K_peak_rss_gib"] = mk.peak / 2**30  # the loaded model included
     n = len(c.contact)
     out["contact"] = n
     out["dense_Xi_bytes"] = 8 * (3 * n) ** 2
@@ -280,7 +282,9 @@ def markdown(res: dict) -> str:
                      f"{min(g.get('open_runs_s', [g['open_s']])):.2f}–{max(g.get('open_runs_s', [g['open_s']])):.2f} s; "
                      f"`Model.load`, checksums verified, far field "
                      + ("left in the file" if g.get("far_field") == "FileArray" else "read into memory")
-                     + f", page cache warm), every K_i in {g['all_K_s']:.1f} s" if "open_s" in g else "") + ". Dense: " + (f"refused in one line before the factor (needs ~{g['dense_need_gib']:.0f} GiB)"
+                     + f", page cache warm), every K_i in {g['all_K_s']:.1f} s"
+                     + (f" (peak RSS {g['all_K_peak_rss_gib']:.2f} GiB with the model)" if "all_K_peak_rss_gib" in g
+                        else "") if "open_s" in g else "") + ". Dense: " + (f"refused in one line before the factor (needs ~{g['dense_need_gib']:.0f} GiB)"
                                                if g["dense_refused"] else "would run") + f", estimated {est} if it "
                   f"fitted (scaled from the 3,882-vertex dense run). {g['columns_checked']} random vertices' columns "
                   f"against the factor's own solve: {g['columns_rel_err']:.1e} relative, near field "
