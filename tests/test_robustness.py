@@ -377,25 +377,31 @@ def test_fuzz_random_solids_masks_and_queries(tmp_path_factory, pts, kind, rfac,
         assert np.all(np.isfinite(stiff.deformation(t, b, f)))
 
 
+def _hull_model(tmp_path, pts):
+    """The fuzz's model of a point set: its convex hull meshed, held below 30 % of its height, precomputed."""
+    from pmask.meshes.common import ModelMesh, save_model_mesh
+    from pmask.precompute.meshing import volume_inside_surface
+
+    hull = trimesh.convex.convex_hull(pts)
+    points, tets = volume_inside_surface(np.asarray(hull.vertices), np.asarray(hull.faces))
+    cut = float(np.quantile(points[:, 2][np.unique(hull.faces)], 0.3))
+    save_model_mesh(tmp_path / "m.npz", ModelMesh(points=points, tets=tets, fixed=f"z<={cut!r}"))
+    run(Spec(model="fuzz", volume=str(tmp_path / "m.npz")), tmp_path / "m.h5")
+    return Model.load(tmp_path / "m.h5")
+
+
 def test_a_mask_too_large_for_its_body_is_named_not_blamed_on_the_artifact(tmp_path):
     """Found by the fuzz above: on an 8-vertex solid with 5 free vertices, a cone of 2 mean edges covers the
     whole free surface and the traction it spreads moves one centre against the force (K_i indefinite),
     while every point-force block Ξ_ii / a_i is positive definite.  The refusal names the mask and says to
     shrink it, instead of calling the Green's functions corrupt; one mean edge is accepted."""
-    from pmask.meshes.common import ModelMesh, save_model_mesh
-    from pmask.precompute.meshing import volume_inside_surface
     from pmask.runtime.stiffness import StiffnessError
 
     pts = np.array([[0.00590053, -0.0061997, 0.03005511], [0.00500669, -0.02556653, 0.01725828],
                     [0.02317204, 0.0168296, -0.01250535], [-0.02802195, -0.01380201, 0.00091514],
                     [-0.02745022, -0.00258314, -0.01470971], [-0.02369737, -0.01761311, -0.01023599],
                     [0.01140193, 0.02887702, -0.00356034], [0.02737495, -0.01332613, 0.00704195]])
-    hull = trimesh.convex.convex_hull(pts)
-    points, tets = volume_inside_surface(np.asarray(hull.vertices), np.asarray(hull.faces))
-    cut = float(np.quantile(points[:, 2][np.unique(hull.faces)], 0.3))
-    save_model_mesh(tmp_path / "m.npz", ModelMesh(points=points, tets=tets, fixed=f"z<={cut!r}"))
-    run(Spec(model="fuzz", volume=str(tmp_path / "m.npz")), tmp_path / "m.h5")
-    model = Model.load(tmp_path / "m.h5")
+    model = _hull_model(tmp_path, pts)
     with pytest.raises(StiffnessError, match=r"linear mask of radius .* use a smaller mask radius"):
         model.stiffness("linear", 2.0 * model.mean_edge_length)
     K = model.stiffness("linear", 1.0 * model.mean_edge_length).K_full
@@ -408,20 +414,13 @@ def test_with_p2_a_mask_too_large_is_named_though_point_blocks_may_be_indefinite
     the adjoint of its point value), so the P1 check that blames the Green's functions when those blocks are
     indefinite does not apply: the refusal names the mask.  A sign-flipped Ξ (most centres indefinite) is still
     called corrupt (test_haptics)."""
-    from pmask.meshes.common import ModelMesh, save_model_mesh
-    from pmask.precompute.meshing import volume_inside_surface
     from pmask.runtime.stiffness import StiffnessError
 
     pts = np.array([[-0.0176975, -0.0111083, -0.02323718], [0.0104727, -0.0153116, -0.02514836],
                     [-0.02672056, -0.01075883, -0.01211699], [0.01785751, 0.02564059, -0.00048175],
                     [0.01256698, -0.01364958, -0.02514602], [-0.02009784, -0.01522645, 0.01846062],
                     [0.00583669, -0.02444641, 0.01857063], [0.01494281, -0.00181285, 0.02738592]])
-    hull = trimesh.convex.convex_hull(pts)
-    points, tets = volume_inside_surface(np.asarray(hull.vertices), np.asarray(hull.faces))
-    cut = float(np.quantile(points[:, 2][np.unique(hull.faces)], 0.3))
-    save_model_mesh(tmp_path / "m.npz", ModelMesh(points=points, tets=tets, fixed=f"z<={cut!r}"))
-    run(Spec(model="fuzz", volume=str(tmp_path / "m.npz")), tmp_path / "m.h5")
-    model = Model.load(tmp_path / "m.h5")
+    model = _hull_model(tmp_path, pts)
     assert model.attrs["element"] == "P2"
     with pytest.raises(StiffnessError, match=r"linear mask of radius .* use a smaller mask radius"):
         model.stiffness("linear", 1.0 * model.mean_edge_length)
