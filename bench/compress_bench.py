@@ -298,7 +298,9 @@ def markdown(res: dict) -> str:
                   f"**peak RSS {g['peak_rss_gib']:.2f} GiB** (process tree; largest processes "
                   f"{', '.join(f'{x:.2f}' for x in g['peak_rss_per_process_gib'][:3])} GiB), W's store "
                   f"{st['W_bytes'] / 2**30:.2f} GiB on disk. Stored {g['compressed_stored_bytes'] / 2**30:.2f} GiB "
-                  f"against a dense {g['dense_Xi_bytes'] / 2**30:.1f} GiB: {g['dense_Xi_bytes'] / g['compressed_stored_bytes']:.1f}x, "
+                  + (f"(near field {g['near_bytes'] / 2**30:.2f}, far field {g['far_bytes'] / 2**30:.2f}) "
+                     if "near_bytes" in g else "")
+                  + f"against a dense {g['dense_Xi_bytes'] / 2**30:.1f} GiB: {g['dense_Xi_bytes'] / g['compressed_stored_bytes']:.1f}x, "
                   f"max rank {st['max_rank']}" + (", stored once per symmetric pair of blocks" if st.get("symmetric") else "")
                   + (f"; {st['merged_blocks']:,} blocks wider than a panel merged from {st['merged_pieces']:,} pieces "
                      f"in {st['merge_s']:.1f} s" if "merged_blocks" in st else "")
