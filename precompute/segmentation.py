@@ -66,7 +66,7 @@ def nifti_affine(header, shape, path) -> np.ndarray:
 
 
 def read_label_image(path: Path):
-    """(labels, affine 4x4 voxel index -> world, unit or None) of a NIfTI or NRRD file."""
+    """(labels, affine 4x4 voxel index -> world, unit or None) of a NIfTI, NRRD or DICOM SEG file."""
     name = path.name.lower()
     try:
         if name.endswith((".nii", ".nii.gz")):
@@ -98,6 +98,8 @@ def read_label_image(path: Path):
     except ImportError as exc:
         raise MeshError(f"{path}: reading label images needs the segmentation extra ({exc.name} is not "
                         "installed): pip install 'pmask[segmentation]'") from None
+    except MeshError:
+        raise  # already one line that names the file
     except Exception as exc:  # the readers raise many types for damaged files
         raise MeshError(f"{path}: cannot read this file as a label image ({exc})") from exc
     raise MeshError(f"{path}: a label image must be NIfTI (.nii, .nii.gz), NRRD (.nrrd, .nhdr) or a DICOM "
@@ -120,7 +122,6 @@ def dicom_seg_labels(path: Path):
     spaced), in DICOM's patient space (left-posterior-superior, mm) taken to RAS like an NRRD's."""
     import highdicom
     import pydicom
-
     from pydicom.uid import SegmentationStorage
 
     ds = pydicom.dcmread(str(path))

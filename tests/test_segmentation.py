@@ -205,6 +205,7 @@ def test_a_dicom_seg_as_3d_slicer_exports_it_is_placed_in_world_millimetres(tmp_
                  "-o", str(tmp_path / "x.h5")])
     err = capsys.readouterr().err
     assert code == 2 and "not a Segmentation" in err and len(err.strip().splitlines()) == 1, err
+    assert "cannot read this file" not in err and err.count(str(ct)) == 1, err  # the line itself, not wrapped
 
 
 def test_label_image_refusals_are_one_line(nifti, tmp_path, capsys):
