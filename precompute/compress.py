@@ -30,9 +30,10 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    :math:`\Xi = W^T W\,\mathrm{diag}(a)`, W = L⁻¹PE, so :math:`\Xi_{:,J} = \sum_s X_s X_{s,J}^T a_J`
    over the supernodes s that J's columns reach (X_s: W's rows of s, :func:`sweep`).  W is computed
    once, by one forward sweep in the client, and written supernode by supernode to a file in the run's
-   work folder (:class:`SweepStore`; 2.2 GiB at 20,427 contact vertices, where the dense Ξ is 28 GiB);
+   work folder (:class:`SweepStore`; under a tenth of the dense Ξ: the bench page gives it at 20,427 vertices);
    a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
-   :math:`W^TW` products (twice: each panel all rows) and nothing else, and a worker needs no factor.
+   :math:`W^TW` products (each once: a tile computes only the rows above the diagonal, P1 being
+   symmetric) and nothing else, and a worker needs no factor.
    P2 (a consistent load B ≠ E diag(a)) and the AMG route solve each panel instead
    (:func:`pmask.precompute.greens.inverse_columns`, :mod:`pmask.precompute.amg`), with the factor
    or the AMG system sent to every worker.

@@ -62,7 +62,8 @@ class Model:
         far_field: for a compressed artifact, where its low-rank far field lives: "memory", "file" (read in
         slices when a deformation or a coupling needs them, :class:`pmask.runtime.artifact.FileArray`; the
         near field, all K_i need, is read either way), or "auto": in the file when larger than
-        :data:`FAR_FIELD_IN_MEMORY` (an organ at 20,000 vertices: 2 GiB that a single contact never reads)."""
+        :data:`FAR_FIELD_IN_MEMORY` (a far field a single contact never reads: the bench page gives its size at
+        20,000 vertices)."""
         if far_field not in ("auto", "memory", "file"):
             raise InputError(f"far_field must be 'auto', 'memory' or 'file', got {far_field!r}")
         t0 = time.perf_counter()

@@ -514,7 +514,7 @@ def test_the_viewer_opens_a_compressed_artifact_and_shows_its_deformation(pair):
 
 
 def test_the_far_field_can_stay_in_the_file(pair):
-    """The large-organ issue's item 4: a compressed artifact's far field (2 GiB at 20,000 vertices, which a
+    """The large-organ issue's item 4: a compressed artifact's far field (which a
     single contact never reads) stays in the file and is read in slices when a deformation or a coupling needs
     it (Model.load(far_field="file"), the default above 512 MiB): K_i, a deformation and coupled forces equal
     the in-memory ones exactly (the same values, read later)."""
