@@ -128,14 +128,15 @@ def pairs_within(points: np.ndarray, radius: float):
     return np.concatenate(rows), np.concatenate(cols)
 
 
-def smoothed_normals(points: np.ndarray, triangles: np.ndarray, radius: float) -> np.ndarray:
+def smoothed_normals(points: np.ndarray, triangles: np.ndarray, radius: float, pairs=None) -> np.ndarray:
     """Unit vertex normals averaged over a ball: Σ_j w(‖x_i − x_j‖ / radius) n_j, with n_j the
     area-weighted vertex normal times its vertex area and w the Wendland C2 profile.  The contact normal
-    at the scale of the probe: a tip of size r does not feel a crease sharper than r."""
+    at the scale of the probe: a tip of size r does not feel a crease sharper than r.  ``pairs``: the
+    result of ``pairs_within(points, radius)`` when the caller has it already."""
     n = vertex_normals(points, triangles) * vertex_areas(points, triangles)[:, None]
     if not radius > 0:
         return vertex_normals(points, triangles)
-    i, j = pairs_within(points, radius)
+    i, j = pairs_within(points, radius) if pairs is None else pairs
     s = np.sqrt(np.sum((points[i] - points[j]) ** 2, axis=1)) / radius
     w = (1.0 - s) ** 4 * (4.0 * s + 1.0)
     out = np.zeros_like(n)
@@ -173,11 +174,12 @@ def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, cr
     crease[triangles[tt, (kk + 2) % 3]] = True
     if not crease.any():
         return n
-    i, j = pairs_within(points, radius)
+    pairs = pairs_within(points, radius)
+    i, j = pairs
     near = crease[j]
     d = np.full(len(points), np.inf)
     np.minimum.at(d, i[near], np.sqrt(np.sum((points[i[near]] - points[j[near]]) ** 2, axis=1)))
     x = np.clip(1.0 - d / radius, 0.0, 1.0)
     beta = (x * x * (3.0 - 2.0 * x))[:, None]
-    out = (1.0 - beta) * n + beta * smoothed_normals(points, triangles, radius)
+    out = (1.0 - beta) * n + beta * smoothed_normals(points, triangles, radius, pairs)
     return out / np.linalg.norm(out, axis=1, keepdims=True)

@@ -95,6 +95,19 @@ def surface_sections(surface, zeta: bool = True, display=None) -> dict:
     return out
 
 
+def table_arrays(sections: dict, meta: dict) -> dict:
+    """The sections as the native core borrows them (:func:`pmask.runtime.servo.load_table` of a dict, C
+    ``pm_table_from_sections``): C-contiguous 2-D float64/int64 arrays (no copy when they already are) and the
+    metadata as JSON bytes.  A viewer that rebuilds its 150 MB ζ table on every change of the mask radius
+    hands it over this way instead of serialising it (:func:`table_bytes`) for the loader to copy again."""
+    out = {}
+    for name, value in sections.items():
+        a = np.asarray(value)
+        out[name] = np.ascontiguousarray(a, np.int64 if np.issubdtype(a.dtype, np.integer) else np.float64)
+    out["meta"] = json.dumps(meta, sort_keys=True).encode()
+    return out
+
+
 def table_bytes(sections: dict, meta: dict) -> bytearray:
     """Serialise sections (name -> 2-D float64/int64 array) and the metadata into a table.  Each array is
     copied once, straight into its place (a viewer rebuilds a 150 MB table on every change of the mask

@@ -9,6 +9,7 @@ own trace replays through the Python engine.
 """
 from __future__ import annotations
 
+import gc
 import math
 import shutil
 import struct
@@ -24,7 +25,7 @@ from hypothesis import strategies as st
 from pmask.pipeline.strokes import region_edge_slide, tour
 from pmask.runtime import Contacts, HapticContact, Model, Status
 from pmask.runtime.contact import ContactSurface
-from pmask.runtime.table import TableError, read_table, surface_sections, table_bytes, write_table
+from pmask.runtime.table import TableError, read_table, surface_sections, table_arrays, table_bytes, write_table
 from pmask.errors import InputError
 from pmask.runtime import servo
 
@@ -265,6 +266,66 @@ def test_both_loaders_refuse_bad_tables(table_path, kidney_default, tmp_path, ca
         servo.load_table(p)
     with pytest.raises(TableError, match=match):
         servo.load_table(data)
+
+
+@pytest.mark.parametrize("case, match", [
+    ("negated", "not positive definite"),
+    ("older", "section 'normal_stiffness' is missing"),
+    ("nan", "a non-finite number"),
+    ("index", "a triangle or neighbour index is out of range"),
+    ("row", "a contact row is out of range"),
+    ("shape", "section 'frames' has the wrong type or shape"),
+])
+def test_a_table_over_arrays_is_checked_as_a_file_is(surface, case, match):
+    """pm_table_from_sections (the viewer's route: no serialising, no copy) refuses what the file loader
+    refuses, with the same message: the same checks run on the same sections, bar the checksums."""
+    secs = surface_sections(surface, zeta=True)
+    if case == "negated":
+        secs["stiffness"] = -secs["stiffness"]
+    elif case == "older":
+        del secs["normal_stiffness"]
+    elif case == "nan":
+        secs["normals"] = secs["normals"].copy()
+        secs["normals"][7, 1] = np.nan
+    elif case == "index":
+        secs["triangles"] = secs["triangles"].copy()
+        secs["triangles"][3, 2] = len(secs["points"])
+    elif case == "row":
+        secs["contact_row"] = secs["contact_row"].copy()
+        secs["contact_row"][0] = len(secs["zeta"]) // 3
+    elif case == "shape":
+        secs["frames"] = secs["frames"][:, :11]
+    with pytest.raises(TableError, match=match):
+        servo.load_table(table_bytes(secs, {}))
+    with pytest.raises(TableError, match=match):
+        servo.load_table(table_arrays(secs, {}))
+
+
+def test_a_table_over_arrays_holds_them_and_reads_as_the_file_does(surface, table_path):
+    """The borrowed table keeps its arrays alive (the dict and the caller's names gone, memory churned) and
+    answers as the file's table, bit for bit: K(x) in a batch, nearest triangles, metadata (the coupled runs
+    above compare the two engines over such tables); an array that is not float64/int64 is refused in one
+    line."""
+    file_table = servo.load_table(table_path)
+    secs = surface_sections(surface, zeta=True)
+    secs = {k: v.copy() for k, v in secs.items()}  # arrays only this dict holds
+    borrowed = servo.load_table(table_arrays(secs, {"mask": "linear"}))
+    del secs
+    gc.collect()
+    _ = [np.ones(10_000) for _ in range(200)]  # reuse freed memory, were any of it freed
+    rng = np.random.default_rng(5)
+    tri = rng.integers(0, len(surface.T), 2000).astype(np.int64)
+    bary = rng.dirichlet([1, 1, 1], 2000)
+    a, b = np.empty((2000, 9)), np.empty((2000, 9))
+    file_table.stiffness(tri, bary, a)
+    borrowed.stiffness(tri, bary, b)
+    assert np.array_equal(a, b)
+    assert borrowed.counts() == file_table.counts() and servo.table_meta(borrowed) == {"mask": "linear"}
+    for p in surface.P[rng.integers(0, len(surface.P), 50)] + 1e-4:
+        assert borrowed.nearest(p) == file_table.nearest(p)
+    with pytest.raises(TableError, match="section 'points' must be a 2-D float64 or int64 array"):
+        servo.load_table({**table_arrays(surface_sections(surface, zeta=False), {}),
+                          "points": surface.P.astype(np.float32)})
 
 
 def test_a_newer_minor_table_with_an_unknown_section_is_read(table_path):

@@ -49,16 +49,18 @@ def sources() -> list[Path]:
 
 
 def load_table(source):
-    """A runtime table loaded by the C loader (a path or bytes); refusals raise
-    :class:`pmask.runtime.table.TableError` with the C loader's message."""
+    """A runtime table in the C core: a path or bytes (the C loader's copy, checksums checked), or a dict of
+    sections (:func:`pmask.runtime.table.table_arrays`, borrowed without a copy: the table keeps the arrays
+    alive; the same checks but checksums); refusals raise :class:`pmask.runtime.table.TableError` with the
+    C loader's message."""
     from pmask.runtime.table import TableError
 
     if _core is None:
         raise InputError("the native servo core is not built in this installation")
     try:
         return _core.Table(source)
-    except ValueError as exc:
-        where = "" if isinstance(source, (bytes, bytearray, memoryview)) else f"{source}: "
+    except (ValueError, BufferError) as exc:
+        where = "" if isinstance(source, (bytes, bytearray, memoryview, dict)) else f"{source}: "
         raise TableError(f"{where}{exc}") from None
 
 
@@ -81,9 +83,9 @@ def _native_table(surface, zeta: bool):
         if src is not None and (zeta or "zeta" not in getattr(surface, "table_sections", ())):
             cache[key] = load_table(src)
         else:
-            from pmask.runtime.table import surface_sections, table_bytes
+            from pmask.runtime.table import surface_sections, table_arrays
 
-            cache[key] = load_table(table_bytes(surface_sections(surface, zeta), surface.meta))
+            cache[key] = load_table(table_arrays(surface_sections(surface, zeta), surface.meta))
     return cache[key]
 
 

@@ -138,12 +138,83 @@ static PyObject *triple(const double *v)
 typedef struct {
     PyObject_HEAD
     pm_table *table;
+    Py_buffer *views;   /* Table(dict): the arrays the table points into, held until it is freed */
+    Py_ssize_t nviews;
 } TableObject;
+
+static void release_views(TableObject *self)
+{
+    for (Py_ssize_t i = 0; i < self->nviews; i++) PyBuffer_Release(&self->views[i]);
+    PyMem_Free(self->views);
+    self->views = NULL;
+    self->nviews = 0;
+}
 
 static void Table_dealloc(TableObject *self)
 {
     pm_table_free(self->table);
+    release_views(self);
     Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* Table({name: array}): the sections as C-contiguous 2-D float64/int64 buffers (bytes for "meta"), borrowed
+ * (pm_table_from_sections) */
+static int table_from_dict(TableObject *self, PyObject *dict, char *err, size_t errlen)
+{
+    Py_ssize_t n = PyDict_Size(dict), pos = 0, i = 0;
+    PyObject *key, *value;
+    if (n > 4096) {
+        PyErr_SetString(PyExc_ValueError, "too many sections");
+        return -2;
+    }
+    self->views = PyMem_Calloc((size_t)(n ? n : 1), sizeof(Py_buffer));
+    pm_section *secs = PyMem_Calloc((size_t)(n ? n : 1), sizeof(pm_section));
+    if (!self->views || !secs) {
+        PyMem_Free(secs);
+        PyErr_NoMemory();
+        return -2;
+    }
+    while (PyDict_Next(dict, &pos, &key, &value)) {
+        const char *name = PyUnicode_Check(key) ? PyUnicode_AsUTF8(key) : NULL;
+        if (!name) {
+            PyMem_Free(secs);
+            if (!PyErr_Occurred()) PyErr_SetString(PyExc_TypeError, "section names must be str");
+            return -2;
+        }
+        Py_buffer *v = &self->views[i];
+        int bytes = PyBytes_Check(value);
+        if (PyObject_GetBuffer(value, v, bytes ? PyBUF_SIMPLE : (PyBUF_C_CONTIGUOUS | PyBUF_FORMAT))) {
+            PyMem_Free(secs);
+            return -2;
+        }
+        self->nviews = ++i;
+        pm_section *s = &secs[i - 1];
+        s->name = name;
+        s->data = v->buf;
+        if (bytes) {
+            s->dtype = PM_SECTION_BYTES;
+            s->rows = (int64_t)v->len;
+            s->cols = 1;
+            continue;
+        }
+        const char *f = v->format ? v->format : "B";
+        if (*f == '<' || *f == '=' || *f == '@') f++;
+        int f64 = strcmp(f, "d") == 0, i64 = (strcmp(f, "q") == 0 || strcmp(f, "l") == 0) && v->itemsize == 8;
+        if (v->ndim != 2 || !(f64 || i64)) {
+            PyMem_Free(secs);
+            PyErr_Format(PyExc_ValueError, "section '%s' must be a 2-D float64 or int64 array", name);
+            return -2;
+        }
+        s->dtype = f64 ? PM_SECTION_F64 : PM_SECTION_I64;
+        s->rows = (int64_t)v->shape[0];
+        s->cols = (int64_t)v->shape[1];
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = pm_table_from_sections(secs, (int32_t)n, &self->table, err, errlen);
+    Py_END_ALLOW_THREADS
+    PyMem_Free(secs);
+    return rc;
 }
 
 static int Table_init(TableObject *self, PyObject *args, PyObject *kw)
@@ -152,7 +223,18 @@ static int Table_init(TableObject *self, PyObject *args, PyObject *kw)
     if (!PyArg_ParseTuple(args, "O", &src)) return -1;
     char err[512] = "";
     int rc;
-    if (PyObject_CheckBuffer(src)) {
+    if (self->table || self->views) {
+        PyErr_SetString(PyExc_RuntimeError, "Table is already initialised");
+        return -1;
+    }
+    if (PyDict_Check(src)) {
+        rc = table_from_dict(self, src, err, sizeof err);
+        if (rc == -2) {
+            release_views(self);
+            return -1;
+        }
+        if (rc) release_views(self);
+    } else if (PyObject_CheckBuffer(src)) {
         Py_buffer v;
         if (PyObject_GetBuffer(src, &v, PyBUF_SIMPLE)) return -1;
         Py_BEGIN_ALLOW_THREADS
@@ -263,7 +345,8 @@ static PyTypeObject TableType = {
     PyVarObject_HEAD_INIT(NULL, 0).tp_name = "pmask.runtime.servo._core.Table",
     .tp_basicsize = sizeof(TableObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "A runtime table loaded by the native core: Table(path or bytes).",
+    .tp_doc = "A runtime table in the native core: Table(path or bytes), or Table({name: array}) over arrays it "
+               "holds (no copy).",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Table_init,
     .tp_dealloc = (destructor)Table_dealloc,

@@ -112,6 +112,21 @@ typedef struct {
 /* Load a table from a file, or from memory (copied).  0 on success; otherwise a message in err. */
 PM_API int pm_table_load(const char *path, pm_table **out, char *err, size_t errlen);
 PM_API int pm_table_from_memory(const void *data, size_t size, pm_table **out, char *err, size_t errlen);
+/* A table over arrays the caller owns (no copy, no file: how an application that computes its own stiffness,
+ * or the Python binding, hands its arrays to the core).  The sections are those a table file holds, by name
+ * ("points", "triangles", ..., optionally "zeta" and "contact_row", "display_*", "meta"; pmask/runtime/table.py),
+ * each row-major and C-contiguous, doubles and int64 aligned to 8 bytes.  The same checks as a file apart from
+ * checksums (types, shapes, indices in range, finite numbers, positive definite stiffness).  The arrays must stay
+ * alive and unchanged until pm_table_free; the section list itself may be freed on return. */
+enum { PM_SECTION_F64 = 1, PM_SECTION_I64 = 2, PM_SECTION_BYTES = 3 };
+typedef struct {
+    const char *name;    /* at most 31 characters */
+    int32_t dtype;       /* PM_SECTION_F64, PM_SECTION_I64, or PM_SECTION_BYTES ("meta": JSON text, cols 1) */
+    int64_t rows, cols;
+    const void *data;
+} pm_section;
+PM_API int pm_table_from_sections(const pm_section *sections, int32_t n, pm_table **out, char *err,
+                                  size_t errlen);
 PM_API void pm_table_free(pm_table *table);
 PM_API int64_t pm_table_vertices(const pm_table *table);
 PM_API int64_t pm_table_triangles(const pm_table *table);

@@ -8,6 +8,8 @@
  *    the tick wrote: its point lies on its triangle at its barycentrics (a torn copy would mix two ticks).
  * 2. Exchange mode: two application threads take turns exchanging a scripted trace; every answer equals a
  *    second servo stepped on the same samples in the same order (bit for bit).
+ * 3. A table over the file's own sections (pm_table_from_sections: borrowed, no copy) steps the trace as the
+ *    loaded table does, bit for bit.
  * Prints one line per part; exits 1 on a failed check.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -121,6 +123,72 @@ static void *exchanger(void *arg)
     }
 }
 
+static uint64_t le64(const unsigned char *p)
+{
+    uint64_t x = 0;
+    for (int i = 7; i >= 0; i--) x = (x << 8) | p[i];
+    return x;
+}
+
+static int borrowed_table_steps_the_same(const char *path, const pm_table *loaded, const shared *sh)
+{
+    FILE *f = fopen(path, "rb");
+    if (!f) return 1;
+    fseek(f, 0, SEEK_END);
+    long size = ftell(f);
+    fseek(f, 0, SEEK_SET);
+    unsigned char *blob = malloc((size_t)size);
+    int rc = 1;
+    pm_section *secs = NULL;
+    char (*names)[33] = NULL;
+    pm_table *borrowed = NULL;
+    pm_servo *x = NULL, *y = NULL;
+    char err[512];
+    if (!blob || fread(blob, 1, (size_t)size, f) != (size_t)size) goto out;
+    uint32_t n = (uint32_t)le64(blob + 32) & 0xFFFFFFFFu;
+    secs = calloc(n, sizeof *secs);
+    names = calloc(n, sizeof *names);
+    if (!secs || !names) goto out;
+    for (uint32_t i = 0; i < n; i++) {
+        const unsigned char *e = blob + 64 + 64 * (size_t)i;
+        memcpy(names[i], e, 32);
+        secs[i] = (pm_section){names[i], (int32_t)(le64(e + 32) & 0xFFFFFFFFu), (int64_t)le64(e + 48),
+                               (int64_t)le64(e + 56), blob + le64(e + 40)};
+    }
+    if (pm_table_from_sections(secs, (int32_t)n, &borrowed, err, sizeof err)) {
+        fprintf(stderr, "error: %s\n", err);
+        goto out;
+    }
+    free(secs);  /* the list may go; the arrays stay */
+    secs = NULL;
+    pm_options o;
+    pm_options_default(loaded, &o);
+    o.friction = 0.3;
+    if (pm_servo_create(loaded, N, &o, &x, err, sizeof err) || pm_servo_create(borrowed, N, &o, &y, err, sizeof err))
+        goto out;
+    int64_t differ = 0;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], fx[3 * N], fy[3 * N];
+        int32_t sx[N], sy[N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        pm_servo_step(x, p, fx, sx);
+        pm_servo_step(y, p, fy, sy);
+        if (memcmp(fx, fy, sizeof fx) != 0 || memcmp(sx, sy, sizeof sx) != 0) differ++;
+    }
+    printf("a table over the file's sections: %d steps, %lld differ from the loaded table's\n", EXCHANGES,
+           (long long)differ);
+    rc = differ != 0;
+out:
+    pm_servo_free(x);
+    pm_servo_free(y);
+    pm_table_free(borrowed);
+    free(secs);
+    free(names);
+    free(blob);
+    fclose(f);
+    return rc;
+}
+
 int main(int argc, char **argv)
 {
     if (argc != 2) {
@@ -205,6 +273,10 @@ int main(int argc, char **argv)
     printf("exchange mode: %d samples, %lld differ from the step, %lld idle ticks, errors %d %d\n", EXCHANGES,
            (long long)differ, (long long)stats.idle, e[0].failed, e[1].failed);
     if (differ || e[0].failed || e[1].failed) rc = 1;
+
+    /* 3. a table over arrays the application owns (pm_table_from_sections, no copy): the file's own sections
+     *    from its directory; the same steps as the loaded table, bit for bit */
+    if (borrowed_table_steps_the_same(argv[1], table, &sh)) rc = 1;
 done:
     pm_servo_free(a);
     pm_servo_free(b);

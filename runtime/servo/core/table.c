@@ -43,7 +43,7 @@ static uint32_t crc32_update(uint32_t tab[8][256], uint32_t crc, const unsigned 
     return ~c;
 }
 
-enum { DT_F64 = 1, DT_I64 = 2, DT_BYTES = 3 };
+enum { DT_F64 = PM_SECTION_F64, DT_I64 = PM_SECTION_I64, DT_BYTES = PM_SECTION_BYTES };
 #define HEADER_SIZE 64
 #define ENTRY_SIZE 64
 #define NAME_SIZE 32
@@ -55,16 +55,15 @@ typedef struct {
     int found;
 } section;
 
-static int find_section(const unsigned char *blob, uint32_t nsec, const char *name, section *out)
+static int find_section(const pm_section *secs, int32_t nsec, const char *name, section *out)
 {
     memset(out, 0, sizeof *out);
-    for (uint32_t i = 0; i < nsec; i++) {
-        const unsigned char *e = blob + HEADER_SIZE + (size_t)i * ENTRY_SIZE;
-        if (strncmp((const char *)e, name, NAME_SIZE) == 0) {
-            out->dtype = rd32(e + 32);
-            out->data = blob + rd64(e + 40);
-            out->rows = rd64(e + 48);
-            out->cols = rd64(e + 56);
+    for (int32_t i = 0; i < nsec; i++) {
+        if (secs[i].name && strncmp(secs[i].name, name, NAME_SIZE) == 0) {
+            out->dtype = (uint32_t)secs[i].dtype;
+            out->data = (const unsigned char *)secs[i].data;
+            out->rows = (uint64_t)secs[i].rows;
+            out->cols = (uint64_t)secs[i].cols;
             out->found = 1;
             return 1;
         }
@@ -73,10 +72,10 @@ static int find_section(const unsigned char *blob, uint32_t nsec, const char *na
 }
 
 /* a required (or, with optional, possibly absent) section of the given type and shape; rows < 0: any */
-static int want(const unsigned char *blob, uint32_t nsec, const char *name, uint32_t dtype, int64_t rows,
+static int want(const pm_section *secs, int32_t nsec, const char *name, uint32_t dtype, int64_t rows,
                 int64_t cols, int optional, section *s, char *err, size_t errlen)
 {
-    if (!find_section(blob, nsec, name, s)) {
+    if (!find_section(secs, nsec, name, s)) {
         if (optional) return 0;
         fmt(err, errlen, "not a complete runtime table: section '%s' is missing (a table from an older pmask, or a "
             "damaged one: export it again with `pmask export-table`)", name, 0, 0);
@@ -128,6 +127,9 @@ static int host_little_endian(void)
 
 
 
+
+static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, size_t size, pm_table **out,
+                  char *err, size_t errlen);
 
 /* parse and check a table held in blob (owned by the table on success) */
 static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, size_t errlen)
@@ -191,6 +193,36 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
             return -1;
         }
     }
+    /* the directory as sections (names copied: a directory entry's name need not end in a zero) */
+    pm_section *secs = calloc(nsec ? nsec : 1, sizeof *secs);
+    char *names = calloc(nsec ? nsec : 1, NAME_SIZE + 1);
+    if (!secs || !names) {
+        free(secs);
+        free(names);
+        fmt(err, errlen, "out of memory loading the runtime table", NULL, 0, 0);
+        return -1;
+    }
+    for (uint32_t i = 0; i < nsec; i++) {
+        const unsigned char *e = blob + HEADER_SIZE + (size_t)i * ENTRY_SIZE;
+        char *name = names + (size_t)i * (NAME_SIZE + 1);
+        memcpy(name, e, NAME_SIZE);
+        secs[i].name = name;
+        secs[i].dtype = (int32_t)rd32(e + 32);
+        secs[i].data = blob + rd64(e + 40);
+        secs[i].rows = (int64_t)rd64(e + 48);
+        secs[i].cols = (int64_t)rd64(e + 56);
+    }
+    int rc = assign(secs, (int32_t)nsec, blob, size, out, err, errlen);
+    free(secs);
+    free(names);
+    return rc;
+}
+
+/* the table's fields from its sections, each checked (types, shapes, indices in range, finite numbers,
+ * positive definite K); blob (may be NULL) becomes the table's on success */
+static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, size_t size, pm_table **out,
+                  char *err, size_t errlen)
+{
     pm_table *t = calloc(1, sizeof *t);
     if (!t) {
         fmt(err, errlen, "out of memory loading the runtime table", NULL, 0, 0);
@@ -200,7 +232,7 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
     t->blob = blob;
     t->size = size;
 #define NEED(name, dt, r, cl, opt) \
-    if (want(blob, nsec, name, dt, r, cl, opt, &s, err, errlen)) goto bad
+    if (want(secs, nsec, name, dt, r, cl, opt, &s, err, errlen)) goto bad
     NEED("points", DT_F64, -1, 3, 0);
     t->nv = (int64_t)s.rows;
     t->P = (const double *)s.data;
@@ -265,7 +297,7 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
             goto bad;
         }
     }
-    if (want(blob, nsec, "zeta", DT_F64, -1, -1, 1, &s, err, errlen)) goto bad;
+    if (want(secs, nsec, "zeta", DT_F64, -1, -1, 1, &s, err, errlen)) goto bad;
     if (s.found) {
         if (s.rows != s.cols || s.rows % 3 != 0) {
             fmt(err, errlen, "corrupt runtime table: the zeta table is not square", NULL, 0, 0);
@@ -284,7 +316,7 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
             goto bad;
         }
     }
-    if (want(blob, nsec, "display_points", DT_F64, -1, 3, 1, &s, err, errlen)) goto bad;
+    if (want(secs, nsec, "display_points", DT_F64, -1, 3, 1, &s, err, errlen)) goto bad;
     if (s.found) {  /* the display surface (optional): all five sections, checked */
         t->nd = (int64_t)s.rows;
         t->dP = (const double *)s.data;
@@ -307,7 +339,7 @@ static int parse(unsigned char *blob, size_t size, pm_table **out, char *err, si
             goto bad;
         }
     }
-    if (want(blob, nsec, "meta", DT_BYTES, -1, 1, 1, &s, err, errlen)) goto bad;
+    if (want(secs, nsec, "meta", DT_BYTES, -1, 1, 1, &s, err, errlen)) goto bad;
     t->meta = malloc(s.found ? (size_t)s.rows + 1 : 3);
     if (!t->meta) {
         fmt(err, errlen, "out of memory loading the runtime table", NULL, 0, 0);
@@ -348,6 +380,48 @@ int pm_table_from_memory(const void *data, size_t size, pm_table **out, char *er
         return -1;
     }
     return 0;
+}
+
+int pm_table_from_sections(const pm_section *sections, int32_t n, pm_table **out, char *err, size_t errlen)
+{
+    *out = NULL;
+    if (!host_little_endian()) {
+        fmt(err, errlen, "runtime tables are little-endian; this host is big-endian (unsupported)", NULL, 0, 0);
+        return -1;
+    }
+    if (n < 0 || (n > 0 && !sections)) {
+        fmt(err, errlen, "pm_table_from_sections: no sections given", NULL, 0, 0);
+        return -1;
+    }
+    for (int32_t i = 0; i < n; i++) {
+        const pm_section *s = sections + i;
+        const char *name = s->name ? s->name : "(unnamed)";
+        if (!s->name || strlen(s->name) >= NAME_SIZE) {
+            fmt(err, errlen, "pm_table_from_sections: section %s%lld has no name of at most 31 characters", NULL,
+                (long long)i, 0);
+            return -1;
+        }
+        if (s->dtype != DT_F64 && s->dtype != DT_I64 && s->dtype != DT_BYTES) {
+            fmt(err, errlen, "pm_table_from_sections: section '%s' has an unknown type %lld", name,
+                (long long)s->dtype, 0);
+            return -1;
+        }
+        uint64_t item = s->dtype == DT_BYTES ? 1 : 8;
+        if (s->rows < 0 || s->cols < 0 || (s->cols != 0 && (uint64_t)s->rows > (uint64_t)PTRDIFF_MAX / (uint64_t)s->cols / 8)) {
+            fmt(err, errlen, "pm_table_from_sections: section '%s' has a bad shape (%lld x %lld)", name,
+                (long long)s->rows, (long long)s->cols);
+            return -1;
+        }
+        if ((uint64_t)s->rows * (uint64_t)s->cols * item > 0 && !s->data) {
+            fmt(err, errlen, "pm_table_from_sections: section '%s' has no data", name, 0, 0);
+            return -1;
+        }
+        if (item == 8 && (uintptr_t)s->data % 8 != 0) {
+            fmt(err, errlen, "pm_table_from_sections: section '%s' is not aligned to 8 bytes", name, 0, 0);
+            return -1;
+        }
+    }
+    return assign(sections, n, NULL, 0, out, err, errlen);
 }
 
 int pm_table_load(const char *path, pm_table **out, char *err, size_t errlen)
