@@ -81,6 +81,9 @@ def one(path: Path, screenshot: Path | None = None) -> dict:
         radius = radius_change(session)
     finally:
         d.quit()
+    try:  # the same changes with the page closed: the server's own cost, without the browser on the same cores
+        radius["alone"] = radius_change(session)
+    finally:
         srv.shutdown()
         srv.server_close()
         session.close()
@@ -166,12 +169,17 @@ def markdown(res: dict) -> str:
     if rc:
         L += ["", "**Radius change in the viewer** (POST /api/radius between 2 and 2.5 mean edges, the page open: K_i, "
               "contact surface, ζ table and a new servo thread built beside the running one, then swapped; a probe "
-              "request every 2 ms meanwhile, its longest wait beside the same loop's with no rebuild)", "",
+              "request every 2 ms meanwhile, its longest wait beside the same loop's with no rebuild; then the same "
+              "changes with the page closed: the server's own cost, without the browser's software rendering on the "
+              "same 2 cores)", "",
               "| surface vertices | changes | rebuild s median | rebuild s max | longest probe wait during, ms | "
-              "longest probe wait idle, ms |", "|---|---|---|---|---|---|"]
+              "longest probe wait idle, ms | page closed: rebuild s median | page closed: rebuild s max |",
+              "|---|---|---|---|---|---|---|---|"]
         for n, r in rc.items():
+            a = r.get("alone")
+            alone = f"{a['rebuild_s_median']:.2f} | {a['rebuild_s_max']:.2f}" if a else "– | –"
             L.append(f"| {n} | {r['changes']} | {r['rebuild_s_median']:.2f} | {r['rebuild_s_max']:.2f} | "
-                     f"{r['probe_gap_ms_max']:.1f} | {r['probe_gap_ms_max_idle']:.1f} |")
+                     f"{r['probe_gap_ms_max']:.1f} | {r['probe_gap_ms_max_idle']:.1f} | {alone} |")
     return "\n".join(L)
 
 
