@@ -561,7 +561,9 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
     route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker one
     tile (:func:`pmask.precompute.compress.tile_bytes`) with a chunk of W or (P2, AMG) a copy of the
-    factor (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast)."""
+    factor (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast);
+    its later phases are checked where their sizes are known (the W sweep's from the factor's tree, the
+    assembly's from the finished tiles: :func:`pmask.precompute.compress.check_phase_memory`)."""
     from pmask.precompute import greens
 
     need = element.memory_estimate(n_volume_vertices, n_contact)

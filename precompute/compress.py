@@ -670,6 +670,48 @@ def check_worker_memory(limits: list[int | None], need: float, threads: list[int
                             "threads (dask worker --nthreads 1), or use fewer, larger workers")
 
 
+PHASE_MARGIN = 1.15  # the phase models (sweep_bytes, assembly_bytes) land within 4 % of tracemalloc's peak
+# (tested); the rest is the allocator's and the interpreter's share of the process's resident memory
+
+
+def check_phase_memory(phase: str, need: float, advice: str) -> None:
+    """Refuse, before it starts, a phase of the compressed route whose peak (with :data:`PHASE_MARGIN`)
+    exceeds what this machine has available now (what is held already, the factor among it, is not
+    available): one line naming the phase, its need and what to do."""
+    from pmask.precompute.greens import available_memory
+
+    avail = available_memory()
+    if avail is not None and PHASE_MARGIN * need > avail:
+        raise ResourceError(f"the compressed route's {phase} needs ~{need / 2**30:.2f} GiB at its peak, more than "
+                            f"the {avail / 2**30:.2f} GiB this machine has available now; {advice}")
+
+
+def sweep_bytes(factor) -> int:
+    """The W sweep's peak (bytes) for a P1 factor, from its elimination tree
+    (:func:`pmask.precompute.selinv.sweep_memory`): mostly the top separators' blocks, 3 n_c rows by the
+    separator's columns, pending until their turn."""
+    from pmask.precompute import selinv
+
+    tree = selinv._Tree(factor.L)
+    return int(selinv.sweep_memory(tree, np.asarray(factor.rows[:factor.n_observed], np.int64))["peak"])
+
+
+def assembly_bytes(tree: ClusterTree, store: "TileStore", dense_dtype=np.float64, lowrank_dtype=np.float64) -> int:
+    """What :func:`assemble` holds at its peak (bytes), from the finished tiles' indices (nothing else read):
+    the artifact's arrays at their final size (the near field exact; U and V no larger than the tiles'
+    pieces) and the merged blocks (float64), held until they are copied in."""
+    dense = pieces = split = 0
+    for name in store.file:
+        g = store.file[name]
+        dense += int(g["dense"].shape[0])
+        li = g["lowrank_index"][()].reshape(-1, 8)
+        size = 3 * ((li[:, 1] - li[:, 0]) + (li[:, 3] - li[:, 2])) * li[:, 4]
+        whole = (li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]])
+        pieces += int(size.sum())
+        split += int(size[~whole].sum())
+    return dense * np.dtype(dense_dtype).itemsize + pieces * np.dtype(lowrank_dtype).itemsize + 8 * split
+
+
 def factor_bytes(factor) -> int:
     """Bytes a worker holds for the solves: the factor's arrays, or (AMG) K_FF and 3x it for the hierarchy
     (measured: the hierarchy with six near-null vectors is 1.5-2.5x K_FF)."""
@@ -712,6 +754,11 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     # read it (module docstring); the AMG system (--solver amg, no factor) solves per panel
                     t1 = time.perf_counter()
                     reused = sweep_reusable(w_path, key)
+                    if not reused:
+                        stats["sweep_peak_bytes"] = sweep_bytes(factor)
+                        check_phase_memory("W sweep", stats["sweep_peak_bytes"], "restrict the region a probe can "
+                                           "touch (--contact SELECTOR) or coarsen the mesh (--edge-length, --size): "
+                                           "its blocks are the contact vertices' rows by the top separators' columns")
                     source = sweep(factor, w_path, key)
                     stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1, "W_reused": reused,
                                   "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
@@ -769,6 +816,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client.close()
                 if cluster is not None:
                     cluster.close()
+        stats["assembly_bytes"] = assembly_bytes(tree, ts, dtype, far_dtype(tol, dtype))
+        check_phase_memory("assembly", stats["assembly_bytes"], f"every tile is kept in {store}: run again where "
+                           "more memory is free (the tiles are reused), or with a larger tolerance (--compress TOL)")
         out, times = assemble(tree, ts, tol, dtype, far_dtype(tol, dtype))
         out["scale"] = factor.scale[0::3].astype(np.float64) if symmetric else np.zeros(0)
     finally:

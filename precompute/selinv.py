@@ -214,6 +214,41 @@ def forward_sweep(tree: _Tree, want: np.ndarray, emit) -> dict:
     return {"pos": pos, "lo": lo, "hi": hi, "flops": flops}
 
 
+def sweep_memory(tree: _Tree, want: np.ndarray) -> dict:
+    """The bytes :func:`forward_sweep` holds at its peak, from the tree alone (nothing is solved): the W
+    blocks of every supernode that holds a wanted pivot (allocated at the start), each ancestor's block from
+    its first update until its own turn, and at each supernode its update U (m x nr), its diagonal block's
+    copy (nc x nc) and the two temporaries of each ancestor's update.  Returns ``peak`` (bytes), ``at`` (the supernode at the peak) and ``start`` (the blocks
+    allocated before the first step): the memory check's figure for the sweep, a simulation of the same
+    allocations in the same order (tested against the measured peak)."""
+    want = _distinct(want, tree.n)
+    piv = tree.iperm[want]
+    lo, hi, _ = tree.ranges(piv)
+    size = (hi - lo).astype(np.int64)
+    blk = 8 * size * tree.ncol  # bytes of each supernode's W block
+    live = np.zeros(tree.ns, bool)
+    live[np.unique(tree.snode[piv])] = True
+    held = int(blk[live].sum())
+    start, peak, at = held, held, -1
+    for s in np.flatnonzero(size > 0):
+        nc, nr = int(tree.ncol[s]), int(tree.nrow[s] - tree.ncol[s])
+        base = held + 8 * int(size[s]) * nr + (8 * nc * nc if nr else 0)  # U and the diagonal block's copy
+        # (none at a root: its block is the whole column panel, contiguous already)
+        new, now = 0, base
+        if nr:  # the ancestors in the sweep's order: a fresh one allocated, then its update made through two
+            # m x (its rows) temporaries (U's columns gathered; its own gathered, subtracted, put back)
+            owners, count = np.unique(tree.snode[tree.Ls[tree.pi[s] + nc:tree.pi[s + 1]]], return_counts=True)
+            fresh = np.where(live[owners], 0, blk[owners])
+            live[owners] = True
+            new = int(fresh.sum())
+            now = base + int(np.max(np.cumsum(fresh) + 16 * int(size[s]) * count))
+        if now > peak:
+            peak, at = now, int(s)
+        held += new - int(blk[s])
+        live[s] = False
+    return {"peak": peak, "at": at, "start": start}
+
+
 def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, dict]:
     """X[i, j] = (A⁻¹)[want_i, want_j] · scale_j (C order), as ``native.selected_inverse``: the
     symmetric case, one syrk per supernode of :func:`forward_sweep`."""

@@ -393,6 +393,61 @@ def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path):
     assert all(np.array_equal(resumed[k], fresh[k]) for k in fresh)
 
 
+def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatch):
+    """#27 item 3: the W sweep's and the assembly's memory, modelled from the factor's tree and the
+    finished tiles' indices, equal what tracemalloc measures while each runs (within 5 %: the emitted chunks
+    and the interpreter's small objects are outside the models); short of either, the run stops before that
+    phase with one line naming it, and a rerun with the memory reuses what was done."""
+    import tracemalloc
+
+    from pmask.precompute import greens
+
+    factor, pts = _small_factor()
+    measured, real_sweep, real_assemble = {}, compress.sweep, compress.assemble
+
+    def traced(name, f):
+        def run(*a, **k):
+            tracemalloc.reset_peak()
+            base = tracemalloc.get_traced_memory()[0]
+            out = f(*a, **k)
+            measured[name] = tracemalloc.get_traced_memory()[1] - base
+            return out
+        return run
+
+    monkeypatch.setattr(compress, "sweep", traced("sweep", real_sweep))
+    monkeypatch.setattr(compress, "assemble", traced("assembly", real_assemble))
+    tracemalloc.start()
+    try:
+        _, stats = compress.compressed_greens(factor, pts, R_MAX, store=tmp_path / "a.h5", key="k", panel=48, workers=1)
+    finally:
+        tracemalloc.stop()
+    assert abs(measured["sweep"] - stats["sweep_peak_bytes"]) <= 0.05 * measured["sweep"], (measured, stats)
+    assert abs(measured["assembly"] - stats["assembly_bytes"]) <= 0.05 * measured["assembly"], (measured, stats)
+    monkeypatch.setattr(compress, "sweep", real_sweep)
+    monkeypatch.setattr(compress, "assemble", real_assemble)
+
+    avail = {"bytes": stats["sweep_peak_bytes"]}  # the sweep's own peak, without the margin: refused
+    monkeypatch.setattr(greens, "available_memory", lambda: avail["bytes"])
+    store = tmp_path / "b.h5"
+    with pytest.raises(ResourceError, match=r"the compressed route's W sweep needs ~[\d.]+ GiB") as err:
+        compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", panel=48, workers=1)
+    assert "\n" not in str(err.value) and "--contact" in str(err.value)
+    assert not list(tmp_path.glob("W-b*"))  # refused before a byte of W was written
+
+    avail["bytes"] = 2**40
+
+    def short_after_tiles(t):  # every tile finishes; then the assembly finds too little
+        avail["bytes"] = stats["assembly_bytes"] // 2
+
+    with pytest.raises(ResourceError, match="the compressed route's assembly needs .* every tile is kept") as err:
+        compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", panel=48, workers=1,
+                                   on_tile=short_after_tiles)
+    assert "\n" not in str(err.value)
+    avail["bytes"] = 2**40
+    _, again = compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", panel=48, workers=1)
+    assert again["tiles_reused"] == again["tiles"] > 1
+
+
 @pytest.mark.parametrize("tol", [0.0, 1.0, -1e-4, float("nan"), 2.0])
 def test_tolerance_outside_0_1_is_one_line_before_any_work(tol, tmp_path):
     with pytest.raises(InputError, match=r"must lie in \(0, 1\)"):
