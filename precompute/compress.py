@@ -312,10 +312,48 @@ def sweep_reusable(path: Path, key: str) -> bool:
     return store.key == key and str(store.index.get("layout")) == LAYOUT
 
 
-def sweep(factor, path: Path, key: str) -> SweepStore:
+#: the client's memory for the W sweep: the wanted columns are swept in as many batches as keep each
+#: batch's peak (:func:`pmask.precompute.selinv.sweep_memory`) below this (#27: bounded at any n)
+SWEEP_BUDGET = 1.5 * 2**30
+
+
+def sweep_batches(tree, piv_sorted: np.ndarray, budget: float = SWEEP_BUDGET) -> tuple[list, int]:
+    """Contiguous ranges of the wanted pivots (sorted) whose sweeps each peak below ``budget`` bytes: the
+    fewest of 1, 2, 4, ... equal ranges (W's columns are independent: a batch's sweep is the same
+    arithmetic on its own columns).  Returns the ranges and the largest batch's modelled peak."""
+    from pmask.precompute import selinv
+
+    n = len(piv_sorted)
+    k = 1
+    while True:
+        cuts = np.linspace(0, n, k + 1).round().astype(np.int64)
+        ranges = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+        peak = max((selinv.sweep_memory(tree, tree.perm[piv_sorted[a:b]], READ_BYTES)["peak"] for a, b in ranges),
+                   default=0) + 8 * (3 * n + 3 * tree.ns)  # sweep()'s own index arrays beside the batch's
+        if peak <= budget or k >= n:
+            return ranges, int(peak)
+        k *= 2
+
+
+def sweep_bytes(factor, budget: float = SWEEP_BUDGET) -> int:
+    """The W sweep's peak (bytes) for a P1 factor, swept in :func:`sweep_batches`, from its elimination tree
+    (:func:`pmask.precompute.selinv.sweep_memory`)."""
+    from pmask.precompute import selinv
+
+    tree = selinv._Tree(factor.L)
+    piv = np.sort(tree.iperm[np.asarray(factor.rows[:factor.n_observed], np.int64)])
+    return sweep_batches(tree, piv, budget)[1]
+
+
+def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepStore:
     """W = L⁻¹PE of a P1 factor, supernode by supernode, into ``path`` (:class:`SweepStore`); reused when
     its index holds ``key`` (a rerun after a crash does not sweep again).  Both files are written
-    atomically, the index last, so a file without one is never read."""
+    atomically, the index last, so a file without one is never read.
+
+    The wanted columns are swept in contiguous batches (:func:`sweep_batches`) so that the client holds at
+    most ``budget`` bytes of pending blocks however many contact vertices there are (one sweep at 47,467
+    held 8.6 GiB, the top separators' blocks over all 3 n_c rows); each batch writes its rows of every
+    supernode's block into their place in the file, which has the layout of a single sweep."""
     from pmask.precompute import selinv
     from pmask.runtime.files import atomic_write
 
@@ -325,27 +363,33 @@ def sweep(factor, path: Path, key: str) -> SweepStore:
         return SweepStore(path)
     tree = selinv._Tree(factor.L)
     nobs = factor.n_observed
+    piv = tree.iperm[np.asarray(factor.rows[:nobs], np.int64)]
+    lo, hi, pos = tree.ranges(piv)
+    m = hi - lo
     offset = np.zeros(tree.ns, np.int64)
-    written, st = [0], {}
+    offset[1:] = np.cumsum(m * tree.ncol)[:-1]  # in postorder, as the single sweep emitted them
+    ordered = np.sort(piv)
+    batches, peak = sweep_batches(tree, ordered, budget)
+    flops = [0.0]
 
     def write(tmp):
         with open(tmp, "wb") as f:
-            def emit(s, lo, X):
-                offset[s] = written[0]
-                step = max(1, READ_BYTES // (8 * X.shape[1]))
-                for r0 in range(0, X.shape[0], step):  # row-major, so that a tile reads row chunks
-                    np.ascontiguousarray(X[r0:r0 + step]).tofile(f)
-                written[0] += X.size
+            f.truncate(8 * int(np.sum(m * tree.ncol)))
+            for b0, b1 in batches:
+                def emit(s, lo_b, X, b0=b0):  # the batch's rows [b0 + lo_b, ...) of supernode s's block
+                    first = offset[s] + (b0 + lo_b - lo[s]) * tree.ncol[s]
+                    f.seek(8 * int(first))
+                    step = max(1, READ_BYTES // (8 * X.shape[1]))
+                    for r0 in range(0, X.shape[0], step):  # row-major, so that a tile reads row chunks
+                        np.ascontiguousarray(X[r0:r0 + step]).tofile(f)
 
-            st.update(selinv.forward_sweep(tree, factor.rows[:nobs], emit))
+                flops[0] += selinv.forward_sweep(tree, tree.perm[ordered[b0:b1]], emit)["flops"]
 
     atomic_write(path, write)  # a full disk is one line (W is 8-20 % of the dense Ξ's size, measured)
-    piv = tree.iperm[np.asarray(factor.rows[:nobs], np.int64)]
-    m = st["hi"] - st["lo"]
-    arrays = {"key": np.array(key), "layout": np.array(LAYOUT), "pos": st["pos"], "lo": st["lo"], "hi": st["hi"],
+    arrays = {"key": np.array(key), "layout": np.array(LAYOUT), "pos": pos, "lo": lo, "hi": hi,
               "ncol": tree.ncol, "parent": tree.parent, "first": tree.snode[piv], "offset": offset,
               "scale": factor.scale, "largest": np.array(int((m * tree.ncol).max()) if len(m) else 0),
-              "flops": np.array(st["flops"]),
+              "flops": np.array(flops[0]), "batches": np.array(len(batches)), "peak_bytes": np.array(peak),
               "gram_flops": np.array(float(np.sum(m.astype(float) ** 2 * tree.ncol)))}  # the dense route's syrks
     atomic_write(index, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
     return SweepStore(path)
@@ -684,16 +728,6 @@ def check_phase_memory(phase: str, need: float, advice: str) -> None:
     if avail is not None and PHASE_MARGIN * need > avail:
         raise ResourceError(f"the compressed route's {phase} needs ~{need / 2**30:.2f} GiB at its peak, more than "
                             f"the {avail / 2**30:.2f} GiB this machine has available now; {advice}")
-
-
-def sweep_bytes(factor) -> int:
-    """The W sweep's peak (bytes) for a P1 factor, from its elimination tree
-    (:func:`pmask.precompute.selinv.sweep_memory`): mostly the top separators' blocks, 3 n_c rows by the
-    separator's columns, pending until their turn."""
-    from pmask.precompute import selinv
-
-    tree = selinv._Tree(factor.L)
-    return int(selinv.sweep_memory(tree, np.asarray(factor.rows[:factor.n_observed], np.int64))["peak"])
 
 
 def assembly_bytes(tree: ClusterTree, store: "TileStore", dense_dtype=np.float64, lowrank_dtype=np.float64) -> int:

@@ -153,13 +153,13 @@ def _distinct(want: np.ndarray, n: int) -> np.ndarray:
     return want
 
 
-def _forward(tree: _Tree, W: list, cols, s: int, size=None):
+def _forward(tree: _Tree, W: list, cols, s: int, size=None, alloc=None):
     """One supernode of the forward solve W = L⁻¹ R (W[s]: the transpose of W's rows of s, restricted
     to the columns that reach s): W[s] ← W[s] L_ssᵀ⁻¹, then the ancestors' rows are updated.
     ``cols``: the first column of each supernode's contiguous range (an array), or each supernode's
     sorted column set (a list of arrays).  ``size``: how many columns reach each supernode, to allocate
-    an ancestor's W on its first update (W[t] None: :func:`forward_sweep`).  Returns W[s] and the flops
-    spent."""
+    an ancestor's W on its first update (W[t] None: :func:`forward_sweep`), or ``alloc(t)`` to make it.
+    Returns W[s] and the flops spent."""
     nc, nr = tree.ncol[s], tree.nrow[s] - tree.ncol[s]
     m = W[s].shape[0]
     block = tree.block(s)
@@ -174,7 +174,7 @@ def _forward(tree: _Tree, W: list, cols, s: int, size=None):
         for t in np.unique(owners):
             sel = owners == t
             if W[t] is None:
-                W[t] = np.zeros((size[t], tree.ncol[t]), order="F")
+                W[t] = alloc(t) if alloc is not None else np.zeros((size[t], tree.ncol[t]), order="F")
             if isinstance(cols, np.ndarray):  # contiguous ranges: s's columns start at cols[s] - cols[t] in t
                 W[t][cols[s] - cols[t]:cols[s] - cols[t] + m, rows[sel] - tree.sup[t]] -= U[:, sel]
             else:  # explicit sets: s's set is a subset of its ancestors'
@@ -188,9 +188,10 @@ def forward_sweep(tree: _Tree, want: np.ndarray, emit) -> dict:
     The wanted dofs ``want`` sorted by pivot: supernode s meets the contiguous range
     [lo_s, hi_s) of them (its subtree's).  For each supernode with a non-empty range, in postorder,
     ``emit(s, lo_s, X_s)`` receives :math:`X_s`, the (hi_s − lo_s, ncol_s) rows of W's transpose
-    (column-major; it may be kept: it is not reused).  A supernode's W is allocated when its first
-    child updates it and dropped once emitted, so the live memory is the pending ancestors' only,
-    not all of W.  Returns ``pos`` (each wanted dof's sorted position), ``lo``, ``hi`` and ``flops``.
+    (column-major; it may be kept: it is not reused).  A supernode's W is allocated (with its identity
+    entries) when its first child updates it, or at its own turn, and dropped once emitted, so the live
+    memory is the pending ancestors' only, not all of W (allocating every block that holds a wanted pivot
+    at the start had held 7.8 GiB before the first step at 47,467 contact vertices).  Returns ``pos`` (each wanted dof's sorted position), ``lo``, ``hi`` and ``flops``.
     Then :math:`(A^{-1})_{EE}[\mathrm{pos}_i, \mathrm{pos}_j] = \sum_s X_s X_s^T` on the ranges.
     """
     want = _distinct(want, tree.n)
@@ -198,40 +199,49 @@ def forward_sweep(tree: _Tree, want: np.ndarray, emit) -> dict:
     lo, hi, pos = tree.ranges(piv)
     W = [None] * tree.ns
     size = hi - lo
-    for i, k in enumerate(piv):
-        s = tree.snode[k]
-        if W[s] is None:
-            W[s] = np.zeros((size[s], tree.ncol[s]), order="F")
-        W[s][pos[i] - lo[s], k - tree.sup[s]] = 1.0
+    by = np.argsort(tree.snode[piv], kind="stable")  # the wanted pivots grouped by supernode
+    first = np.searchsorted(tree.snode[piv][by], np.arange(tree.ns + 1))
+
+    def alloc(t):  # W[t] with its identity entries (no update touches them: updates fill its children's rows)
+        B = np.zeros((size[t], tree.ncol[t]), order="F")
+        i = by[first[t]:first[t + 1]]
+        B[pos[i] - lo[t], piv[i] - tree.sup[t]] = 1.0
+        return B
+
     flops = 0.0
     for s in range(tree.ns):
         if size[s] == 0:
             continue
-        X, f = _forward(tree, W, lo, s, size)
+        if W[s] is None:
+            W[s] = alloc(s)
+        X, f = _forward(tree, W, lo, s, size, alloc)
         W[s] = None
         flops += f
         emit(s, int(lo[s]), X)
     return {"pos": pos, "lo": lo, "hi": hi, "flops": flops}
 
 
-def sweep_memory(tree: _Tree, want: np.ndarray) -> dict:
+def sweep_memory(tree: _Tree, want: np.ndarray, emit_copy: int = 0) -> dict:
     """The bytes :func:`forward_sweep` holds at its peak, from the tree alone (nothing is solved): the W
-    blocks of every supernode that holds a wanted pivot (allocated at the start), each ancestor's block from
-    its first update until its own turn, and at each supernode its update U (m x nr), its diagonal block's
-    copy (nc x nc) and the two temporaries of each ancestor's update.  Returns ``peak`` (bytes), ``at`` (the supernode at the peak) and ``start`` (the blocks
-    allocated before the first step): the memory check's figure for the sweep, a simulation of the same
-    allocations in the same order (tested against the measured peak)."""
+    block of each supernode from its first update (or its own turn) until its turn ends, and at each
+    supernode its update U (m x nr), its diagonal block's copy (nc x nc) and the two temporaries of each
+    ancestor's update, then the copy ``emit`` makes of its block (at most ``emit_copy`` bytes), and the
+    sweep's own index arrays.  Returns ``peak`` (bytes) and ``at`` (the supernode at the peak): the memory
+    check's figure for the sweep, a simulation of the same allocations in the same order (tested against
+    the measured peak)."""
     want = _distinct(want, tree.n)
     piv = tree.iperm[want]
     lo, hi, _ = tree.ranges(piv)
     size = (hi - lo).astype(np.int64)
     blk = 8 * size * tree.ncol  # bytes of each supernode's W block
     live = np.zeros(tree.ns, bool)
-    live[np.unique(tree.snode[piv])] = True
-    held = int(blk[live].sum())
-    start, peak, at = held, held, -1
+    held = peak = 8 * (4 * len(want) + 4 * tree.ns)  # want, piv, pos, the grouping; lo, hi, size, first
+    at = -1
     for s in np.flatnonzero(size > 0):
         nc, nr = int(tree.ncol[s]), int(tree.nrow[s] - tree.ncol[s])
+        if not live[s]:  # no child updated it: allocated at its own turn
+            live[s] = True
+            held += int(blk[s])
         base = held + 8 * int(size[s]) * nr + (8 * nc * nc if nr else 0)  # U and the diagonal block's copy
         # (none at a root: its block is the whole column panel, contiguous already)
         new, now = 0, base
@@ -242,11 +252,12 @@ def sweep_memory(tree: _Tree, want: np.ndarray) -> dict:
             live[owners] = True
             new = int(fresh.sum())
             now = base + int(np.max(np.cumsum(fresh) + 16 * int(size[s]) * count))
+        now = max(now, held + new + min(int(blk[s]), int(emit_copy)))  # U gone; the emitted block copied
         if now > peak:
             peak, at = now, int(s)
         held += new - int(blk[s])
         live[s] = False
-    return {"peak": peak, "at": at, "start": start}
+    return {"peak": peak, "at": at}
 
 
 def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, dict]:

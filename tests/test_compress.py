@@ -303,6 +303,34 @@ def test_w_store_columns_are_the_dense_routes_in_chunks_too(tmp_path, monkeypatc
     assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="other").key == "other"
 
 
+def test_the_sweep_in_batches_holds_its_budget_and_writes_the_same_store(tmp_path):
+    """#27 item 2 (client memory bounded at any n): with a budget a third of one sweep's peak, W is swept in
+    batches of its columns; tracemalloc's peak stays within the budget (5 %: the emitted chunks and small
+    objects are outside the model), and the store holds what a single sweep writes (each column is solved by
+    the same arithmetic, rows split among calls: 1e-14 relative, BLAS may block another row count
+    differently)."""
+    import tracemalloc
+
+    factor, _ = _small_factor()
+    one = compress.sweep(factor, tmp_path / "W-one.bin", key="k")
+    whole = compress.sweep_bytes(factor)
+    budget = whole / 3
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        base = tracemalloc.get_traced_memory()[0]
+        split = compress.sweep(factor, tmp_path / "W-split.bin", key="k", budget=budget)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert int(split.index["batches"]) >= 4 and int(one.index["batches"]) == 1
+    assert peak <= 1.05 * budget < whole, (peak, budget, whole)
+    a = np.fromfile(one.path)
+    b = np.fromfile(split.path)
+    assert a.shape == b.shape and np.abs(a - b).max() <= 1e-14 * np.abs(a).max()
+    assert float(split.index["flops"]) == pytest.approx(float(one.index["flops"]), rel=1e-12)
+
+
 def test_p2_compresses_by_solving_each_panel(tmp_path):
     """P2's consistent load is not E diag(a), so its tiles solve their panels from the factor (the other
     route); the same bounds against P2's dense Ξ."""
