@@ -113,6 +113,7 @@ class Contacts:
             raise InputError(f"device must be a pmask.runtime.Device, got {device!r}")
         self.passivity = bool(passivity)
         self._frictionless = self.friction == 0.0 and self.dynamic_friction == 0.0
+        self._pair_blocks = {}  # (a, b) -> (triangle a, triangle b, their vertex-pair blocks): coupling.py
         if normal_radius is not None:
             normal_radius = _num("normal_radius", normal_radius)
         self.surface = stiffness if isinstance(stiffness, ContactSurface) else ContactSurface(stiffness, normal_radius)

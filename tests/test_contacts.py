@@ -142,6 +142,38 @@ def test_one_coupled_contact_is_the_single_contact(model, stiff):
         assert sa == sb and fa == fb
 
 
+def test_the_coupling_blocks_are_the_symmetrised_compliance_kept_per_triangle_pair(model, stiff):
+    """coupling_blocks sums C_lk from each pair's vertex-pair blocks, kept while both contacts stay on their
+    triangles: equal to ½ (C_lk + C_klᵀ) of the definition (zeta_compliance, both orders) to round-off of
+    nine-term sums in another order (1e-14 of the block), the reverse pair its transpose exactly, the kept
+    blocks reused when only the barycentrics move and made anew when a triangle changes."""
+    from pmask.runtime.contact import coupling
+
+    c = Contacts(stiff, 3, engine="python")
+    srf = c.surface
+    for seed in range(40):
+        pts = contact_points(model, stiff, 3, seed)
+        for l, (t, b) in enumerate(pts):
+            c._states[l].tri, c._states[l].b = t, tuple(b)
+        kept = dict(c._pair_blocks)
+        blocks = coupling.coupling_blocks(c, c._states, [0, 1, 2])
+        for a in range(3):
+            for b in range(a + 1, 3):
+                (ta, ba), (tb, bb) = pts[a], pts[b]
+                C = np.reshape(srf.compliance(ta, ba, tb, bb), (3, 3))
+                Ct = np.reshape(srf.compliance(tb, bb, ta, ba), (3, 3))
+                expect = 0.5 * (C + Ct.T)
+                got = np.reshape(blocks[(a, b)], (3, 3))
+                assert np.abs(got - expect).max() <= 1e-14 * np.abs(expect).max()
+                assert blocks[(b, a)] == list(got.T.ravel())
+                assert (c._pair_blocks[(a, b)] is kept.get((a, b))) == (kept.get((a, b), (None,))[:2] == (ta, tb))
+        for l in range(3):  # the same triangles, other barycentrics: the kept blocks serve
+            c._states[l].b = tuple(np.random.default_rng(seed + l).dirichlet([1.0, 1.0, 1.0]))
+        before = {k: v for k, v in c._pair_blocks.items()}
+        coupling.coupling_blocks(c, c._states, [0, 1, 2])
+        assert all(c._pair_blocks[k] is before[k] for k in before)
+
+
 def test_two_instruments_press_through_each_other(model, stiff):
     """Two probes on the top face 15 mm apart, pressed 2 mm: coupled, each feels the body yield under the
     other, so each force is smaller than alone; both are in contact and finite."""

@@ -96,15 +96,29 @@ def normal_start(active, geo, ubar, coupling, states=None):
 
 
 def coupling_blocks(c, states, active):
-    """C_lk (symmetrised, 9 floats row-major) for every ordered pair of active contacts."""
+    """C_lk (symmetrised, 9 floats row-major) for every ordered pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy
+    over the pair's vertex-pair blocks (:meth:`pmask.runtime.contact.ContactSurface.pair_blocks`), which are
+    kept in ``c._pair_blocks`` while both contacts stay on the same triangles."""
     srf = c.surface
+    cache = c._pair_blocks
     out = {}
     for a in active:
         for b in active:
             if a < b:
-                C = srf.compliance(states[a].tri, states[a].b, states[b].tri, states[b].b)
-                Ct = srf.compliance(states[b].tri, states[b].b, states[a].tri, states[a].b)
-                S = [0.5 * (C[3 * i + j] + Ct[3 * j + i]) for i in range(3) for j in range(3)]
+                ta, tb = states[a].tri, states[b].tri
+                hit = cache.get((a, b))
+                if hit is None or hit[0] != ta or hit[1] != tb:
+                    hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(ta, tb))
+                P, ba, bb = hit[2], states[a].b, states[b].b
+                S = [0.0] * 9
+                for x in range(3):
+                    for y in range(3):
+                        w = ba[x] * bb[y]
+                        if w == 0.0:
+                            continue
+                        o = 27 * x + 9 * y
+                        for k in range(9):
+                            S[k] += w * P[o + k]
                 out[(a, b)] = S
                 out[(b, a)] = [S[3 * j + i] for i in range(3) for j in range(3)]
     return out

@@ -151,6 +151,11 @@ class ContactSurface:
     def compliance(self, t_l, b_l, t_k, b_k) -> list:
         """C_lk (9 floats): :func:`pmask.runtime.stiffness.zeta_compliance` on this surface's ζ table, or on
         a compressed Ξ's blocks (:meth:`pmask.runtime.stiffness.Stiffness.zeta_block`)."""
+        block, row = self._blocks()
+        return zeta_compliance(block, row, self._idx, t_l, b_l, t_k, b_k)
+
+    def _blocks(self):
+        """(block function, row list) of :func:`pmask.runtime.stiffness.zeta_compliance`, made once."""
         if self._block is None:
             if self.compressed:
                 self._block, row = self.stiffness.zeta_block, self.stiffness._contact_row
@@ -158,7 +163,28 @@ class ContactSurface:
                 Zt, row = self.coupling()
                 self._block = table_block(Zt)
             self._row = np.asarray(row).tolist()
-        return zeta_compliance(self._block, self._row, self._idx, t_l, b_l, t_k, b_k)
+        return self._block, self._row
+
+    def pair_blocks(self, t_l, t_k) -> list:
+        """The nine vertex-pair blocks of two triangles' coupling, 81 floats: for vertex x of t_l and y of t_k
+        (x outer), P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) row-major, zero where either vertex has no row.  The coupled
+        solve keeps them while both contacts stay on their triangles and sums C_lk = Σ_x Σ_y φ_x φ_y P_xy
+        each tick (:func:`pmask.runtime.contact.coupling.coupling_blocks`): 81 products from a small
+        contiguous block instead of two gathers of nine blocks from the ζ table."""
+        block, row = self._blocks()
+        out = [0.0] * 81
+        for x, i in enumerate(self._idx[t_l]):
+            ri = row[i]
+            for y, m in enumerate(self._idx[t_k]):
+                rm = row[m]
+                if ri < 0 or rm < 0:
+                    continue
+                z1, z2 = block(rm, ri), block(ri, rm)  # ζ_y(x)ᵀ, ζ_x(y)ᵀ as lists of rows
+                o = 27 * x + 9 * y
+                for r in range(3):
+                    for c in range(3):
+                        out[o + 3 * r + c] = 0.5 * (z1[c][r] + z2[r][c])
+        return out
 
     def deformation_of(self, loads) -> np.ndarray:
         """The surface's displacement (n_s, 3) for point loads (eq. 16; :func:`zeta_deformation`)."""

@@ -26,6 +26,29 @@ void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tb
     }
 }
 
+/* the nine vertex-pair blocks of triangles ta, tb (81 doubles, x of ta outer): P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ),
+ * zero where either vertex has no row (ContactSurface.pair_blocks) */
+static void pair_blocks(const pm_table *tb, int64_t ta, int64_t tbi, double *P)
+{
+    const int64_t n3 = 3 * tb->nc;
+    const int64_t *ia = tb->T + 3 * ta, *ib = tb->T + 3 * tbi;
+    for (int k = 0; k < 81; k++) P[k] = 0.0;
+    for (int x = 0; x < 3; x++) {
+        int64_t ri = tb->row[ia[x]];
+        for (int y = 0; y < 3; y++) {
+            int64_t rm = tb->row[ib[y]];
+            if (ri < 0 || rm < 0) continue;
+            const double *z1 = tb->zeta + 3 * rm * n3 + 3 * ri;   /* ζ_y(x): (r, c) at z1[c * n3 + r] */
+            const double *z2 = tb->zeta + 3 * ri * n3 + 3 * rm;   /* ζ_x(y) */
+            double *o = P + 27 * x + 9 * y;
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) o[3 * r + c] = 0.5 * (z1[c * n3 + r] + z2[r * n3 + c]);
+        }
+    }
+}
+
+/* C_lk for every pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks, kept while both
+ * contacts stay on the same triangles (coupling.coupling_blocks) */
 static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
 {
     const pm_table *tb = S->tab;
@@ -34,12 +57,24 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
         for (int32_t y = 0; y < na; y++) {
             int32_t a = act[x], b = act[y];
             if (a < b) {
-                double C[9], Ct[9];
-                pm__compliance(tb, S->st[a].tri, S->st[a].b, S->st[b].tri, S->st[b].b, C);
-                pm__compliance(tb, S->st[b].tri, S->st[b].b, S->st[a].tri, S->st[a].b, Ct);
-                double *Sab = S->cpl + 9 * ((size_t)a * n + b), *Sba = S->cpl + 9 * ((size_t)b * n + a);
+                size_t ab = (size_t)a * n + b;
+                double *P = S->pair_P + 81 * ab;
+                int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
+                if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
+                    pair_blocks(tb, ta, tbi, P);
+                    S->pair_tri[2 * ab] = ta;
+                    S->pair_tri[2 * ab + 1] = tbi;
+                }
+                const double *ba = S->st[a].b, *bb = S->st[b].b;
+                double *Sab = S->cpl + 9 * ab, *Sba = S->cpl + 9 * ((size_t)b * n + a);
+                for (int k = 0; k < 9; k++) Sab[k] = 0.0;
                 for (int i = 0; i < 3; i++)
-                    for (int j = 0; j < 3; j++) Sab[3 * i + j] = 0.5 * (C[3 * i + j] + Ct[3 * j + i]);
+                    for (int j = 0; j < 3; j++) {
+                        double w = ba[i] * bb[j];
+                        if (w == 0.0) continue;
+                        const double *o = P + 27 * i + 9 * j;
+                        for (int k = 0; k < 9; k++) Sab[k] += w * o[k];
+                    }
                 for (int i = 0; i < 3; i++)
                     for (int j = 0; j < 3; j++) Sba[3 * i + j] = Sab[3 * j + i];
             }

@@ -157,6 +157,8 @@ struct pm_servo {
     lres *res;        /* n */
     double *gsf;      /* 3n: Gauss-Seidel forces */
     double *cpl;      /* n*n*9 coupling blocks */
+    int64_t *pair_tri; /* n*n*2: the triangles each pair's kept vertex-pair blocks are for (-1: none) */
+    double *pair_P;   /* n*n*81: those blocks (coupling.c) */
     double *nA, *nr, *nx;  /* the frictionless start's normal system (n*n, n, n) */
     /* display solve */
     double *dC, *du;

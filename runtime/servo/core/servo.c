@@ -104,6 +104,9 @@ int pm_servo_create(const pm_table *t, int32_t n, const pm_options *opt, pm_serv
     ALLOC(s->res, n);
     ALLOC(s->gsf, 3 * n);
     ALLOC(s->cpl, (size_t)n * n * 9);
+    ALLOC(s->pair_tri, (size_t)n * n * 2);
+    ALLOC(s->pair_P, (size_t)n * n * 81);
+    for (size_t k = 0; k < (size_t)n * n * 2; k++) s->pair_tri[k] = -1;
     ALLOC(s->nA, (size_t)n * n);
     ALLOC(s->nr, n);
     ALLOC(s->nx, n);
@@ -165,6 +168,8 @@ void pm_servo_free(pm_servo *s)
     free(s->res);
     free(s->gsf);
     free(s->cpl);
+    free(s->pair_tri);
+    free(s->pair_P);
     free(s->nA);
     free(s->nr);
     free(s->nx);
