@@ -104,6 +104,13 @@ def corpus() -> dict:
     # a hollow organ: a 3 mm wall between an outer shell and an inner one facing inwards (a cavity)
     inner = sphere(r=17.0)
     cases["hollow wall"] = join(sphere(), (inner[0], inner[1][:, ::-1]))
+    # an open scan with a thin part: a flap 5 mm thick (one edge length at the corpus's 5 mm) sunk into the
+    # body, as finely triangulated as the body (MeshFix alone kept the flap: the shell with most triangles),
+    # holes in both; the body is their union
+    flap = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    P, T = join(sphere(), (np.asarray(flap.vertices) * [2.5, 8.0, 12.0] + [0.0, 0.0, 26.0], np.asarray(flap.faces)))
+    tip = np.flatnonzero((T.min(axis=1) >= len(v)) & (P[T].mean(axis=1)[:, 2] > 35.0))[:4]
+    cases["open thin parts"] = (P, np.delete(T, np.concatenate([[0, 7, 40], tip]), axis=0))
     big = trimesh.creation.icosphere(subdivisions=7, radius=20.0)  # 327,680 triangles
     cases["over 300,000 triangles"] = (np.asarray(big.vertices), np.asarray(big.faces))
     return cases

@@ -369,7 +369,13 @@ def repair_surface(pts: np.ndarray, tris: np.ndarray, name, warn: bool = True) -
     d = edge_defects(t)
     before = {"vertices": int(len(upts)), "triangles": int(len(t)), "boundary_edges": d["boundary_edges"],
               "non_manifold_edges": d["non_manifold_edges"], "inconsistent_edges": d["inconsistent_edges"]}
-    mf = pymeshfix.MeshFix(upts, t)
+    tri_shell, area, _ = shells(upts, t)
+    if np.count_nonzero(area) > 1:  # MeshFix keeps the shell with the most triangles: a finely triangulated ear
+        # or debris over a coarse body would win; the report (and the docs) promise the largest by area
+        used, keep = np.unique(t[tri_shell == np.argmax(area)], return_inverse=True)
+        mf = pymeshfix.MeshFix(upts[used], keep.reshape(-1, 3))
+    else:
+        mf = pymeshfix.MeshFix(upts, t)
     mf.repair()
     out_p, out_t = np.asarray(mf.points, float), np.asarray(mf.faces, np.int64)
     if len(out_t) == 0:

@@ -17,7 +17,7 @@ CASES = corpus()
 MENDED = {"meshfix": {"touching shells", "touching at a point", "holes", "flipped patch", "self-intersection",
                       "several shells", "overlapping shells"},
           "voxel": {"touching shells", "touching at a point", "holes", "flipped patch", "self-intersection",
-                    "several shells", "overlapping shells", "shared wall"}}
+                    "several shells", "overlapping shells", "shared wall", "open thin parts"}}
 
 
 @pytest.mark.slow
