@@ -796,7 +796,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     source = sweep(factor, w_path, key)
                     stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1, "W_reused": reused,
                                   "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
-                                  "gram_flops": float(source.index["gram_flops"])})
+                                  "gram_flops": float(source.index["gram_flops"]),
+                                  "sweep_batches": int(source.index.get("batches", 1))})
                 else:
                     stats["route"] = "solve per panel"
                 client = client or connect(scheduler, workers, memory_limit)
