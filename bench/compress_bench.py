@@ -284,10 +284,21 @@ def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
         far = g["far_bytes"] * n * np.log(n) / (n0 * np.log(n0))
         t = f", GF stage ~{g['greens_s'] * (n / n0) ** slope / 3600:.1f} h on 2 workers" if slope else ""
         rows.append(f"{n:,}: ~{(near + far) / 2**30:.1f} GiB stored ({near / 2**30:.1f} near, {far / 2**30:.1f} far){t}")
+    check = ""
+    o = res.get("organ")
+    if o and "near_bytes" in o:  # the model against the measured run at ~50,000
+        n = o["contact"]
+        near = g["near_bytes"] * (n / n0) ** 2
+        far = g["far_bytes"] * n * np.log(n) / (n0 * np.log(n0))
+        t = g["greens_s"] * (n / n0) ** slope if slope else None
+        check = (f" Checked against the {n:,}-vertex run above: the model said {near / 2**30:.1f} GiB near and "
+                 f"{far / 2**30:.2f} GiB far" + (f" and a GF stage of {t / 60:.0f} min" if t else "")
+                 + f"; measured {o['near_bytes'] / 2**30:.1f}, {o['far_bytes'] / 2**30:.2f} GiB"
+                 + f" and {o['greens_s'] / 60:.0f} min.")
     return ("**Extrapolated** (a model fitted to the organ-scale run, not measured; r_max fixed at "
             f"{1e3 * res['r_max_m']:.0f} mm, so the exact near field grows like n²"
             + (f"; time like n^{slope:.2f}, the slope measured from 3,882 to {n0:,} vertices" if slope else "")
-            + "; N workers divide the tiles' time by at most N/2): " + "; ".join(rows) + ".")
+            + "; N workers divide the tiles' time by at most N/2): " + "; ".join(rows) + "." + check)
 
 
 def organ_paragraph(g: dict, res: dict, title: str) -> str:
