@@ -352,7 +352,8 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepSt
 
     The wanted columns are swept in contiguous batches (:func:`sweep_batches`) so that the client holds at
     most ``budget`` bytes of pending blocks however many contact vertices there are (one sweep at 47,467
-    held 8.6 GiB, the top separators' blocks over all 3 n_c rows); each batch writes its rows of every
+    would hold 8.6 GiB by :func:`pmask.precompute.selinv.sweep_memory`, the top separators' blocks over all
+    3 n_c rows); each batch writes its rows of every
     supernode's block into their place in the file, which has the layout of a single sweep."""
     from pmask.precompute import selinv
     from pmask.runtime.files import atomic_write
@@ -715,7 +716,7 @@ def check_worker_memory(limits: list[int | None], need: float, threads: list[int
 
 
 PHASE_MARGIN = 1.15  # the phase models (sweep_bytes, assembly_bytes) land within 4 % of tracemalloc's peak
-# (tested); the rest is the allocator's and the interpreter's share of the process's resident memory
+# on the tests' kidney; the rest is the allocator's and the interpreter's share of the resident memory
 
 
 def check_phase_memory(phase: str, need: float, advice: str) -> None:
@@ -733,7 +734,10 @@ def check_phase_memory(phase: str, need: float, advice: str) -> None:
 def assembly_bytes(tree: ClusterTree, store: "TileStore", dense_dtype=np.float64, lowrank_dtype=np.float64) -> int:
     """What :func:`assemble` holds at its peak (bytes), from the finished tiles' indices (nothing else read):
     the artifact's arrays at their final size (the near field exact; U and V no larger than the tiles'
-    pieces) and the merged blocks (float64), held until they are copied in."""
+    pieces) and the merged blocks (float64), held until they are copied in.  An upper bound: a block merged
+    from several pieces is counted as all of them (its rank is known only once merged), so it is tight when
+    few blocks are split (the tests' kidney: within 4 % of the measured peak) and loose when many are (the
+    bench's organ row prints it beside the run's peak)."""
     dense = pieces = split = 0
     for name in store.file:
         g = store.file[name]
