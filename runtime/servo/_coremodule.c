@@ -159,7 +159,7 @@ static void Table_dealloc(TableObject *self)
 
 /* Table({name: array}): the sections as C-contiguous 2-D float64/int64 buffers (bytes for "meta"), borrowed
  * (pm_table_from_sections) */
-static int table_from_dict(TableObject *self, PyObject *dict, char *err, size_t errlen)
+static int table_from_sections_dict(TableObject *self, PyObject *dict, char *err, size_t errlen)
 {
     Py_ssize_t n = PyDict_Size(dict), pos = 0, i = 0;
     PyObject *key, *value;
@@ -214,6 +214,15 @@ static int table_from_dict(TableObject *self, PyObject *dict, char *err, size_t 
     rc = pm_table_from_sections(secs, (int32_t)n, &self->table, err, errlen);
     Py_END_ALLOW_THREADS
     PyMem_Free(secs);
+    return rc;
+}
+
+static int table_from_dict(TableObject *self, PyObject *given, char *err, size_t errlen)
+{
+    PyObject *dict = PyDict_Copy(given);  /* its keys (the names) stay alive while the GIL is released */
+    if (!dict) return -2;
+    int rc = table_from_sections_dict(self, dict, err, errlen);
+    Py_DECREF(dict);
     return rc;
 }
 
