@@ -68,6 +68,11 @@ class BadRequest(Exception):
     """A client's message the server refuses (400), with the line that says why."""
 
 
+#: how far (relative to the largest radius) a requested radius may fall outside the slider's range and be
+#: taken as its end: Chromium's range input works in decimals and gave back its minimum a last digit low
+RANGE_SLACK = 1e-9
+
+
 def _vec3(v, what: str) -> list:
     if not isinstance(v, (list, tuple)) or len(v) != 3:
         raise BadRequest(f"{what} must be [x, y, z]")
@@ -126,8 +131,10 @@ class ViewerSession:
         one keeps serving the probes (``self.lock`` is not held: a probe request is answered meanwhile), then
         swap them in at once under the lock.  One rebuild at a time (``self.build_lock``)."""
         lo, hi = self.radius_range
-        if not (lo <= radius <= hi):
+        slack = RANGE_SLACK * hi  # a slider's ends come back through the browser's decimal arithmetic
+        if not (lo - slack <= radius <= hi + slack):
             raise BadRequest(f"radius must lie in [{lo:.6g}, {hi:.6g}] (model units), got {radius:.6g}")
+        radius = min(max(radius, lo), hi)
         with self.build_lock:
             stiffness = self.model.stiffness(self.mask, radius)
             # the mouse is not a device: a drag may move the probe several edge lengths between two page
