@@ -191,8 +191,8 @@ def forward_sweep(tree: _Tree, want: np.ndarray, emit) -> dict:
     (column-major; it may be kept: it is not reused).  A supernode's W is allocated (with its identity
     entries) when its first child updates it, or at its own turn, and dropped once emitted, so the live
     memory is the pending ancestors' only, not all of W (allocating every block that holds a wanted pivot
-    at the start had held 7.8 GiB before the first step at 47,467 contact vertices).  Returns ``pos`` (each wanted dof's sorted position), ``lo``, ``hi`` and ``flops``.
-    Then :math:`(A^{-1})_{EE}[\mathrm{pos}_i, \mathrm{pos}_j] = \sum_s X_s X_s^T` on the ranges.
+    at the start held 7.8 GiB before the first step at 47,467 contact vertices, by :func:`sweep_memory`'s
+    count).  Returns ``pos`` (each wanted dof's sorted position), ``lo``, ``hi`` and ``flops``.  Then :math:`(A^{-1})_{EE}[\mathrm{pos}_i, \mathrm{pos}_j] = \sum_s X_s X_s^T` on the ranges.
     """
     want = _distinct(want, tree.n)
     piv = tree.iperm[want]
