@@ -348,7 +348,8 @@ def sweep_bytes(factor, budget: float = SWEEP_BUDGET) -> int:
 def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepStore:
     """W = L⁻¹PE of a P1 factor, supernode by supernode, into ``path`` (:class:`SweepStore`); reused when
     its index holds ``key`` (a rerun after a crash does not sweep again).  Both files are written
-    atomically, the index last, so a file without one is never read.
+    atomically, the index last, so a file without one is never read; refused in one line before it starts
+    when its modelled peak does not fit (:func:`check_phase_memory`).
 
     The wanted columns are swept in contiguous batches (:func:`sweep_batches`) so that the client holds at
     most ``budget`` bytes of pending blocks however many contact vertices there are (one sweep at 47,467
@@ -371,6 +372,9 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepSt
     offset[1:] = np.cumsum(m * tree.ncol)[:-1]  # in postorder, as the single sweep emitted them
     ordered = np.sort(piv)
     batches, peak = sweep_batches(tree, ordered, budget)
+    check_phase_memory("W sweep", peak, "restrict the region a probe can touch (--contact SELECTOR) or coarsen "
+                       "the mesh (--edge-length, --size): its blocks are the contact vertices' rows by the top "
+                       "separators' columns")
     flops = [0.0]
 
     def write(tmp):
@@ -792,12 +796,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     # read it (module docstring); the AMG system (--solver amg, no factor) solves per panel
                     t1 = time.perf_counter()
                     reused = sweep_reusable(w_path, key)
+                    source = sweep(factor, w_path, key)  # refused before it starts if it would not fit
                     if not reused:
-                        stats["sweep_peak_bytes"] = sweep_bytes(factor)
-                        check_phase_memory("W sweep", stats["sweep_peak_bytes"], "restrict the region a probe can "
-                                           "touch (--contact SELECTOR) or coarsen the mesh (--edge-length, --size): "
-                                           "its blocks are the contact vertices' rows by the top separators' columns")
-                    source = sweep(factor, w_path, key)
+                        stats["sweep_peak_bytes"] = int(source.index["peak_bytes"])
                     stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1, "W_reused": reused,
                                   "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
                                   "gram_flops": float(source.index["gram_flops"]),

@@ -54,6 +54,14 @@ static int is_double_format(const char *f)
     return f && (strcmp(f, "d") == 0 || strcmp(f, "<d") == 0 || strcmp(f, "=d") == 0 || strcmp(f, "@d") == 0);
 }
 
+/* an 8-byte signed integer buffer (numpy's int64: "q", or "l" on LP64) */
+static int is_int64_format(const char *f, Py_ssize_t itemsize)
+{
+    if (!f || itemsize != 8) return 0;
+    if (*f == '<' || *f == '=' || *f == '@') f++;
+    return strcmp(f, "q") == 0 || strcmp(f, "l") == 0;
+}
+
 /* one probe sample -> out[3]; anything that is not three numbers gives NaN (a bad sample) */
 static void sample_from(PyObject *o, double *out)
 {
@@ -197,9 +205,7 @@ static int table_from_sections_dict(TableObject *self, PyObject *dict, char *err
             s->cols = 1;
             continue;
         }
-        const char *f = v->format ? v->format : "B";
-        if (*f == '<' || *f == '=' || *f == '@') f++;
-        int f64 = strcmp(f, "d") == 0, i64 = (strcmp(f, "q") == 0 || strcmp(f, "l") == 0) && v->itemsize == 8;
+        int f64 = is_double_format(v->format) && v->itemsize == 8, i64 = is_int64_format(v->format, v->itemsize);
         if (v->ndim != 2 || !(f64 || i64)) {
             PyMem_Free(secs);
             PyErr_Format(PyExc_ValueError, "section '%s' must be a 2-D float64 or int64 array", name);
