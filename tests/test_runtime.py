@@ -149,6 +149,24 @@ def test_zeta_reproduces_full_displacement_field(small, small_probe):
     assert np.all(v[model.fixed] == 0)
 
 
+def test_the_zeta_table_holds_every_zeta_in_pieces_of_columns(small, small_probe, monkeypatch):
+    """The ζ table, built ZETA_COLUMNS columns at a time, holds ζ_mᵀ (eq. 13, formed from Ξ's columns by
+    ``zeta``, which the test above holds against full solves) in rows 3m..3m+2 of every mask centre m, and
+    zeros elsewhere, with pieces of 7 columns (which do not divide 3 n_c) as with the default."""
+    from pmask.runtime import stiffness as st
+
+    stiff = small_probe[0]
+    for width in (st.ZETA_COLUMNS, 7):
+        monkeypatch.setattr(st, "ZETA_COLUMNS", width)
+        s = small.stiffness(stiff.masks.kind, stiff.masks.radius)
+        Zt = s.zeta_table()
+        rows = np.zeros(len(Zt) // 3, bool)
+        for m in s.masks.centres:
+            assert np.abs(Zt[3 * m:3 * m + 3] - s.zeta(small.contact[m]).T).max() <= 1e-15 * np.abs(Zt).max()
+            rows[m] = True
+        assert not np.any(Zt.reshape(-1, 3, Zt.shape[1])[~rows])
+
+
 def test_surface_stiffness_continuous_and_interpolating(model):
     stiff = model.stiffness("linear", 2 * model.mean_edge_length)
     T = model.triangles
