@@ -206,6 +206,32 @@ def test_after_a_release_the_surface_springs_back(browser, server, session):
     assert browser.execute_script("return window.pmaskView.displacement()") == 0.0
 
 
+def test_an_idle_page_leaves_the_cores_alone_and_a_press_draws(browser, server, session):
+    """An idle page drew every frame and asked the server every frame (49 frames/s of software WebGL on these
+    2 cores, most of one core, so a radius change took 3x as long with the page open).  Idle now, it draws
+    nothing new and asks 10 times a second (IDLE_POLL_MS = 100 ms: between 5 and 12 answers in a second, a
+    lenient band for a loaded machine's timers); a press draws again, a frame per changed reply."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    url, _ = server
+    _open(browser, url)
+    time.sleep(1.0)  # the first frames (the colours, the camera) are drawn
+    count = "return [window.pmaskView.stats.drawn, window.pmaskView.stats.reads]"
+    d0, r0 = browser.execute_script(count)
+    time.sleep(2.0)
+    d1, r1 = browser.execute_script(count)
+    assert d1 - d0 == 0, d1 - d0
+    assert 10 <= r1 - r0 <= 24, r1 - r0
+    (v,) = _screen_vertices(browser, session.model, 1, 0.0)
+    _drag(browser, browser.execute_script(f"return window.pmaskView.screenOf({v})"))
+    try:
+        time.sleep(0.3)
+        d2, r2 = browser.execute_script(count)
+    finally:
+        ActionChains(browser).release().perform()
+    assert d2 - d1 >= 5 and r2 - r1 >= 5, (d2 - d1, r2 - r1)
+
+
 def test_a_stopped_server_is_shown_and_not_hammered(browser, kidney_small):
     """#28: when the server stopped, the page kept showing the last force and retried every frame (66
     console errors in a few seconds).  Now it shows NO SERVER and no force, and backs off (100 ms doubling to

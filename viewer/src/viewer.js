@@ -7,6 +7,9 @@ import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 
 const $ = (id) => document.getElementById(id);
 const PRESS_MS = 150;            // a press ramps from just outside to the set depth over this long
+// an idle page (no probe of its own or another page's, the surface at rest) asks the server this often instead of
+// every frame, and draws only when something it shows changed: it leaves the cores to the servo and to a rebuild
+const IDLE_POLL_MS = 100;
 const COLOURS = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]]; // viridis stops
 const PROBE_COLOURS = [0xff5a5a, 0x5ab4ff];
 // this page's id: the server applies the probes of one page at a time and tells the others
@@ -84,7 +87,9 @@ async function main() {
     mesh.visible = false;
     $('scanBox').hidden = false;
     $('scanCount').textContent = (scan.tris.length / 3).toLocaleString('en');
-    $('scan').addEventListener('change', () => { scan.mesh.visible = $('scan').checked; mesh.visible = !$('scan').checked; });
+    $('scan').addEventListener('change', () => {
+      scan.mesh.visible = $('scan').checked; mesh.visible = !$('scan').checked; redraw();
+    });
   }
   // picking uses the undeformed surface: the probe is where the hand is, not where the tissue went
   const pickGeom = new THREE.BufferGeometry();
@@ -93,8 +98,12 @@ async function main() {
   const pickMesh = new THREE.Mesh(pickGeom, new THREE.MeshBasicMaterial({ visible: false, side: THREE.DoubleSide }));
   scene.add(pickMesh);
 
+  // drawn on demand: a frame is drawn only after something shown changed (the camera, a reply, a colour)
+  let dirty = true;
+  const redraw = () => { dirty = true; };
   const controls = new OrbitControls(camera, renderer.domElement);
   controls.target.copy(centre);
+  controls.addEventListener('change', redraw);
   controls.update();
 
   const markers = [0, 1].map((k) => {
@@ -156,6 +165,7 @@ async function main() {
     $('cmin').textContent = name === 'fixed' || name === 'contact' ? 'no' : `${fmt(lo * scale, 4)} ${unit}`;
     $('cmax').textContent = name === 'fixed' || name === 'contact' ? 'yes' : `${fmt(hi * scale, 4)} ${unit}`;
     $('cmin').dataset.value = lo; $('cmax').dataset.value = hi;
+    redraw();
   }
   $('bar').style.background = `linear-gradient(to right, ${COLOURS.map((c) => `rgb(${c})`).join(',')})`;
   $('field').addEventListener('change', recolour);
@@ -191,7 +201,7 @@ async function main() {
   showDepth();
   depth.addEventListener('input', showDepth);
   const exaggeration = $('exaggeration');
-  exaggeration.addEventListener('input', () => { $('exaggerationLabel').textContent = exaggeration.value; });
+  exaggeration.addEventListener('input', () => { $('exaggerationLabel').textContent = exaggeration.value; redraw(); });
   $('exaggerationLabel').textContent = exaggeration.value;
 
   // ---------------------------------------------------------------- probes
@@ -246,10 +256,13 @@ async function main() {
   // ---------------------------------------------------------------- server round trips
   // wasDeformed: the last reply's surface was displaced, so the page keeps asking for the deformation after a
   // release until the servo reports it flat (one request raced the servo's release and left it dented)
-  let inflight = false, wasDeformed = false, othersProbe = false, retryAt = 0, backoff = 0;
-  const stats = { fps: 0, ups: 0, rtt: 0, frames: 0, updates: 0, failures: 0, t0: performance.now(), history: [] };
+  let inflight = false, wasDeformed = false, othersProbe = false, retryAt = 0, backoff = 0, lastPoll = -Infinity;
+  let shown = '';   // what the last drawn reply showed (contacts and deformation): an equal reply draws nothing
+  const stats = { fps: 0, ups: 0, rtt: 0, frames: 0, updates: 0, failures: 0, drawn: 0, reads: 0, t0: performance.now(), history: [] };
   const disp = geom.attributes.position.array;
   function applyReply(reply) {
+    const key = JSON.stringify(reply.contacts) + (reply.deformation || '');
+    if (key !== shown) { shown = key; redraw(); }
     reply.contacts.forEach((c, k) => {
       const touching = c.status === 'CONTACT' || c.status === 'REGION_EDGE' || c.status === 'DEEP';
       $(`status${k}`).textContent = c.status;
@@ -317,6 +330,8 @@ async function main() {
     backoff = Math.min(2000, backoff ? 2 * backoff : 100);
     retryAt = performance.now() + backoff;
     $('error').textContent = `server: ${message} (retrying every ${(backoff / 1000).toFixed(1)} s)`;
+    shown = '';
+    redraw();
     for (let k = 0; k < markers.length; k++) {
       $(`status${k}`).textContent = 'NO SERVER';
       $(`force${k}`).textContent = '—';
@@ -326,6 +341,7 @@ async function main() {
   }
   async function update(now) {
     inflight = true;
+    lastPoll = now;
     const probes = probePositions(now);
     const touching = probes.some((p) => p !== null);
     const deform = Number(exaggeration.value) > 0 && (touching || wasDeformed || othersProbe);
@@ -334,6 +350,7 @@ async function main() {
       const reply = await api('/api/probe', { probes, deform, client: CLIENT });
       const umax = applyReply(reply);
       stats.updates++;
+      stats.reads++;
       stats.rtt = performance.now() - t0;
       wasDeformed = deform && umax > 0;
       othersProbe = reply.owner === false;   // another page's probes are shown, and this page's wait
@@ -349,13 +366,19 @@ async function main() {
     camera.aspect = window.innerWidth / window.innerHeight;
     camera.updateProjectionMatrix();
     renderer.setSize(window.innerWidth, window.innerHeight);
+    redraw();
   });
   function frame(now) {
     requestAnimationFrame(frame);
-    if (!inflight && performance.now() >= retryAt) update(now);
+    const idle = !press.some((p) => p !== null) && !wasDeformed && !othersProbe && drag === null;
+    if (!inflight && performance.now() >= retryAt && (!idle || now - lastPoll >= IDLE_POLL_MS)) update(now);
     controls.update();
-    renderer.render(scene, camera);
-    stats.frames++;
+    if (dirty) {
+      dirty = false;
+      renderer.render(scene, camera);
+      stats.frames++;
+      stats.drawn++;
+    }
     if (now - stats.t0 >= 1000) {
       stats.fps = (1000 * stats.frames) / (now - stats.t0);
       stats.ups = (1000 * stats.updates) / (now - stats.t0);
