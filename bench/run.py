@@ -133,6 +133,7 @@ def section_only(section: str) -> None:
 
         res["viewer"] = viewer_bench.run({n: p for n, p in ((len(Model.load(p).points), p) for p in arts) if n > 1000})
     res[section]["date"] = time.strftime("%Y-%m-%d %H:%M:%S")
+    res[section]["machine"] = machine()
     import shutil
 
     shutil.rmtree(work, ignore_errors=True)
@@ -165,8 +166,7 @@ def main() -> None:
         return section_only(part[0])
 
     work = Path(tempfile.mkdtemp(prefix="pmask-bench-"))
-    res = {"machine": {"platform": platform.platform(), "cpu": _cpu(), "cores": os.cpu_count(),
-                       "memory_gib": _mem_gib(), "python": platform.python_version()},
+    res = {"machine": machine(),
            "date": time.strftime("%Y-%m-%d %H:%M:%S"), "precompute": [], "runtime": {}}
     arts = {}
     for size in SIZES:
@@ -286,6 +286,23 @@ def float32_effect(p64: Path, p32: Path, r32: dict) -> dict:
             "load_s_float64": out["float64_load_s"], "load_s_float32": out["float32_load_s"],
             "K_rel_error_max": float(rel.max()), "K_rel_error_median": float(np.median(rel)),
             "K_single_rel_error_max": float(rel1.max())}
+
+def machine() -> dict:
+    """What the numbers were measured on (a partial route records its own: the page says when it differs)."""
+    return {"platform": platform.platform(), "cpu": _cpu(), "cores": os.cpu_count(), "memory_gib": _mem_gib(),
+            "python": platform.python_version()}
+
+
+def where(res: dict, section: dict) -> str:
+    """'the same machine' when a section measured on its own ran where the rest did, else which machine."""
+    m, own = res["machine"], section.get("machine")
+    if own is None:
+        return "a machine this page did not record"
+    if all(own.get(k) == m.get(k) for k in ("cpu", "cores", "memory_gib")):
+        return "the same machine"
+    return (f"another machine ({own['cpu']}, {own['cores']} cores, {own['memory_gib']} GiB; compare its rows with "
+            "each other, not with the sections above)")
+
 
 def _cpu() -> str:
     try:
@@ -420,20 +437,20 @@ def markdown(res: dict) -> str:
     import runtime_bench
 
     if res["haptics"].get("date"):
-        L += ["", f"The haptic step below was measured again on its own, {res['haptics']['date']} on the same "
-                  "machine (`make bench ONLY=haptics`)."]
+        L += ["", f"The haptic step below was measured again on its own, {res['haptics']['date']} on "
+                  f"{where(res, res['haptics'])} (`make bench ONLY=haptics`)."]
     L += ["", runtime_bench.markdown(res["haptics"])]
     import viewer_bench
 
     if res.get("display"):
         import display_bench
 
-        L += ["", f"The display surface was measured {res['display']['date']} on the same machine.", "",
+        L += ["", f"The display surface was measured {res['display']['date']} on {where(res, res['display'])}.", "",
               display_bench.markdown(res["display"])]
     if res["viewer"].get("date"):
-        L += ["", f"The viewer below was measured again on its own, {res['viewer']['date']} on the same machine "
-                  "(`make bench ONLY=viewer`)."]
-    L += ["", viewer_bench.markdown({k: v for k, v in res["viewer"].items() if k != "date"})]
+        L += ["", f"The viewer below was measured again on its own, {res['viewer']['date']} on "
+                  f"{where(res, res['viewer'])} (`make bench ONLY=viewer`)."]
+    L += ["", viewer_bench.markdown({k: v for k, v in res["viewer"].items() if k not in ("date", "machine")})]
     return "\n".join(L) + "\n"
 
 if __name__ == "__main__":
