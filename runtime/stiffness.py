@@ -337,7 +337,7 @@ class Stiffness(SurfaceStiffness):
         large as Ξ); deformation and coupling read Ξ's blocks instead."""
         return isinstance(self.model.Xi, CompressedXi)
 
-    def zeta_table(self) -> np.ndarray:
+    def zeta_table(self, rows=None) -> np.ndarray:
         r"""Zt (3 n_c, 3 n_c) with rows 3m..3m+2 = ζ_mᵀ for every core contact vertex m (zero rows
         elsewhere): the deformation of eq. 16 for a force f at vertex m is ``f @ Zt[3m:3m+3]``, three
         contiguous rows (a column of ζ would be a strided gather of Ξ, 8-10x slower).  Computed once, from
@@ -345,7 +345,9 @@ class Stiffness(SurfaceStiffness):
         weights with its few contiguous rows of Ξᵀ (blocks of 64 centres as one dense product multiplied
         mostly zeros: 2-7x slower at the default kidney, measured, and a viewer rebuilds this table on every
         change of the mask radius), over ``ZETA_COLUMNS`` columns at a time so that the rows neighbouring
-        masks share stay in cache (whole rows: 0.35 s against 0.24 s at the default kidney, by hand)."""
+        masks share stay in cache (whole rows: 0.35 s against 0.24 s at the default kidney, by hand).
+        ``rows(XiT3, masks, Zt3)``, when given, fills the centres' rows instead of this loop (the native core's
+        :func:`pmask.runtime.servo.zeta_rows`, 0.09 s, which a viewer's radius change uses)."""
         if self._zeta_table is not None:
             return self._zeta_table
         if self.compressed:
@@ -363,10 +365,13 @@ class Stiffness(SurfaceStiffness):
         Zt3 = Zt.reshape(n3 // 3, 3 * n3)
         masks = self.masks
         ptr, idx, val = masks.indptr, masks.indices, masks.values
-        for a in range(0, 3 * n3, ZETA_COLUMNS):
-            cols = slice(a, a + ZETA_COLUMNS)
-            for k, m in enumerate(masks.centres):
-                np.dot(val[ptr[k]:ptr[k + 1]], XiT3[idx[ptr[k]:ptr[k + 1]], cols], out=Zt3[m, cols])
+        if rows is not None:
+            rows(XiT3, masks, Zt3)
+        else:
+            for a in range(0, 3 * n3, ZETA_COLUMNS):
+                cols = slice(a, a + ZETA_COLUMNS)
+                for k, m in enumerate(masks.centres):
+                    np.dot(val[ptr[k]:ptr[k + 1]], XiT3[idx[ptr[k]:ptr[k + 1]], cols], out=Zt3[m, cols])
         del XiT3
         self._zeta_table = Zt
         return Zt

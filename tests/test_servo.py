@@ -353,6 +353,26 @@ def test_export_table_command(kidney_small, tmp_path):
     assert len(bad.stderr.strip().splitlines()) == 1
 
 
+def test_the_native_zeta_rows_are_numpys(model):
+    """pm_zeta_rows (C, eight columns in registers) fills the ζ table as Stiffness.zeta_table's numpy loop does,
+    to 1e-12 relative (the same sums in another order: measured 1e-16), with the zero rows left zero; masks
+    whose indices leave the table are refused with the C core's line."""
+    import dataclasses
+
+    numpy_table = model.stiffness("linear", model.default_radius).zeta_table()
+    native = model.stiffness("linear", model.default_radius).zeta_table(rows=servo.zeta_rows)
+    assert np.abs(native - numpy_table).max() <= 1e-12 * np.abs(numpy_table).max()
+    assert np.array_equal(native == 0, numpy_table == 0)
+    m = model.stiffness("linear", model.default_radius).masks
+    n3 = len(numpy_table)
+    out = np.zeros((n3 // 3, 3 * n3))
+    bad = dataclasses.replace(m, indices=np.where(np.arange(len(m.indices)) == 5, n3, m.indices))
+    with pytest.raises(ValueError, match="mask vertex out of range"):
+        servo.zeta_rows(out, bad, out)
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        servo.zeta_rows(out, m, out[:, ::2])
+
+
 # ------------------------------------------------------------------------------- display, thread, fallback
 def test_the_native_deformation_equals_the_python_display(surface, model):
     top = model.contact[model.core]

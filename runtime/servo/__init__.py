@@ -74,6 +74,19 @@ def display_deform(table, u, contacts=(), radius: float = 0.0) -> np.ndarray:
     return out
 
 
+def zeta_rows(xi_rows: np.ndarray, masks, out: np.ndarray) -> None:
+    """The native core's loop of :meth:`pmask.runtime.stiffness.Stiffness.zeta_table` (``pm_zeta_rows``): row
+    ``masks.centres[k]`` of ``out`` = Σ_p ρ_p ``xi_rows[j_p]`` over mask k; ``out`` (C-contiguous float64,
+    the shape of ``xi_rows``) is written in place."""
+    if _core is None:
+        raise InputError("the native servo core is not built in this installation")
+    if not (out.flags.c_contiguous and out.dtype == np.float64 and out.shape == xi_rows.shape):
+        raise ValueError("zeta_rows: out must be a C-contiguous float64 array shaped like xi_rows")
+    i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)  # noqa: E731
+    _core.zeta_rows(xi_rows.shape[1], np.ascontiguousarray(xi_rows, dtype=float), i64(masks.centres),
+                    i64(masks.indptr), i64(masks.indices), np.ascontiguousarray(masks.values, dtype=float), out)
+
+
 def _native_table(surface, zeta: bool):
     """The surface's table in the C core, made once per surface (with or without the ζ table)."""
     cache = surface.__dict__.setdefault("_native_tables", {})
@@ -85,6 +98,9 @@ def _native_table(surface, zeta: bool):
         else:
             from pmask.runtime.table import surface_sections, table_arrays
 
+            stiff = getattr(surface, "stiffness", None)
+            if zeta and hasattr(stiff, "zeta_table") and not surface.compressed:
+                stiff.zeta_table(rows=zeta_rows)  # kept by the stiffness: the C loop, 2-3x numpy's
             cache[key] = load_table(table_arrays(surface_sections(surface, zeta), surface.meta))
     return cache[key]
 

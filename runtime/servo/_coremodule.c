@@ -656,8 +656,43 @@ static PyObject *set_statuses(PyObject *mod, PyObject *arg)
     Py_RETURN_NONE;
 }
 
+static PyObject *zeta_rows(PyObject *mod, PyObject *args)
+{
+    Py_buffer x, c, ptr, idx, val, o;
+    Py_ssize_t width;
+    if (!PyArg_ParseTuple(args, "ny*y*y*y*y*w*", &width, &x, &c, &ptr, &idx, &val, &o)) return NULL;
+    PyObject *res = NULL;
+    char err[256] = "";
+    if (width <= 0 || x.len != o.len || x.len % (8 * width) != 0 || c.len % 8 != 0 || ptr.len != c.len + 8 ||
+        idx.len % 8 != 0 || val.len != idx.len) {
+        PyErr_SetString(PyExc_ValueError, "zeta_rows: buffer sizes do not match");
+    } else {
+        int rc;
+        Py_BEGIN_ALLOW_THREADS
+        rc = pm_zeta_rows((int64_t)(x.len / (8 * width)), (int64_t)width, (const double *)x.buf, (int64_t)(c.len / 8),
+                          (const int64_t *)c.buf, (const int64_t *)ptr.buf, (int64_t)(idx.len / 8),
+                          (const int64_t *)idx.buf, (const double *)val.buf, (double *)o.buf, err, sizeof err);
+        Py_END_ALLOW_THREADS
+        if (rc) {
+            PyErr_SetString(PyExc_ValueError, err);
+        } else {
+            res = Py_None;
+            Py_INCREF(res);
+        }
+    }
+    PyBuffer_Release(&x);
+    PyBuffer_Release(&c);
+    PyBuffer_Release(&ptr);
+    PyBuffer_Release(&idx);
+    PyBuffer_Release(&val);
+    PyBuffer_Release(&o);
+    return res;
+}
+
 static PyMethodDef module_methods[] = {
     {"set_statuses", set_statuses, METH_O, "the objects returned for each status value"},
+    {"zeta_rows", zeta_rows, METH_VARARGS,
+     "zeta_rows(width, xi_rows, centres, indptr, indices, values, out): the zeta table's rows (pm_zeta_rows)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_core", "The native servo core's binding.", -1,

@@ -154,6 +154,12 @@ PM_API void pm_table_stiffness(const pm_table *table, int64_t n, const int64_t *
 /* The triangle whose barycentric-clamped projection is nearest a point (the bounding-volume hierarchy;
  * ties: the smallest index, as the Python engine's grid). */
 PM_API int64_t pm_table_nearest(const pm_table *table, const double *point);
+/* The ζ table's rows for a table of one's own (Stiffness.zeta_table's loop): out (n_rows x width, row-major) row
+ * centres[k] = Σ values[p] xi_rows[indices[p]] for p in indptr[k] .. indptr[k + 1] - 1, the masks in compressed
+ * rows; other rows of out are left as they are.  0, or -1 and a message when an index is out of range. */
+PM_API int pm_zeta_rows(int64_t n_rows, int64_t width, const double *xi_rows, int64_t n_masks, const int64_t *centres,
+                        const int64_t *indptr, int64_t nnz, const int64_t *indices, const double *values, double *out,
+                        char *err, size_t errlen);
 
 PM_API void pm_options_default(const pm_table *table, pm_options *options);
 /* A servo for n instruments: all memory the step needs is allocated here.  0 or a message. */
