@@ -330,7 +330,8 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
                  + ("left in the file" if g.get("far_field") == "FileArray" else "read into memory")
                  + f", page cache warm), every K_i in {g['all_K_s']:.1f} s"
                  + (f" (peak RSS {g['all_K_peak_rss_gib']:.2f} GiB with the model)" if "all_K_peak_rss_gib" in g
-                    else "") if "open_s" in g else "") + ". Dense: " + (f"refused in one line before the factor (needs ~{g['dense_need_gib']:.0f} GiB)"
+                    else "") if "open_s" in g else "") + ". Dense: " + (f"does not fit (needs ~{g['dense_need_gib']:.0f} GiB; without --compress `pmask precompute` "
+                                              "takes the compressed route for it, with a warning)"
                                            if g["dense_refused"] else "would run") + f", estimated {est} if it "
               f"fitted (scaled from the 3,882-vertex dense run). {g['columns_checked']} random vertices' columns "
               f"against the factor's own solve: {g['columns_rel_err']:.1e} relative, near field "

@@ -101,7 +101,8 @@ def add_precompute(sub) -> None:
     p.add_argument("--compress", nargs="?", type=float, const=1e-4, default=None, metavar="TOL",
                    help="store Ξ compressed: the near field (pairs within --r-max) exact, the far field in low-rank "
                         "blocks within TOL relative per block (default 1e-4), computed in tiles on Dask without the "
-                        "dense Ξ (for organs whose Ξ does not fit one machine)")
+                        "dense Ξ (for organs whose Ξ does not fit one machine; taken without being asked, with a "
+                        "warning, where the dense Ξ does not fit)")
     p.add_argument("--solver", choices=("factor", "amg"), default="factor",
                    help="with --compress: solve the tiles with the sparse factor (default) or, where it does not fit, "
                         "with AMG-preconditioned CG (pyamg; 90-250x slower, to ~1e-11 instead of round-off)")

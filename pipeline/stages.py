@@ -24,7 +24,7 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -432,7 +432,6 @@ def support_stage(spec: Spec, mesh: ModelMesh) -> ModelMesh:
     """Stage 1b: fit the mesh to a geometric support selector (:func:`pmask.precompute.supports.conform`),
     so the fixed area is the selected part of the surface on every mesh, not whatever whole triangles
     the vertices happen to give.  Physical groups (``group:``) are whole facets already."""
-    from dataclasses import replace
 
     from pmask.precompute import supports
 
@@ -776,11 +775,31 @@ class _Stages:
                 folder.rmdir()
 
 
+#: the far-field tolerance the compressed route takes when it is chosen for a dense Ξ that does not fit
+AUTO_COMPRESS = 1e-4
+
+
+def auto_compress(auto: Spec, mesh: ModelMesh, element, dense: ResourceError) -> SimulationSurface:
+    """The compressed route in place of a dense Ξ this machine cannot hold (``dense``, check_memory's refusal):
+    its surface (the masks' r_max is the model's, not the whole body) after its own memory check, with a
+    warning that says so; the dense refusal and the compressed one in one line when neither fits.  Where
+    both fit the dense route runs: the bench measured the compressed one slower wherever both fit."""
+    surf = surface_stage(auto, mesh)
+    try:
+        check_memory(element, len(mesh.points), len(surf.regions.contact), auto)
+    except ResourceError as exc:
+        raise ResourceError(f"{dense}; stored compressed (--compress) it would not fit either: {exc}") from None
+    log.warning("the dense Ξ would not fit in this machine's memory (%s); storing it compressed instead (--compress "
+                "%g: K_i and pairs within r_max %.3g %s exact, the far field within the tolerance)",
+                str(dense).split(";")[0].split(", more than")[0], auto.compress, surf.r_max / auto.scale,
+                auto.units or "m")
+    return surf
+
+
 def _segmentation_units(spec: Spec) -> Spec:
     """A label image's lengths are in its header's unit: --edge-length, selectors and --r-max follow it."""
     if not spec.segmentation or spec.units is not None:
         return spec
-    from dataclasses import replace
 
     from pmask.precompute.segmentation import read_label_image
 
@@ -799,14 +818,23 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     validate(spec, out)
     spec = _segmentation_units(spec)
     keys = stage_keys(spec)
-    if out.exists() and not force and stored_input_hash(out) == keys["artifact"]:
-        log.debug("%s is up to date (input hash %s)", out, keys["artifact"][:12])
-        return {"up_to_date": True, "artifact": str(out), "input_hash": keys["artifact"]}
+    # without --compress, the compressed route is taken where the dense Ξ does not fit (auto_compress)
+    auto = replace(spec, compress=AUTO_COMPRESS) if spec.compress is None else None
+    auto_keys = stage_keys(auto) if auto is not None else None
+    stored = stored_input_hash(out) if out.exists() and not force else None
+    if stored is not None and stored in (keys["artifact"], auto_keys and auto_keys["artifact"]):
+        log.debug("%s is up to date (input hash %s)", out, stored[:12])
+        return {"up_to_date": True, "artifact": str(out), "input_hash": stored}
     st = _Stages(spec, out, keys, progress)
     st.work.mkdir(parents=True, exist_ok=True)
-    tiles = st.work / f"tiles-{keys['artifact'][:16]}.h5"  # the compressed route's tile store and W's (its name)
-    reusable = (st.checkpoint("mesh"), st.checkpoint("factor"), tiles, tiles.with_name(f"W-{tiles.stem}.bin"),
-                tiles.with_name(f"W-{tiles.stem}.index.npz"))
+
+    def tile_store(k):  # the compressed route's tile store and W's (its name)
+        return st.work / f"tiles-{k['artifact'][:16]}.h5"
+
+    tiles = tile_store(keys)
+    reusable = (st.checkpoint("mesh"), st.checkpoint("factor"), *(
+        t for t in {tiles, *([tile_store(auto_keys)] if auto_keys else [])}
+        for t in (t, t.with_name(f"W-{t.stem}.bin"), t.with_name(f"W-{t.stem}.index.npz"))))
     for stale in [*st.work.glob("*.npz"), *st.work.glob("tiles-*.h5"), *st.work.glob("W-tiles-*")]:
         if stale not in reusable:  # other inputs': not reusable by this run
             stale.unlink(missing_ok=True)
@@ -825,7 +853,14 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         with st.timed("regions", f"{spec.model}: assemble + factorise"):
             surf = surface_stage(spec, mesh)
             element = elements.get_element(element_name(spec, mesh))
-            check_memory(element, len(mesh.points), len(surf.regions.contact), spec)
+            try:
+                check_memory(element, len(mesh.points), len(surf.regions.contact), spec)
+            except ResourceError as dense:
+                if auto is None:
+                    raise
+                surf = auto_compress(auto, mesh, element, dense)
+                spec, keys = auto, auto_keys
+                st.keys, tiles = keys, tile_store(keys)
         solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
         factor, saving = None, None

@@ -557,6 +557,55 @@ def test_the_amg_route_runs_from_the_command_line_with_p1(tmp_path):
     assert np.abs(Ka - Kd).max() <= 1e-3 * np.abs(Kd).max()
 
 
+def test_a_dense_xi_that_does_not_fit_is_stored_compressed(tmp_path, monkeypatch, capsys, caplog):
+    """#27 item 6, the automatic choice: without --compress, a model whose dense Ξ does not fit in the memory
+    this machine has (here made smaller than the dense route's need and larger than the compressed one's) is
+    stored compressed with a warning that says so: its K_i equal the dense artifact's to the far field's
+    tolerance (each mask's pairs lie within r_max, stored exactly: measured round-off), and a second run is up to
+    date.  With less memory than either route needs, one line names both."""
+    from dataclasses import replace
+
+    import pmask.precompute.greens as greens
+    from pmask.pipeline import stages
+    from pmask.pipeline.cli import main
+
+    needs, real = {}, stages.check_memory
+
+    def recorded(element, nv, nc, spec=None):
+        need = real(element, nv, nc, spec)  # (no refusal while available_memory is None)
+        needs["dense" if spec.compress is None else "compressed"] = need["total"]
+        if spec.compress is None:
+            needs["compressed"] = real(element, nv, nc, replace(spec, compress=stages.AUTO_COMPRESS))["total"]
+        return need
+
+    # 2,165 contact vertices: the smallest kidney whose compressed route needs less than its dense Ξ (a floor of
+    # tiles per worker); at 0.005 m they need the same
+    common = ["precompute", "kidney", "--size", "0.004", "--element", "P1"]
+    dense = tmp_path / "dense.h5"
+    monkeypatch.setattr(greens, "available_memory", lambda: None)
+    monkeypatch.setattr(stages, "check_memory", recorded)
+    assert main(["-q", *common, "-o", str(dense)]) == 0
+    monkeypatch.setattr(stages, "check_memory", real)
+    assert needs["compressed"] < needs["dense"], needs
+    avail = {"bytes": (needs["compressed"] + needs["dense"]) / 2}
+    monkeypatch.setattr(greens, "available_memory", lambda: avail["bytes"])
+    capsys.readouterr()
+    auto = tmp_path / "auto.h5"
+    assert main([*common, "-o", str(auto)]) == 0
+    assert "storing it compressed instead" in caplog.text, caplog.text
+    a, d = Model.load(auto), Model.load(dense)
+    assert isinstance(a.Xi, CompressedXi) and not isinstance(d.Xi, CompressedXi)
+    r = 2 * d.mean_edge_length
+    Ka, Kd = a.stiffness("linear", r).K_vertex, d.stiffness("linear", r).K_vertex
+    assert np.abs(Ka - Kd).max() <= 1e-10 * np.abs(Kd).max()
+    assert run(Spec(model="kidney", params={"size": 0.004}, element="P1"), auto)["up_to_date"]
+    avail["bytes"] = needs["compressed"] / 2
+    assert main([*common, "-o", str(tmp_path / "none.h5")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "would not fit either" in err and "dense" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "none.h5").exists()
+
+
 def _viewer_press(model):
     """A probe dragged from 2 mm above the top to 2 mm inside, in a viewer session; its last reply."""
     import base64
