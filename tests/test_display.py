@@ -57,7 +57,9 @@ def test_the_pressed_scan_meets_the_tool_and_keeps_its_detail_away_from_it(scan)
     """A probe pressed 3 mm into the top: the deformed scan lies within 0.03 mm of the deformed simulation
     surface's own distance to the probe (the simulation surface meets the tool up to its display forces'
     interpolation, measured 0.09 mm here; without laying the scan onto it the gap grows by its lift, measured
-    0.16 mm), and a mask radius away from the contact the scan moves exactly as the simulation surface under it
+    0.16 mm), and within the scans issue's 0.1 mm of the tool (measured 0.073 mm; pressed 5 mm, a quarter of the
+    ball's radius, 0.18 mm, of which 0.165 mm is the simulation surface's own gap: the linear model that deep);
+    a mask radius away from the contact the scan moves exactly as the simulation surface under it
     (x' − x = Σ b u, to round-off)."""
     model, _, _ = scan
     ds = model.display()
@@ -69,6 +71,7 @@ def test_the_pressed_scan_meets_the_tool_and_keeps_its_detail_away_from_it(scan)
     gap_sim = surface_distance(probe[None], model.points + u, model.triangles)[0]
     gap_scan = surface_distance(probe[None], x, ds.triangles)[0]
     assert gap_scan <= gap_sim + 3e-5, (gap_scan, gap_sim)
+    assert gap_scan <= 1e-4, gap_scan
     far = np.linalg.norm(ds.points - proxy, axis=1) > stiff.masks.radius
     carried = np.einsum("dk,dkc->dc", ds.bary, u[ds.vertices])
     assert np.abs((x - ds.points)[far] - carried[far]).max() <= 1e-15
