@@ -560,9 +560,9 @@ def test_the_amg_route_runs_from_the_command_line_with_p1(tmp_path):
 def test_a_dense_xi_that_does_not_fit_is_stored_compressed(tmp_path, monkeypatch, capsys, caplog):
     """#27 item 6, the automatic choice: without --compress, a model whose dense Ξ does not fit in the memory
     this machine has (here made smaller than the dense route's need and larger than the compressed one's) is
-    stored compressed with a warning that says so: its K_i equal the dense artifact's to the far field's
-    tolerance (each mask's pairs lie within r_max, stored exactly: measured round-off), and a second run is up to
-    date.  With less memory than either route needs, one line names both."""
+    stored compressed with a warning that says so: its K_i equal the dense artifact's to round-off (each mask's
+    pairs lie within r_max, in the exact near field; 1e-10 leaves room for another summation order), and a
+    second run is up to date.  With less memory than either route needs, one line names both."""
     from dataclasses import replace
 
     import pmask.precompute.greens as greens
