@@ -215,10 +215,14 @@ def stage_keys(spec: Spec) -> dict:
     factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")}
                      | ({"solver": d["solver"]} if d["solver"] != "factor" else {})
                      | ({"materials": d["materials"]} if d.get("materials") else {}))
-    artifact = _digest({"factor": factor, "dtype": d["dtype"], "format_version": FORMAT_VERSION}
-                       | ({"compress": d["compress"]} if d["compress"] else {})
-                       | ({"display": bool(d["display"])} if d["surface"] or d["segmentation"] else {}))
-    return {"mesh": mesh, "factor": factor, "artifact": artifact}
+    return {"mesh": mesh, "factor": factor, "artifact": artifact_key(spec, factor)}
+
+
+def artifact_key(spec: Spec, factor: str) -> str:
+    """The artifact's input hash from its factor's key and how Ξ is stored (:func:`stage_keys`)."""
+    return _digest({"factor": factor, "dtype": spec.dtype, "format_version": FORMAT_VERSION}
+                   | ({"compress": spec.compress} if spec.compress else {})
+                   | ({"display": bool(spec.display)} if spec.surface or spec.segmentation else {}))
 
 
 def input_hash(spec: Spec) -> str:
@@ -822,7 +826,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     keys = stage_keys(spec)
     # without --compress, the compressed route is taken where the dense Ξ does not fit (auto_compress)
     auto = replace(spec, compress=AUTO_COMPRESS) if spec.compress is None else None
-    auto_keys = stage_keys(auto) if auto is not None else None
+    auto_keys = dict(keys, artifact=artifact_key(auto, keys["factor"])) if auto is not None else None
     stored = stored_input_hash(out) if out.exists() and not force else None
     if stored is not None and stored in (keys["artifact"], auto_keys and auto_keys["artifact"]):
         log.debug("%s is up to date (input hash %s)", out, stored[:12])
