@@ -182,6 +182,11 @@ def cmd_precompute(args) -> int:
     print(f"  mesh: {summary['volume_vertices']} vertices, {summary['tets']} tets, {summary['dofs']} dofs condensed")
     print(f"  surface: {summary['surface_vertices']} vertices: {summary['free']} free (Λp), "
           f"{summary['fixed']} fixed (Λu), {summary['contact']} in Ξ")
+    if summary.get("cavities"):
+        names = ["cavity"] if len(summary["cavities"]) == 1 else [f"cavity{k + 1}" for k in range(len(summary["cavities"]))]
+        print(f"  hollow: {len(names)} cavit{'y' if len(names) == 1 else 'ies'} ("
+              + ", ".join(f"group:{n}, {w} wall vertices" for n, w in zip(names, summary["cavities"]))
+              + "); a wall is touchable only where --contact selects it")
     if summary.get("remesh"):
         g = summary["remesh"]
         if g.get("auto"):

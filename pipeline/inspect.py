@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 import numpy as np
 
-from pmask.precompute.meshing import (GMSH_COUNT_FACTOR, MeshError, check_face_indices, edge_defects,
-                                      pinched_vertices, read_mesh_file, shells, stl_damage,
+from pmask.precompute.meshing import (DEBRIS_AREA_SHARE, GMSH_COUNT_FACTOR, MeshError, check_face_indices,
+                                      edge_defects, is_cavity, pinched_vertices, read_mesh_file, shells, stl_damage,
                                       triangle_blocks)
 
 
@@ -44,12 +44,19 @@ def inspect_surface(path, units: str | None = None, targets=(500, 2000, 5000)) -
     total = float(shell_area.sum())
     out["shells"] = [{"triangles": int(shell_tris[k]), "area_share": float(shell_area[k] / total),
                       "volume": float(shell_vol[k])} for k in order if shell_tris[k]]
+    main = int(order[0])  # cavities: inner shells facing inwards, meshed as the wall between (meshing.split_cavities)
+    closed = not (out["boundary_edges"] or out["non_manifold_edges"] or out["inconsistent_edges"])
+    cavity = [int(k) for k in order[1:] if closed and shell_tris[k] and shell_area[k] > DEBRIS_AREA_SHARE * total
+              and is_cavity(np.nan_to_num(pts), T[ok], tri_label, main, k)]
+    out["cavities"] = len(cavity)
+    for rank, k in enumerate(order[:len(out["shells"])]):
+        out["shells"][rank]["cavity"] = int(k) in cavity
     good = pts[np.all(np.isfinite(pts), axis=1)]
     lo, hi = good.min(axis=0), good.max(axis=0)
     out["bounding_box"] = [lo.tolist(), hi.tolist()]
     out["extent"] = float(np.linalg.norm(hi - lo))
     out["units"] = units or "m (not given)"
-    main_area = float(shell_area[order[0]])  # the largest shell's
+    main_area = float(shell_area[main] + shell_area[cavity].sum())  # the largest shell's, and its cavities' walls
     out["edge_length_for"] = {int(t): math.sqrt(GMSH_COUNT_FACTOR * 2.0 * main_area / (math.sqrt(3.0) * t))
                               for t in targets}
     return out
@@ -76,13 +83,16 @@ def report(r: dict) -> str:
     if shells and shells[0]["volume"] < 0 and not r["boundary_edges"]:
         found["largest shell oriented inwards"] = 1
     L.append("defects: " + (", ".join(f"{v} {k}" for k, v in found.items()) if found else "none"))
-    small = shells[1:]
+    if r.get("cavities"):
+        L.append(f"  {r['cavities']} shell(s) inside the largest face inwards: cavities; pmask precompute meshes the "
+                 "wall between them (a hollow organ; each cavity's wall is group:cavity, group:cavity1, ...)")
+    small = [s for s in shells[1:] if not s.get("cavity")]
     if small and sum(s["area_share"] for s in small) <= 0.01:
         L.append(f"  the {len(small)} small shell(s) are debris: pmask precompute drops them (with a warning)")
     L.append("--edge-length for about " + ", ".join(f"{n} surface vertices: {h:.3g} {u}"
                                                     for n, h in r["edge_length_for"].items()))
     blocking = {k for k in found if k != "degenerate triangles"}
-    if len(shells) > 1 and sum(s["area_share"] for s in shells[1:]) > 0.01:
+    if sum(s["area_share"] for s in small) > 0.01:
         blocking.add("several bodies")
     L.append("ready for pmask precompute --surface" if not blocking else "not ready: " + ", ".join(sorted(blocking)))
     L += [f"  {line}" for line in repair_routes(blocking)]

@@ -126,7 +126,8 @@ class SimulationSurface:
     vertices : volume indices of the surface vertices (sorted); triangles : into ``vertices``,
     counter-clockwise from outside; areas : a_i = ∫ φ_i dΓ; regions : free/fixed/contact/core sets
     (surface indices); r_max : largest mask radius [m]; fixed_selector, contact_selector : as given;
-    held : bool over ``triangles``, the facets the support holds (all three corners fixed).
+    held : bool over ``triangles``, the facets the support holds (all three corners fixed); cavities : the
+    vertex count of each cavity's wall (a hollow body; groups ``cavity``, ``cavity1``, ...).
     """
 
     vertices: np.ndarray
@@ -137,6 +138,7 @@ class SimulationSurface:
     fixed_selector: str
     contact_selector: str
     held: np.ndarray
+    cavities: tuple = ()
 
     def held_facets(self) -> np.ndarray:
         """The held facets as volume vertex indices (k, 3)."""
@@ -479,13 +481,22 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> SimulationSurface:
     if not fixed_sel:
         raise regions.RegionError("no fixed region given: use --fixed SELECTOR (e.g. 'z<-0.9' or 'group:NAME')")
     contact_sel = spec.contact if spec.contact is not None else mesh.contact
-    fixed_mask = selectors.select(fixed_sel, mesh.points / spec.scale, mesh.groups)[vertices]
+    # a hollow body: its cavities' walls are groups of their own, and the geometric selectors and the default
+    # contact region are the outer surface's (a probe touches the organ from outside; z<-8 is where it rests)
+    walls = surface.cavity_walls(spoints, triangles)
+    wall = np.any(walls, axis=0) if walls else np.zeros(len(vertices), bool)
+    groups, outer = dict(mesh.groups), np.ones(len(mesh.points), bool)
+    outer[vertices[wall]] = False
+    for name, w in zip(surface.cavity_names(len(walls)), walls):
+        groups[name] = np.zeros(len(mesh.points), bool)
+        groups[name][vertices[w]] = True
+    fixed_mask = selectors.select(fixed_sel, mesh.points / spec.scale, groups, outer if walls else None)[vertices]
     if supports.conformable(fixed_sel):  # held by area: the vertices of the facets inside the support
-        fixed_mask |= mesh.groups.get(supports.RIM, np.zeros(len(mesh.points), bool))[vertices]
+        fixed_mask |= mesh.groups.get(supports.RIM, np.zeros(len(mesh.points), bool))[vertices] & ~wall
         held = supports.fixed_facets(fixed_mask, triangles)
         fixed_mask = np.zeros(len(vertices), bool)
         fixed_mask[triangles[held]] = True
-    contact_mask = (selectors.select(contact_sel, mesh.points / spec.scale, mesh.groups)[vertices]
+    contact_mask = (selectors.select(contact_sel, mesh.points / spec.scale, groups, outer if walls else None)[vertices]
                     if contact_sel else None)
     if spec.r_max is not None:
         r_max = spec.r_max * spec.scale
@@ -495,6 +506,8 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> SimulationSurface:
         r_max = mesh.info.get("r_max_m", 4.0 * mean_edge_length(spoints, triangles))
     reg = regions.surface_regions(spoints, fixed_mask, contact_mask, r_max,
                                   fixed_selector=fixed_sel, contact_selector=contact_sel or "")
+    if walls:  # a cavity's wall is in Ξ only where a selector names it (masks stay on the side they touch)
+        reg = regions.without(reg, wall & ~(contact_mask if contact_mask is not None else np.zeros_like(wall)))
     held = supports.fixed_facets(np.isin(np.arange(len(vertices)), reg.fixed), triangles)
     facet_areas = triangle_areas(spoints, triangles)
     held_area = float(facet_areas[held].sum())
@@ -502,7 +515,8 @@ def surface_stage(spec: Spec, mesh: ModelMesh) -> SimulationSurface:
              int(held.sum()), held_area, 100 * held_area / facet_areas.sum())
     if spec.surface or spec.segmentation or (spec.volume and not spec.volume.endswith(".npz")):  # a user's selector
         _check_support_share(held_area / float(facet_areas.sum()), len(reg.fixed), fixed_sel, spec.units)
-    return SimulationSurface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "", held)
+    return SimulationSurface(vertices, triangles, areas, reg, float(r_max), fixed_sel, contact_sel or "", held,
+                             tuple(int(w.sum()) for w in walls))
 
 
 @functools.lru_cache(maxsize=16)
@@ -907,6 +921,6 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
     return {"up_to_date": False, "artifact": str(out), "input_hash": keys["artifact"], "timings": st.timings,
             "resumed": st.resumed, "volume_vertices": len(mesh.points), "tets": len(mesh.tets),
             "surface_vertices": len(surf.vertices), "free": len(reg.free), "fixed": len(reg.fixed),
-            "contact": len(reg.contact), "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs"),
+            "contact": len(reg.contact), "cavities": list(surf.cavities), "size_bytes": out.stat().st_size, "dofs": factor.stats.get("dofs"),
             "backend": factor.stats.get("backend"), "element": element_name(spec, mesh), "factor_stats": factor.stats,
             "remesh": mesh.info.get("remesh")}

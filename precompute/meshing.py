@@ -156,6 +156,12 @@ def shells(pts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
             np.bincount(tri_label, weights=vol, minlength=n_comp))
 
 
+def merge_duplicates(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The surface with coincident vertices merged (an STL repeats each vertex in every triangle)."""
+    pts, inverse = np.unique(np.asarray(points, float), axis=0, return_inverse=True)
+    return pts, inverse.ravel()[np.asarray(triangles, np.int64)]
+
+
 def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surface") -> tuple[np.ndarray, np.ndarray]:
     """Refuse a triangle surface that cannot bound a solid; return it with duplicate vertices merged.
 
@@ -166,8 +172,7 @@ def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surfac
     """
     if triangles is None or len(triangles) == 0:
         raise MeshError(f"{name}: no triangles; give a closed triangle surface (STL, OBJ, PLY, ...)")
-    pts, inverse = np.unique(np.asarray(points, float), axis=0, return_inverse=True)
-    tris = inverse.ravel()[np.asarray(triangles, np.int64)]
+    pts, tris = merge_duplicates(points, triangles)
     bad = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
     if np.any(bad):
         raise MeshError(f"{name}: {int(bad.sum())} degenerate triangles (repeated vertices); clean the surface")
@@ -493,26 +498,48 @@ class SeveralBodiesError(MeshError):
 
 
 class CavityError(SeveralBodiesError):
-    """A closed shell inside the body facing inwards: a hollow organ's inner wall.  Not meshed as a cavity
-    (yet); every repair route would fill it, so ``--repair auto`` does not try them."""
+    """A closed shell inside the body facing inwards (a hollow organ's inner wall) where it cannot be meshed as
+    a cavity: together with ``--inclusion``.  Every repair route would fill it, so ``--repair auto`` does
+    not try them."""
+
+
+def is_cavity(pts, tris, tri_label, outer: int, inner: int) -> bool:
+    """Whether shell ``inner`` is a cavity of shell ``outer``: it faces inwards (negative enclosed volume)
+    and lies inside (the generalised winding number of 64 of its vertices above ½): the inner wall of a
+    bladder, a stomach or a heart chamber."""
+    t_in = tris[tri_label == inner]
+    if enclosed_volume(pts, t_in) >= 0:
+        return False
+    v = np.unique(t_in)
+    v = v if len(v) <= 64 else np.random.default_rng(0).choice(v, 64, replace=False)
+    return bool(np.all(winding_numbers(pts, tris[tri_label == outer], pts[v]) > 0.5))
 
 
 def check_not_a_cavity(pts, tris, tri_label, per, outer: int, inner: int, name) -> None:
-    """Refuse, naming it, a shell that lies wholly inside the outer one and faces inwards (negative enclosed
-    volume): the inner wall of a bladder, a stomach or a heart chamber.  A cavity is not meshed (the body
-    would have to be the volume between the walls), and filling it silently, as the voxel route's union
+    """Refuse, naming it, a cavity where it reaches the surface checks (:func:`split_cavities` takes the
+    cavities out before them on the route that meshes them): filling it silently, as the voxel route's union
     does, makes a stiffer organ than the hollow one."""
-    t_in = tris[tri_label == inner]
-    if enclosed_volume(pts, t_in) >= 0:
-        return
-    v = np.unique(t_in)
-    v = v if len(v) <= 64 else np.random.default_rng(0).choice(v, 64, replace=False)
-    if np.all(winding_numbers(pts, tris[tri_label == outer], pts[v]) > 0.5):
+    if is_cavity(pts, tris, tri_label, outer, inner):
         rank = {k: r + 1 for r, k in enumerate(np.argsort(-per))}
         raise CavityError(f"{name}: shell {rank[inner]} ({100 * per[inner] / per.sum():.1f} % of the area) lies inside "
-                          f"shell {rank[outer]} and faces inwards: a cavity, as a hollow organ's inner wall is; pmask "
-                          f"meshes solid bodies only (a cavity is not supported yet): --shell {rank[outer]} takes the "
-                          "outer surface alone with the cavity filled, a stiffer organ than the hollow one")
+                          f"shell {rank[outer]} and faces inwards: a cavity, which pmask meshes, but not together "
+                          f"with --inclusion: precompute the hollow organ without --inclusion, or --shell {rank[outer]} "
+                          "takes the outer surface alone with the cavity filled, a stiffer organ than the hollow one")
+
+
+def split_cavities(points: np.ndarray, triangles: np.ndarray, name) -> tuple[np.ndarray, np.ndarray, list]:
+    """A hollow organ's surface: (points, the triangles of every shell but the cavities, [each cavity's
+    triangles, turned to face out of the cavity]), duplicates merged.  A cavity is a shell of more than
+    debris's share of the area that lies inside the largest shell and faces inwards (:func:`is_cavity`); the
+    body is then the volume between the walls (:func:`_remesh`), as a bladder's or a stomach's is."""
+    pts, tris = merge_duplicates(points, triangles)
+    if len(tris) == 0:
+        return pts, tris, []
+    tri_label, per, _ = shells(pts, tris)
+    main = int(np.argmax(per))
+    found = [int(k) for k in np.argsort(-per) if k != main and per[k] > DEBRIS_AREA_SHARE * per.sum()
+             and is_cavity(pts, tris, tri_label, main, k)]
+    return pts, tris[~np.isin(tri_label, found)], [tris[tri_label == k][:, ::-1] for k in found]
 
 
 def shell_list(per: np.ndarray, tri_label: np.ndarray) -> str:
@@ -545,7 +572,7 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
     main = int(np.argmax(per))
     rest = per.sum() - per[main]
     pieces = int(np.count_nonzero(np.bincount(tri_label, minlength=len(per)))) - 1
-    if rest > DEBRIS_AREA_SHARE * per.sum():
+    if pieces and rest > DEBRIS_AREA_SHARE * per.sum():
         big = [k for k in np.argsort(-per) if k != main and per[k] > DEBRIS_AREA_SHARE * per.sum()]
         for k in big:
             check_not_a_cavity(pts, tris, tri_label, per, main, k, name)
@@ -557,8 +584,9 @@ def keep_main_shell(pts: np.ndarray, tris: np.ndarray, name):
                                  f"{100 * rest / per.sum():.1f} % of the area (largest first: "
                                  f"{shell_list(per, tri_label)}); pmask models one body: choose it with --shell K "
                                  "(1 = the largest), or export the organ you want on its own")
-    log.warning("%s: dropped %d debris piece(s) apart from the main shell (%.2f %% of the area)", name, pieces,
-                100 * rest / per.sum())
+    if pieces:  # (none: only vertices no triangle uses, dropped silently)
+        log.warning("%s: dropped %d debris piece(s) apart from the main shell (%.2f %% of the area)", name, pieces,
+                    100 * rest / per.sum())
     keep = tri_label == main
     used = np.unique(tris[keep])
     remap = np.full(len(pts), -1)
@@ -626,7 +654,7 @@ def remesh_surface(path: Path, *, edge_length: float, scale: float = 1.0, angle_
                             "precompute --repair writes nothing you can reuse; mend it in a mesh tool)")
         outer = check_surface(raw, tris, str(path))
         inner = [read_inclusion(q, scale, outer, edge_length) for q in inclusions]
-        check_inclusions_apart(inner, inclusions)
+        check_inclusions_apart(inner, [f"--inclusion {q}" for q in inclusions])
         check_size_before_meshing(*outer, edge_length, path, xi_of_all)
         points, tets, label = _remesh(*outer, path, edge_length, angle_deg, inclusions=inner)
         change = geometry_change(*outer, points, tets, edge_length)
@@ -645,35 +673,43 @@ def read_inclusion(path: Path, scale: float, outer, edge_length: float):
     (3 V / A, the radius of a ball, against half an edge length)."""
     raw, tris = read_surface_file(path, scale)
     pts, tris = check_surface(raw, tris, f"--inclusion {path}")
+    return check_inner_surface(pts, tris, outer, edge_length, f"--inclusion {path}",
+                               "an inclusion must lie wholly inside (same --units as the body)")
+
+
+def check_inner_surface(pts, tris, outer, edge_length: float, what: str, advice: str):
+    """A closed outward surface inside the body (an inclusion, or a cavity turned outwards) checked against
+    the outer one (``outer``: (points, triangles)): wholly inside it (a generalised winding number of its
+    vertices), not touching it (half an edge length of tissue at least: an element between the two surfaces),
+    and not thinner than an element (3 V / A, the radius of a ball, against half an edge length)."""
     op, ot = outer
     rng = np.random.default_rng(0)
     sample = pts if len(pts) <= 2000 else pts[rng.choice(len(pts), 2000, replace=False)]
     outside = int(np.sum(winding_numbers(op, ot, sample) < 0.5))
     if outside:
-        raise MeshError(f"--inclusion {path}: it crosses the outer surface ({outside} of {len(sample)} sampled "
-                        "vertices lie outside the body): an inclusion must lie wholly inside (same --units as the "
-                        "body)")
+        raise MeshError(f"{what}: it crosses the outer surface ({outside} of {len(sample)} sampled "
+                        f"vertices lie outside the body): {advice}")
     gap = float(surface_distance(sample, op, ot).min())
     if gap < 0.5 * edge_length:
-        raise MeshError(f"--inclusion {path}: it touches the outer surface ({1e3 * gap:.3g} mm from it, less than "
+        raise MeshError(f"{what}: it touches the outer surface ({1e3 * gap:.3g} mm from it, less than "
                         f"half the {1e3 * edge_length:.3g} mm edge length): leave tissue between them, or use an "
                         f"--edge-length of at most {2e3 * gap:.3g} mm")
     thickness = 3.0 * enclosed_volume(pts, tris) / float(triangle_areas(pts, tris).sum())
     if thickness < 0.5 * edge_length:
-        raise MeshError(f"--inclusion {path}: it is thinner than an element (about {2e3 * thickness:.3g} mm across, "
+        raise MeshError(f"{what}: it is thinner than an element (about {2e3 * thickness:.3g} mm across, "
                         f"for {1e3 * edge_length:.3g} mm edges): use an --edge-length of at most "
                         f"{2e3 * thickness:.3g} mm")
     return pts, tris
 
 
-def check_inclusions_apart(inner, paths) -> None:
-    """Inclusions may not run into or hold each other: each region one material."""
+def check_inclusions_apart(inner, names, advice: str = "give each part of the tissue one material (separate "
+                                                        "inclusions)") -> None:
+    """Inclusions (or cavities) may not run into or hold each other: each region one material."""
     for a in range(len(inner)):
         for b in range(a + 1, len(inner)):
             for x, (p, t) in ((inner[a][0], inner[b]), (inner[b][0], inner[a])):
                 if np.any(np.abs(winding_numbers(p, t, x[:500])) > 0.5):
-                    raise MeshError(f"--inclusion {paths[a]} and --inclusion {paths[b]} overlap or one holds the "
-                                    "other: give each part of the tissue one material (separate inclusions)")
+                    raise MeshError(f"{names[a]} and {names[b]} overlap or one holds the other: {advice}")
 
 
 #: ``--repair auto``'s order, measured over the corpus and the public scans (bench/repair_compare.py): as
@@ -758,6 +794,9 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
             raw, tris, fixed = repair_surface(raw, tris, path)
         if report is not None:
             report["repair"] = fixed
+    cavities = []
+    if not repair:  # a hollow organ as it is: its cavities are meshed as such (a repair route would fill them)
+        raw, tris, inner = split_cavities(raw, tris, path)
     try:
         pts, tris = check_surface(raw, tris, str(path))
     except MeshError as exc:
@@ -767,9 +806,18 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
         other = "voxel" if repair != "voxel" else "meshfix"
         raise MeshError(f"{_cause(str(exc))}; this is after --repair {repair}: try --repair {other}, or mend the "
                         "file in a mesh tool") from None
-    check_size_before_meshing(pts, tris, edge_length, path, xi_of_all)
+    if not repair and inner:
+        names = [f"{path}: cavity {k + 1}" for k in range(len(inner))]
+        cavities = [check_inner_surface(*check_surface(raw, t, name), (pts, tris), edge_length, name,
+                                        "its wall runs into the outer surface; mend the file in a mesh tool")
+                    for t, name in zip(inner, names)]
+        check_inclusions_apart(cavities, names, "mend the file in a mesh tool")
+        log.info("%s: %d cavit%s inside the outer surface: the body is the volume between the walls", path,
+                 len(cavities), "y" if len(cavities) == 1 else "ies")
+    whole = join_surfaces((pts, tris), *[(p, t[:, ::-1]) for p, t in cavities])  # the walls as the body's surface
+    check_size_before_meshing(*whole, edge_length, path, xi_of_all)
     try:
-        points, tets = _remesh_with_fallback(pts, tris, path, edge_length, angle_deg)
+        points, tets = _remesh_with_fallback(pts, tris, path, edge_length, angle_deg, cavities)
     except MeshError as exc:
         if repair == "meshfix" or repair is True:
             raise MeshError(f"{_cause(str(exc))}; this is after --repair meshfix: try --repair voxel or a smaller "
@@ -783,8 +831,10 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
         raise MeshError(f"{str(exc).split('; ')[0]}; after --repair voxel this means parts thinner than about three "
                         f"voxels ({3e3 * edge_length / VOXELS_PER_EDGE:.3g} mm) folded: try --repair meshfix "
                         "or a smaller --edge-length") from None
-    change = geometry_change(pts, tris, points, tets, edge_length)
-    change["edge_length"] = edge_length_report(pts, tris, points, tets, edge_length)
+    change = geometry_change(*whole, points, tets, edge_length)
+    change["edge_length"] = edge_length_report(*whole, points, tets, edge_length)
+    if cavities:
+        change["cavities"] = len(cavities)
     if report is not None:
         report.update(change)
     if abs(change["volume_change"]) > VOLUME_CHANGE_WARN or change["hausdorff_m"] > HAUSDORFF_WARN * edge_length:
@@ -822,9 +872,20 @@ def edge_length_report(pts, tris, points, tets, edge_length: float) -> dict:
             "shortest_edge_ratio": shortest / edge_length}
 
 
-def _remesh_with_fallback(pts, tris, path, edge_length, angle_deg):
+def join_surfaces(*parts) -> tuple[np.ndarray, np.ndarray]:
+    """Several triangle surfaces (points, triangles) as one."""
+    offsets = np.cumsum([0] + [len(p) for p, _ in parts])
+    return (np.vstack([p for p, _ in parts]),
+            np.vstack([np.asarray(t, np.int64) + o for (_, t), o in zip(parts, offsets)]))
+
+
+def _remesh_with_fallback(pts, tris, path, edge_length, angle_deg, cavities=()):
+    """:func:`_remesh`, again without feature edges where they made the surface unparametrisable or ruled
+    the mesh; ``cavities`` (outward (points, triangles) each) are left empty inside the body."""
+    whole = join_surfaces((pts, tris), *[(p, t[:, ::-1]) for p, t in cavities])
+    remesh = lambda angle: _remesh(pts, tris, path, edge_length, angle, cavities=cavities)  # noqa: E731
     try:
-        out = _remesh(pts, tris, path, edge_length, angle_deg)
+        out = remesh(angle_deg)
     except MeshError as exc:
         if angle_deg >= 180.0 or "parametriz" not in str(exc) and "Invalid boundary mesh" not in str(exc):
             raise
@@ -833,20 +894,20 @@ def _remesh_with_fallback(pts, tris, path, edge_length, angle_deg):
         # lung, an XCAT liver and the bunny), at the price of rounding real creases, so this is the fallback
         log.warning("%s: classifying at %g° gave patches gmsh cannot parametrise; retrying without feature edges",
                     path, angle_deg)
-        return _remesh(pts, tris, path, edge_length, 180.0)
+        return remesh(180.0)
     if angle_deg >= 180.0:
         return out
     # the feature edges may also rule the mesh without failing: a staircase of voxel faces or a lung's many
     # sharp edges kept as curves gave 2.2x the vertices --edge-length asks for and 0.055 mm edges at 10 mm;
     # then the surface is remeshed without feature edges, which honours the length
-    got = edge_length_report(pts, tris, *out, edge_length)
+    got = edge_length_report(*whole, *out, edge_length)
     if got["count_ratio"] <= EDGE_COUNT_SLACK and got["shortest_edge_ratio"] >= EDGE_SHORTEST:
         return out
     log.warning("%s: with the edges sharper than %g° kept as features the mesh has %.1fx the surface vertices "
                 "--edge-length asks for and edges down to %.2g of it; remeshing without feature edges (real creases "
                 "are rounded)", path, angle_deg, got["count_ratio"], got["shortest_edge_ratio"])
     try:
-        return _remesh(pts, tris, path, edge_length, 180.0)
+        return remesh(180.0)
     except MeshError:
         return out  # the feature-edge mesh is valid, only finer than asked
 
@@ -906,12 +967,15 @@ def geometry_change(p_in, t_in, points, tets, edge_length: float, seed: int = 0,
     return {"hausdorff_m": float(max(d1, d2)), "volume_change": vol_out / vol_in - 1.0, "sample_spacing_m": spacing}
 
 
-def _remesh(pts, tris, path, edge_length, angle_deg, inclusions=()):
+def _remesh(pts, tris, path, edge_length, angle_deg, inclusions=(), cavities=()):
     """gmsh: classify and parametrise the surface(s), mesh the volume.  With ``inclusions`` (closed surfaces
     inside, (points, tris) each) the body is the volume between the outer loop and theirs and each inclusion a
-    volume of its own on the same surface mesh; returns (points, tets, label) then, label 0 the body."""
+    volume of its own on the same surface mesh; returns (points, tets, label) then, label 0 the body.
+    ``cavities`` (closed surfaces inside, facing out of the cavity) are holes in the body: its volume lies
+    between the outer loop and theirs, and nothing is meshed inside them (gmsh tutorial t2's volume with a
+    hole: a volume of several surface loops, the first the outer)."""
     with gmsh_session("remesh") as gmsh:
-        parts = [(pts, tris), *inclusions]
+        parts = [(pts, tris), *inclusions, *cavities]
         offset = 0
         for p, t in parts:
             s = gmsh.model.addDiscreteEntity(2)
@@ -925,7 +989,7 @@ def _remesh(pts, tris, path, edge_length, angle_deg, inclusions=()):
             raise MeshError(f"{path}: gmsh could not build a parametrisable geometry from this surface ({exc}); "
                             "repair or smooth it, or try another --edge-length") from exc
         surfaces = [e[1] for e in gmsh.model.getEntities(2)]
-        if not inclusions:
+        if len(parts) == 1:
             loop = gmsh.model.geo.addSurfaceLoop(surfaces)
             gmsh.model.geo.addVolume([loop])
         else:  # which input each classified patch came from: the one its nodes lie on
@@ -934,7 +998,8 @@ def _remesh(pts, tris, path, edge_length, angle_deg, inclusions=()):
                 x = gmsh.model.mesh.getNodes(2, s, includeBoundary=True)[1].reshape(-1, 3)[:8]
                 owner[s] = int(np.argmin([surface_distance(x, p, np.asarray(t)).max() for p, t in parts]))
             loops = [gmsh.model.geo.addSurfaceLoop([s for s in surfaces if owner[s] == k]) for k in range(len(parts))]
-            volumes = [gmsh.model.geo.addVolume(loops)] + [gmsh.model.geo.addVolume([lp]) for lp in loops[1:]]
+            volumes = [gmsh.model.geo.addVolume(loops)] + [gmsh.model.geo.addVolume([lp])
+                                                           for lp in loops[1:1 + len(inclusions)]]
         gmsh.model.geo.synchronize()
         gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * edge_length)
         gmsh.option.setNumber("Mesh.MeshSizeMax", edge_length)
@@ -947,8 +1012,10 @@ def _remesh(pts, tris, path, edge_length, angle_deg, inclusions=()):
                                 "triangles cross (e.g. remove overlapping parts), or try --repair") from exc
             raise MeshError(f"{path}: gmsh could not remesh this surface ({exc}); "
                             "check that it is closed and not self-intersecting") from exc
-        if not inclusions:
+        if len(parts) == 1:
             return tets_from_gmsh(gmsh)
+        if not inclusions:  # the body alone (a cavity's own surface mesh has nodes no tetrahedron outside uses)
+            return tets_by_volume(gmsh, volumes)[:2]
         return tets_by_volume(gmsh, volumes)
 
 

@@ -56,3 +56,13 @@ def surface_regions(points: np.ndarray, fixed_mask: np.ndarray, contact_mask: np
     contact = free[np.isfinite(near)]
     core = np.isin(contact, core_vertices)
     return Regions(free=free, fixed=fixed, contact=contact, core=core)
+
+
+def without(reg: Regions, drop: np.ndarray) -> Regions:
+    """``reg`` with the surface vertices where ``drop`` (bool over the surface) taken out of the contact set
+    (a hollow body's cavity walls: no mask reaches through the wall, no probe touches them)."""
+    keep = ~np.asarray(drop, bool)[reg.contact]
+    if not keep[reg.core].any():
+        raise RegionError("the contact region lies wholly on a cavity's wall: select the wall itself with "
+                          "--contact group:cavity (or the outer surface with a geometric selector)")
+    return Regions(free=reg.free, fixed=reg.fixed, contact=reg.contact[keep], core=reg.core[keep])

@@ -27,14 +27,22 @@ class SelectorError(InputError):
     """A selector that cannot be parsed or names an unknown group."""
 
 
-def select(selector: str, points: np.ndarray, groups: dict | None = None) -> np.ndarray:
-    """Boolean mask of the ``points`` that ``selector`` matches."""
+def select(selector: str, points: np.ndarray, groups: dict | None = None,
+           geometric: np.ndarray | None = None) -> np.ndarray:
+    """Boolean mask of the ``points`` that ``selector`` matches.
+
+    ``geometric`` (bool over points): where the parts that are not ``group:`` may match, e.g. a hollow
+    body's outer surface, so that ``z<-8`` holds the organ where it rests and not also its cavity's floor
+    (a cavity's wall is selected by its group, ``group:cavity``)."""
     groups = {} if groups is None else groups  # an empty mapping (or parse()'s any-group placeholder) is kept
     if not isinstance(selector, str) or not selector.strip():
         raise SelectorError("empty selector; use e.g. 'z<-0.9', 'box:...', 'sphere:...' or 'group:NAME'")
     mask = np.zeros(len(points), bool)
     for part in selector.split("|"):
-        mask |= _one(part.strip(), points, groups)
+        one = _one(part.strip(), points, groups)
+        if geometric is not None and not part.strip().startswith("group:"):
+            one &= geometric
+        mask |= one
     return mask
 
 

@@ -35,3 +35,26 @@ def boundary_surface(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, 
         raise MeshError(f"the boundary surface has {int(np.sum(ecount != 2))} edges not shared by exactly two "
                         "triangles (open or non-manifold boundary); remesh the volume")
     return surface_vertices, triangles
+
+
+def cavity_names(n: int) -> list[str]:
+    """The groups a hollow body's cavity walls become: "cavity", or "cavity1", "cavity2", ... (largest first)."""
+    return ["cavity"] if n == 1 else [f"cavity{k + 1}" for k in range(n)]
+
+
+def cavity_walls(points: np.ndarray, triangles: np.ndarray) -> list[np.ndarray]:
+    """The walls of a hollow body's cavities (a bladder's or a stomach's lumen), as bool masks over the
+    surface vertices, largest first: the connected pieces of the boundary surface other than the outer one
+    (the largest by area) whose bounding box lies inside the outer one's.  A single tetrahedral body's
+    boundary pieces are its outer surface and the walls of its holes; [] for a solid body."""
+    from pmask.runtime.geometry import surface_pieces, triangle_areas
+
+    label = surface_pieces(len(points), triangles)
+    if np.all(label == label[0]):
+        return []
+    area = np.bincount(label[triangles[:, 0]], triangle_areas(points, triangles), minlength=len(points))
+    outer = int(np.argmax(area))
+    lo, hi = points[label == outer].min(axis=0), points[label == outer].max(axis=0)
+    walls = [k for k in np.argsort(-area) if k != outer and area[k] > 0
+             and np.all(points[label == k].min(axis=0) >= lo) and np.all(points[label == k].max(axis=0) <= hi)]
+    return [label == k for k in walls]

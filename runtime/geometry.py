@@ -146,6 +146,33 @@ def smoothed_normals(points: np.ndarray, triangles: np.ndarray, radius: float, p
     return out / np.where(norm > 0, norm, 1.0)
 
 
+def surface_pairs_within(points: np.ndarray, triangles: np.ndarray, radius: float):
+    """:func:`pairs_within` restricted to pairs on the same connected piece of the surface: a hollow body's
+    cavity wall, a wall's thickness away, does not turn its outer surface's normals (they face opposite ways)."""
+    i, j = pairs_within(points, radius)
+    label = surface_pieces(len(points), triangles)
+    if np.all(label == label[0]):
+        return i, j
+    same = label[i] == label[j]
+    return i[same], j[same]
+
+
+def surface_pieces(n_vertices: int, triangles: np.ndarray) -> np.ndarray:
+    """Each vertex's connected piece of the surface, labelled by its smallest vertex index (numpy only: the
+    runtime has no scipy): labels spread along the edges to their minimum, with pointer jumping."""
+    label = np.arange(n_vertices)
+    if len(triangles) == 0:
+        return label
+    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    while True:
+        old = label.copy()
+        np.minimum.at(label, e[:, 0], label[e[:, 1]])
+        np.minimum.at(label, e[:, 1], label[e[:, 0]])
+        label = label[label]
+        if np.array_equal(label, old):
+            return label
+
+
 def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, crease_deg: float = 30.0):
     """Vertex normals for haptic contact: the area-weighted normals, except within ``radius`` of a crease
     (an edge whose faces meet at more than ``crease_deg``), where they blend into the normals averaged
@@ -174,7 +201,7 @@ def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, cr
     crease[triangles[tt, (kk + 2) % 3]] = True
     if not crease.any():
         return n
-    pairs = pairs_within(points, radius)
+    pairs = surface_pairs_within(points, triangles, radius)
     i, j = pairs
     near = crease[j]
     d = np.full(len(points), np.inf)
