@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 
-from pmask.runtime.artifact import (DEFINITION, FORMAT_NAME, FORMAT_VERSION, array_digest, metadata_digest,
-                                    update_array_digest)
+from pmask.runtime.artifact import (BLOCK_DIGEST_BYTES, DEFINITION, FORMAT_NAME, FORMAT_VERSION, SLICED, array_digest,
+                                    digest_block_rows, metadata_digest, update_array_digest)
 from pmask.runtime.files import atomic_write, check_interrupt
 
 
@@ -61,6 +61,7 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         attrs["display"] = json.dumps({"vertices": int(len(display["points"])), "triangles": int(len(display["triangles"])),
                                        "folded": int(display["folded"]), "max_lift_m": float(display["max_lift"])})
     digests = {name: array_digest(arr) for name, arr in small.items()}
+    blocks = {}
 
     def fill(tmp):
         import h5py
@@ -69,8 +70,12 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
             for name, arr in small.items():
                 f.create_dataset(name, data=arr)
             for name, (arr, dt) in big.items():
-                digests[name] = _write_blocks(f, name, np.asarray(arr), dt)
+                digests[name], per_block = _write_blocks(f, name, np.asarray(arr), dt, sliced=name in SLICED)
+                if per_block is not None:
+                    blocks[name] = per_block
             covers = {"attributes": sorted(attrs), "datasets": dict(sorted(digests.items()))}
+            if blocks:  # (format 1.5) a reader that knows them verifies these instead, in parallel
+                covers["blocks"] = dict(sorted(blocks.items()))
             for k, v in attrs.items():
                 f.attrs[k] = v
             f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
@@ -79,26 +84,42 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
     atomic_write(path, fill)
 
 
-def _write_blocks(f, name, arr, dtype, block_bytes=8 << 20) -> str:
-    """A chunked, checksummed dataset written ~8 MiB of rows at a time: ``arr`` may be a strided view
-    (Ξ from the native route) and ``dtype`` narrower than it without a full-size copy.  Returns the
-    SHA-256 of the stored bytes, computed on the same blocks."""
+def _write_blocks(f, name, arr, dtype, *, sliced: bool = False, block_bytes=8 << 20):
+    """A dataset written a block of rows at a time: ``arr`` may be a strided view (Ξ from the native route)
+    and ``dtype`` narrower than it without a full-size copy.  Returns the SHA-256 of the stored bytes and,
+    for a dataset above :data:`~pmask.runtime.artifact.BLOCK_DIGEST_BYTES`, {"rows": R, "sha256": [the
+    SHA-256 of each block of R rows]} (else None), computed on the same blocks.
+
+    ``sliced`` (a dataset a reader may read in slices, unhashed: the far field's factors) is stored in
+    ~1 MiB chunks with HDF5's Fletcher-32, which HDF5 checks on every read; the others are read whole and
+    checked by their SHA-256, and are stored contiguous without it (it doubled the time to open a
+    20,000-vertex compressed artifact: 0.58 s reading its near field with it, 0.21 s without, by hand)."""
     h = hashlib.sha256()
     chunks = _chunks(arr.shape)
     if chunks is None:
         stored = np.asarray(arr, dtype)
         f.create_dataset(name, data=stored)
         update_array_digest(h, stored)
-        return h.hexdigest()
-    ds = f.create_dataset(name, shape=arr.shape, dtype=dtype, chunks=chunks, fletcher32=True)
-    row_bytes = max(1, int(np.prod(arr.shape[1:])) * arr.itemsize)
-    step = max(chunks[0], (block_bytes // row_bytes) // chunks[0] * chunks[0])
+        return h.hexdigest(), None
+    row_bytes = max(1, int(np.prod(arr.shape[1:])) * np.dtype(dtype).itemsize)
+    per_block = None
+    if arr.shape[0] * row_bytes > BLOCK_DIGEST_BYTES:
+        step = digest_block_rows(arr.shape, np.dtype(dtype).itemsize)
+        per_block = {"rows": int(step), "sha256": []}
+    else:
+        step = max(chunks[0], (block_bytes // row_bytes) // chunks[0] * chunks[0])
+    if sliced:
+        ds = f.create_dataset(name, shape=arr.shape, dtype=dtype, chunks=chunks, fletcher32=True)
+    else:
+        ds = f.create_dataset(name, shape=arr.shape, dtype=dtype)
     for i0 in range(0, arr.shape[0], step):
         check_interrupt()  # Ctrl-C is taken here, between blocks (pmask.runtime.files)
         block = np.ascontiguousarray(arr[i0:i0 + step], dtype)
         ds[i0:i0 + step] = block
         update_array_digest(h, block)
-    return h.hexdigest()
+        if per_block is not None:
+            per_block["sha256"].append(array_digest(block))
+    return h.hexdigest(), per_block
 
 
 def _chunks(shape):

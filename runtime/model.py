@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
-from pmask.runtime.artifact import REACTIONS, RUNTIME, VOLUME, read_artifact, stored_bytes
+from pmask.runtime.artifact import REACTIONS, RUNTIME, SLICED, VOLUME, read_artifact, stored_bytes
 from pmask.runtime.compressed import CompressedXi
 from pmask.runtime.device import Device
 from pmask.runtime.geometry import mean_edge_length
@@ -92,7 +92,7 @@ class Model:
     @classmethod
     def _far_field_in_file(cls, path, far_field: str) -> tuple:
         """The far-field datasets to leave in the file (none for a dense artifact)."""
-        far = ("greens/hmatrix/U", "greens/hmatrix/V")
+        far = SLICED  # the far field's factors
         size = stored_bytes(path, far)
         if size is None:
             return ()

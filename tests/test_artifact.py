@@ -109,8 +109,8 @@ def test_reads_format_1_0(artifact, copy):
         Model.load(copy)
 
 
-def test_refuses_sign_flipped_greens_functions_with_valid_fletcher32(copy):
-    """Rewritten through h5py, Ξ's chunks carry valid Fletcher-32 checksums: only the SHA-256 sees it."""
+def test_refuses_sign_flipped_greens_functions_rewritten_through_h5py(copy):
+    """Rewritten through h5py (which would keep any Fletcher-32 checksum valid): the SHA-256 sees it."""
     with h5py.File(copy, "r+") as f:
         f["greens/Xi"][...] = -f["greens/Xi"][()]
     with pytest.raises(ArtifactError, match="dataset greens/Xi was altered"):
@@ -129,6 +129,38 @@ def test_large_datasets_hashed_block_by_block_still_see_one_changed_value(artifa
         f["greens/Xi"][-1, -1] = 2 * f["greens/Xi"][-1, -1]
     with pytest.raises(ArtifactError, match="dataset greens/Xi was altered"):
         Model.load(copy)
+
+
+def test_per_block_digests_are_verified_and_name_the_altered_rows(tmp_path, monkeypatch):
+    """Format 1.5: a dataset above BLOCK_DIGEST_BYTES also has the SHA-256 of each block of rows, which the
+    reader hashes on two threads (one SHA-256 of the whole is a serial chain).  With the threshold at 64 KiB and
+    blocks of 16 KiB, Ξ gets a block list covering every row; the whole-dataset digest a 1.4 reader checks is
+    still right; the file loads equal to an unverified load; one value changed (through h5py) is refused,
+    naming rows that hold it."""
+    from pmask.precompute import writer
+    from pmask.runtime import artifact as art
+
+    monkeypatch.setattr(writer, "BLOCK_DIGEST_BYTES", 1 << 16)
+    monkeypatch.setattr(art, "READ_BLOCK_BYTES", 1 << 14)
+    out = tmp_path / "blocks.h5"
+    run(Spec(model="loop1"), out)
+    with h5py.File(out, "r") as f:
+        covers = json.loads(f.attrs["sha256_covers"])
+        Xi = f["greens/Xi"][()]
+    blocks = covers["blocks"]["greens/Xi"]
+    rows = blocks["rows"]
+    assert rows == art.digest_block_rows(Xi.shape, 8) and len(blocks["sha256"]) == -(-len(Xi) // rows) > 10
+    assert array_digest(Xi) == covers["datasets"]["greens/Xi"]  # what a 1.4 reader verifies
+    np.testing.assert_array_equal(Model.load(out).Xi, Model.load(out, verify=False).Xi)
+    row = len(Xi) - 3
+    with h5py.File(out, "r+") as f:
+        f["greens/Xi"][row, 0] = 2 * f["greens/Xi"][row, 0] + 1e-30
+    import re
+
+    with pytest.raises(ArtifactError, match="dataset greens/Xi \\(rows") as err:
+        Model.load(out)
+    first, last = map(int, re.search(r"rows (\d+) to (\d+)", str(err.value)).groups())
+    assert first <= row <= last
 
 
 def test_a_nan_anywhere_in_a_large_array_is_found():
@@ -174,14 +206,15 @@ def test_refuses_altered_surface_data(copy):
 
 
 def test_refuses_bit_flip_in_greens_functions(copy):
+    """One bit flipped on disk in the middle of Ξ (stored contiguous, format 1.5: its SHA-256 is its check)."""
     with h5py.File(copy, "r") as f:
-        info = f["greens/Xi"].id.get_chunk_info(0)
+        offset, size = f["greens/Xi"].id.get_offset(), f["greens/Xi"].id.get_storage_size()
     with open(copy, "r+b") as fh:
-        fh.seek(info.byte_offset + info.size // 2)
+        fh.seek(offset + size // 2)
         b = fh.read(1)
         fh.seek(-1, 1)
         fh.write(bytes([b[0] ^ 0x10]))
-    with pytest.raises(ArtifactError, match=f"{copy.name}.*corrupt"):
+    with pytest.raises(ArtifactError, match=f"{copy.name}.*dataset greens/Xi was altered"):
         Model.load(copy)
 
 

@@ -669,6 +669,33 @@ def test_the_far_field_can_stay_in_the_file(pair):
         Model.load(comp.path, far_field="disk")
 
 
+def test_a_far_field_left_in_the_file_is_checked_chunk_by_chunk(pair, tmp_path):
+    """The far field's factors, read in slices without their SHA-256, are the datasets that carry HDF5's
+    Fletcher-32 (format 1.5: only they): one byte flipped on disk inside U's first chunk is refused, naming the
+    dataset, when that slice is read."""
+    import shutil
+
+    import h5py
+
+    from pmask.runtime.artifact import ArtifactError
+
+    _, comp, _ = pair
+    bad = tmp_path / "flipped.h5"
+    shutil.copy(comp.path, bad)
+    with h5py.File(bad, "r") as f:
+        ds = f["greens/hmatrix/U"]
+        assert ds.fletcher32 and not f["greens/hmatrix/dense"].fletcher32
+        offset = ds.id.get_chunk_info(0).byte_offset
+    with open(bad, "r+b") as fh:
+        fh.seek(offset + 100)
+        byte = fh.read(1)
+        fh.seek(offset + 100)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+    lazy = Model.load(bad, far_field="file")  # opens: the far field is not read yet
+    with pytest.raises(ArtifactError, match="greens/hmatrix/U"):
+        lazy.Xi.U[0:64]
+
+
 def test_merged_pieces_keep_the_block_within_tolerance_at_its_own_rank():
     """merge_pieces against the SVD: a planted rank-7 block (3n x 3m, smooth columns plus noise 1e-9 of
     its norm) split into 11 column pieces, each compressed within tol/2 as a tile does, then merged: the
