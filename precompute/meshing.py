@@ -794,7 +794,7 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
             raw, tris, fixed = repair_surface(raw, tris, path)
         if report is not None:
             report["repair"] = fixed
-    cavities = []
+    cavities, inner = [], []
     if not repair:  # a hollow organ as it is: its cavities are meshed as such (a repair route would fill them)
         raw, tris, inner = split_cavities(raw, tris, path)
     try:
@@ -806,7 +806,7 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
         other = "voxel" if repair != "voxel" else "meshfix"
         raise MeshError(f"{_cause(str(exc))}; this is after --repair {repair}: try --repair {other}, or mend the "
                         "file in a mesh tool") from None
-    if not repair and inner:
+    if inner:
         names = [f"{path}: cavity {k + 1}" for k in range(len(inner))]
         cavities = [check_inner_surface(*check_surface(raw, t, name), (pts, tris), edge_length, name,
                                         "its wall runs into the outer surface; mend the file in a mesh tool")
