@@ -588,10 +588,15 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
         from pmask.precompute import compress
 
         local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
-        if spec.solver == "amg":  # K_FF (~81 stored entries per dof row, 12 bytes each) and its hierarchy
-            need["factor"] = 4 * 12.0 * 81 * 3 * n_volume_vertices * element.dofs_per_vertex
-        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact,
-                                                                            compress.panel_size(n_contact))
+        panel = compress.panel_size(n_contact)
+        held = need["factor"]
+        if spec.solver == "amg":  # K_FF (~81 stored entries per dof row, 12 bytes each), its hierarchy, and
+            from pmask.precompute import amg  # each worker's block CG on a panel's columns
+
+            dofs = 3 * n_volume_vertices * element.dofs_per_vertex
+            need["factor"] = amg.hierarchy_bytes(12.0 * 81 * dofs)
+            held = need["factor"] + amg.solve_bytes(dofs, 3 * n_contact, 3 * panel)
+        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(held, n_contact, panel)
         avail = greens.available_memory()
         if avail is not None and need["total"] > avail:
             raise ResourceError(

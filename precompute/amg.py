@@ -31,6 +31,12 @@ from pmask.errors import ResourceError
 
 #: relative residual at which a column's CG stops
 RTOL = 1e-10
+#: load columns block CG solves at once: its working set is PCG_ARRAYS arrays of n x PCG_COLUMNS doubles (a whole
+#: 512-vertex panel at once, 1,536 columns, held ~0.8 GB per worker at 7,128 dofs, which no model counted)
+PCG_COLUMNS = 64
+#: block CG's peak working set in n x k arrays (B, X, R, Z, P, A·P, the fancy-indexed temporaries and the
+#: preconditioned columns' list): tracemalloc measured about 10.5 at 1,914, 7,128 and 26,304 dofs (k = 64)
+PCG_ARRAYS = 12
 #: CG steps before a column is declared not converging
 MAXITER = 2000
 
@@ -73,7 +79,11 @@ class AmgSystem:
             import pyamg
 
             t0 = time.perf_counter()
-            self._ml = pyamg.smoothed_aggregation_solver(self.K, B=self.near_null, max_coarse=500)
+            # the coarse level by sparse LU: the default pseudo-inverse of a 2,874-unknown coarse level (six
+            # near-null vectors per aggregate) held 63 MiB and peaked at 442 MiB in its SVD on the first solve at
+            # 26,304 dofs; LU holds 6 MiB, in the same time and CG steps (by hand)
+            self._ml = pyamg.smoothed_aggregation_solver(self.K, B=self.near_null, max_coarse=500,
+                                                         coarse_solver="splu")
             self.stats["setup_s"] = time.perf_counter() - t0
         return self._ml
 
@@ -90,17 +100,41 @@ class AmgSystem:
         return int(total)
 
     def columns(self, dof_columns: np.ndarray) -> np.ndarray:
-        """Ξ's columns for the observed dofs ``dof_columns`` ((n_observed, k), rows in contact-dof order)."""
+        """Ξ's columns for the observed dofs ``dof_columns`` ((n_observed, k), rows in contact-dof order),
+        solved :data:`PCG_COLUMNS` at a time (:meth:`solve_bytes`)."""
         n = self.K.shape[0]
-        k = len(dof_columns)
-        if self.load is None:
-            B = np.zeros((n, k))
-            B[self.rows[dof_columns], np.arange(k)] = self.scale[dof_columns]
-        else:
-            B = self.load[:, dof_columns].toarray()
-        Y, iters = block_pcg(self.K, B, self.hierarchy().aspreconditioner(cycle="V"))
-        self.stats.setdefault("iterations", []).append(int(iters.max()))
-        return Y[self.rows[:self.n_observed]]
+        dof_columns = np.asarray(dof_columns)
+        out = np.empty((self.n_observed, len(dof_columns)))
+        M = self.hierarchy().aspreconditioner(cycle="V")
+        for c0 in range(0, len(dof_columns), PCG_COLUMNS):
+            cols = dof_columns[c0:c0 + PCG_COLUMNS]
+            if self.load is None:
+                B = np.zeros((n, len(cols)))
+                B[self.rows[cols], np.arange(len(cols))] = self.scale[cols]
+            else:
+                B = self.load[:, cols].toarray()
+            Y, iters = block_pcg(self.K, B, M)
+            self.stats.setdefault("iterations", []).append(int(iters.max()))
+            out[:, c0:c0 + len(cols)] = Y[self.rows[:self.n_observed]]
+        return out
+
+    def solve_bytes(self, k: int) -> int:
+        """The peak working memory of :meth:`columns` for ``k`` columns, beyond K_FF and the hierarchy
+        (:func:`solve_bytes`)."""
+        return solve_bytes(self.K.shape[0], self.n_observed, k)
+
+
+def solve_bytes(n_dofs: int, n_observed: int, k: int) -> int:
+    """:meth:`AmgSystem.columns`' peak working memory for ``k`` columns: the result (n_observed x k doubles)
+    and block CG's arrays for one group of :data:`PCG_COLUMNS` (:data:`PCG_ARRAYS` of n_dofs x group)."""
+    return 8 * (n_observed * k + PCG_ARRAYS * n_dofs * min(k, PCG_COLUMNS))
+
+
+def hierarchy_bytes(K_bytes: float) -> float:
+    """K_FF with its smoothed-aggregation hierarchy (six near-null vectors: operators, prolongators, smoother
+    data) and the coarse level's LU, built on the first solve: tracemalloc measured 1.4-1.5x K_FF's bytes for
+    the hierarchy at 1,914, 7,128 and 26,304 dofs, and the LU 0.5x K_FF at 26,304; modelled as 3x K_FF."""
+    return 3.0 * K_bytes
 
 
 def block_pcg(A: sp.csr_matrix, B: np.ndarray, M, rtol: float = RTOL, maxiter: int = MAXITER):

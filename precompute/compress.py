@@ -695,12 +695,16 @@ def tile_bytes(held: float, n_contact: int, panel: int = PANEL) -> float:
     return 2 * 8.0 * (3 * n_contact) * (3 * panel) + held
 
 
-def source_bytes(source) -> float:
+def source_bytes(source, panel: int = PANEL) -> float:
     """A worker's memory for the columns' source: one chunk of W's blocks (:class:`SweepStore`); or a
     copy of the factor and the selected inversion's W (bounded by the factor's size: measured 0.3-0.4x
-    it); or the AMG system."""
+    it); or the AMG system with its hierarchy and block CG's work for a panel's 3·panel columns."""
+    from pmask.precompute.amg import AmgSystem
+
     if isinstance(source, SweepStore):
         return float(min(8 * source.largest, READ_BYTES))
+    if isinstance(source, AmgSystem):
+        return factor_bytes(source) + source.solve_bytes(3 * panel)
     return 2.0 * factor_bytes(source)
 
 
@@ -755,12 +759,14 @@ def assembly_bytes(tree: ClusterTree, store: "TileStore", dense_dtype=np.float64
 
 
 def factor_bytes(factor) -> int:
-    """Bytes a worker holds for the solves: the factor's arrays, or (AMG) K_FF and 3x it for the hierarchy
-    (measured: the hierarchy with six near-null vectors is 1.5-2.5x K_FF)."""
+    """Bytes a worker holds for the solves: the factor's arrays, or (AMG) K_FF and its hierarchy
+    (:func:`pmask.precompute.amg.hierarchy_bytes`)."""
     if hasattr(factor, "L"):
         return int(sum(np.asarray(v).nbytes for v in factor.L.values()))
+    from pmask.precompute.amg import hierarchy_bytes
+
     K = factor.K
-    return int(4 * (K.data.nbytes + K.indices.nbytes + K.indptr.nbytes))
+    return int(hierarchy_bytes(K.data.nbytes + K.indices.nbytes + K.indptr.nbytes))
 
 
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
@@ -808,7 +814,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client = client or connect(scheduler, workers, memory_limit)
                 info = list(client.scheduler_info()["workers"].values())
                 limits = [w.get("memory_limit") for w in info]
-                stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel)
+                stats["tile_bytes"] = tile_bytes(source_bytes(source, panel), len(points), panel)
                 check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
                 stats["workers"] = len(limits)
                 if isinstance(source, SweepStore):
