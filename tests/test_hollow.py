@@ -73,6 +73,20 @@ def test_a_hollow_organ_rests_on_its_outer_surface_and_is_touched_there(tmp_path
     wall = r < 0.5 * (a + b)
     assert wall.sum() > 50 and not np.isin(np.flatnonzero(wall), m.fixed).any()
     assert r[m.contact].min() > 0.99 * b and m.core.all()
+    # a probe pushed straight down at the top, 10 mm deep (through the 8 mm wall, into the cavity): the proxy
+    # stays on the outer surface (the wall's inner side is never found), the force keeps growing and points
+    # within 10° of the outward normal, in either engine
+    from pmask.runtime.haptics import HapticContact, Status
+
+    for engine in ("python", "native"):
+        h = HapticContact(m.stiffness(radius=0.006), engine=engine)
+        f = np.array([h.step(np.array([0.0, 0.0, r.max() - d])) for d in np.linspace(-5e-4, 0.010, 300)],
+                     dtype=object)
+        forces, status = np.stack(f[:, 0]), np.array([int(st) for st in f[:, 1]])
+        pressed = np.flatnonzero(status != Status.NO_CONTACT)
+        assert len(pressed) > 250 and np.all(np.diff(pressed) == 1)  # in contact from the first touch on
+        mag = np.linalg.norm(forces[pressed], axis=1)
+        assert np.all(np.diff(mag) >= 0) and np.all(forces[pressed[1:], 2] / mag[1:] > np.cos(np.deg2rad(10)))
     out2 = tmp_path / "lumen.h5"
     assert main(["precompute", "--surface", stl, "--units", "mm", "--edge-length", "4", "--fixed", "z<-15",
                  "--contact", "group:cavity", "-o", str(out2)]) == 0
