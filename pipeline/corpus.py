@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pmask.precompute.meshing import join_surfaces
+
 
 #: the overlapping case's second sphere: radius and centre distance from the 20 mm sphere's centre (mm)
 OVERLAP = (12.0, 22.0)
@@ -21,15 +23,6 @@ def sphere(r=20.0, sub=3, at=(0.0, 0.0, 0.0)):
 
     s = trimesh.creation.icosphere(subdivisions=sub, radius=r)
     return np.asarray(s.vertices) + at, np.asarray(s.faces)
-
-
-def join(*parts):
-    P, T, n = [], [], 0
-    for v, f in parts:
-        P.append(v)
-        T.append(f + n)
-        n += len(v)
-    return np.vstack(P), np.vstack(T)
 
 
 def voxel_faces(inside: np.ndarray, spacing: float = 1.0):
@@ -66,10 +59,10 @@ def corpus() -> dict:
 
     v, f = sphere()
     cases = {}
-    cases["several shells"] = join(sphere(), sphere(at=(50.0, 0, 0)), sphere(at=(0, 50.0, 0)))
+    cases["several shells"] = join_surfaces(sphere(), sphere(at=(50.0, 0, 0)), sphere(at=(0, 50.0, 0)))
     a, b = sphere(), sphere(r=10.0, sub=2)
     b = (b[0] + a[0][a[1][0][0]] - b[0][b[1][0][0]] + [0, 0, 0.0], b[1])
-    P, T = join(a, b)
+    P, T = join_surfaces(a, b)
     n = len(a[0])
     edge, point = T.copy(), T.copy()
     edge[edge == b[1][0][0] + n], edge[edge == b[1][0][1] + n] = a[1][0][0], a[1][0][1]  # one shared edge
@@ -87,8 +80,9 @@ def corpus() -> dict:
     plate = trimesh.creation.box(extents=(40.0, 40.0, 0.4))
     cases["thin feature"] = (np.asarray(plate.vertices), np.asarray(plate.faces))
     # two organs' surfaces exported together and running into each other: the body is their union
-    cases["overlapping shells"] = join(sphere(), sphere(r=OVERLAP[0], at=(OVERLAP[1], 0, 0)))
-    cases["debris"] = join(sphere(), sphere(r=0.4, sub=1, at=(30.0, 0, 0)), sphere(r=0.4, sub=1, at=(0, 30.0, 0)))
+    cases["overlapping shells"] = join_surfaces(sphere(), sphere(r=OVERLAP[0], at=(OVERLAP[1], 0, 0)))
+    cases["debris"] = join_surfaces(sphere(), sphere(r=0.4, sub=1, at=(30.0, 0, 0)),
+                                    sphere(r=0.4, sub=1, at=(0, 30.0, 0)))
     # a label image's voxel faces exported unsmoothed (a ball of radius 14 voxels of 1.25 mm, centred): gmsh kept
     # every 90° crease as a feature curve, 37x the vertices --edge-length asked for
     g = np.indices((36, 36, 36)).reshape(3, -1).T - 17.5
@@ -99,16 +93,17 @@ def corpus() -> dict:
     left, right = (trimesh.creation.box(extents=(20.0, 20.0, 20.0)) for _ in range(2))
     left.apply_translation((-10.0, 0.0, 0.0))
     right.apply_translation((10.0, 0.0, 0.0))
-    cases["shared wall"] = join((np.asarray(left.vertices), np.asarray(left.faces)),
-                                (np.asarray(right.vertices), np.asarray(right.faces)))
+    cases["shared wall"] = join_surfaces((np.asarray(left.vertices), np.asarray(left.faces)),
+                                         (np.asarray(right.vertices), np.asarray(right.faces)))
     # a hollow organ: a 3 mm wall between an outer shell and an inner one facing inwards (a cavity)
     inner = sphere(r=17.0)
-    cases["hollow wall"] = join(sphere(), (inner[0], inner[1][:, ::-1]))
+    cases["hollow wall"] = join_surfaces(sphere(), (inner[0], inner[1][:, ::-1]))
     # an open scan with a thin part: a flap 5 mm thick (one edge length at the corpus's 5 mm) sunk into the
     # body, as finely triangulated as the body (MeshFix alone kept the flap: the shell with most triangles),
     # holes in both; the body is their union
     flap = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    P, T = join(sphere(), (np.asarray(flap.vertices) * [2.5, 8.0, 12.0] + [0.0, 0.0, 26.0], np.asarray(flap.faces)))
+    P, T = join_surfaces(sphere(), (np.asarray(flap.vertices) * [2.5, 8.0, 12.0] + [0.0, 0.0, 26.0],
+                                    np.asarray(flap.faces)))
     tip = np.flatnonzero((T.min(axis=1) >= len(v)) & (P[T].mean(axis=1)[:, 2] > 35.0))[:4]
     cases["open thin parts"] = (P, np.delete(T, np.concatenate([[0, 7, 40], tip]), axis=0))
     big = trimesh.creation.icosphere(subdivisions=7, radius=20.0)  # 327,680 triangles

@@ -523,8 +523,9 @@ def check_not_a_cavity(pts, tris, tri_label, per, outer: int, inner: int, name) 
         rank = {k: r + 1 for r, k in enumerate(np.argsort(-per))}
         raise CavityError(f"{name}: shell {rank[inner]} ({100 * per[inner] / per.sum():.1f} % of the area) lies inside "
                           f"shell {rank[outer]} and faces inwards: a cavity, which pmask meshes, but not together "
-                          f"with --inclusion: precompute the hollow organ without --inclusion, or --shell {rank[outer]} "
-                          "takes the outer surface alone with the cavity filled, a stiffer organ than the hollow one")
+                          "with --inclusion: precompute the hollow organ without --inclusion, or "
+                          f"--shell {rank[outer]} takes the outer surface alone with the cavity filled, a stiffer "
+                          "organ than the hollow one")
 
 
 def split_cavities(points: np.ndarray, triangles: np.ndarray, name) -> tuple[np.ndarray, np.ndarray, list]:
@@ -817,7 +818,7 @@ def _remesh_route(raw, tris, repair, path, edge_length, angle_deg, report, xi_of
     whole = join_surfaces((pts, tris), *[(p, t[:, ::-1]) for p, t in cavities])  # the walls as the body's surface
     check_size_before_meshing(*whole, edge_length, path, xi_of_all)
     try:
-        points, tets = _remesh_with_fallback(pts, tris, path, edge_length, angle_deg, cavities)
+        points, tets = _remesh_with_fallback(pts, tris, path, edge_length, angle_deg, cavities, whole)
     except MeshError as exc:
         if repair == "meshfix" or repair is True:
             raise MeshError(f"{_cause(str(exc))}; this is after --repair meshfix: try --repair voxel or a smaller "
@@ -879,10 +880,11 @@ def join_surfaces(*parts) -> tuple[np.ndarray, np.ndarray]:
             np.vstack([np.asarray(t, np.int64) + o for (_, t), o in zip(parts, offsets)]))
 
 
-def _remesh_with_fallback(pts, tris, path, edge_length, angle_deg, cavities=()):
+def _remesh_with_fallback(pts, tris, path, edge_length, angle_deg, cavities=(), whole=None):
     """:func:`_remesh`, again without feature edges where they made the surface unparametrisable or ruled
-    the mesh; ``cavities`` (outward (points, triangles) each) are left empty inside the body."""
-    whole = join_surfaces((pts, tris), *[(p, t[:, ::-1]) for p, t in cavities])
+    the mesh; ``cavities`` (outward (points, triangles) each) are left empty inside the body, ``whole`` being
+    the body's surface with their walls (the outer surface alone without cavities)."""
+    whole = whole if whole is not None else (pts, tris)
     remesh = lambda angle: _remesh(pts, tris, path, edge_length, angle, cavities=cavities)  # noqa: E731
     try:
         out = remesh(angle_deg)
