@@ -45,13 +45,18 @@ $(VENV)/.installed: pyproject.toml setup.py constraints.txt $(wildcard precomput
 precompute: venv
 	$(BIN)/pmask precompute $(MODEL) $(ARGS)
 
-## make test: the fast test suite (what a developer runs; CI runs it and the slow tests)
+# the suites run on two processes (pytest-xdist), one test file per process at a time so that a file's
+# module fixtures (a precomputed model, a LocalCluster) are built once; JOBS=1 runs them serially
+JOBS   ?= 2
+XDIST  := $(if $(filter 1,$(JOBS)),,-n $(JOBS) --dist loadfile)
+
+## make test [JOBS=2]: the fast test suite (what a developer runs; CI runs it and the slow tests)
 test: venv
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 ## make test-slow: the long solves and the P2 reference rows
 test-slow: venv
-	$(BIN)/python -m pytest -q -m slow $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -m slow $(XDIST) $(PYTEST_ARGS)
 
 ## make test-pip: the Green's-function and runtime tests again on the pip-only route
 test-pip: venv
