@@ -14,6 +14,7 @@ import sys
 import traceback
 from pathlib import Path
 
+from pmask import interrupt
 from pmask.errors import InputError, PmaskError
 
 log = logging.getLogger("pmask")
@@ -513,7 +514,7 @@ def main(argv=None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if not args.verbose:
         logging.getLogger("skfem").setLevel(logging.WARNING)
-    previous = _sigterm_as_interrupt()
+    previous = _interrupts_recorded()
     try:
         return args.func(args)
     except PmaskError as exc:
@@ -522,6 +523,7 @@ def main(argv=None) -> int:
         print(f"pmask: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        interrupt.clear()
         print("pmask: interrupted; run the same command again to resume from the last finished stage",
               file=sys.stderr)
         return 130
@@ -536,19 +538,23 @@ def main(argv=None) -> int:
         if previous is not None:
             import signal
 
-            signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
 
-def _sigterm_as_interrupt():
-    """SIGTERM (a scheduler's or a supervisor's stop) ends a command as Ctrl-C does: the cleanup runs (the
+def _interrupts_recorded():
+    """Ctrl-C and SIGTERM (a scheduler's or a supervisor's stop) end a command alike: the cleanup runs (the
     gmsh worker is killed, temporary folders go, finished stages are kept) instead of the process vanishing
-    mid-way.  Returns the previous handler (None off the main thread)."""
+    mid-way, and the request is recorded (:mod:`pmask.interrupt`) so that a library that swallows
+    ``KeyboardInterrupt`` cannot lose it.  Returns the previous handlers (None off the main thread, or when
+    SIGINT is ignored, as in a shell's background job)."""
     import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return None
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-    return signal.signal(signal.SIGTERM, stop)
+    interrupt.clear()
+    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, interrupt.handler)}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, interrupt.handler)
+    return previous

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pmask import interrupt
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
 from pmask.runtime.artifact import FORMAT_VERSION, stored_input_hash
@@ -770,6 +771,7 @@ class _Stages:
 
     @contextlib.contextmanager
     def timed(self, name: str, next_label: str | None = None):
+        interrupt.check()  # a Ctrl-C a library swallowed ends the run here (pmask.interrupt)
         t0 = time.perf_counter()
         yield
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0

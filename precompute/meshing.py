@@ -267,6 +267,9 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
     job = {"path": str(path), "edge_length": edge_length, "scale": scale, "units_given": units_given,
            "repair": repair, "xi_of_all": xi_of_all, "timeout": timeout, "shell": shell,
            "inclusions": [str(q) for q in inclusions], "angle_deg": angle_deg}
+    from pmask import interrupt
+
+    interrupt.check()  # a Ctrl-C swallowed while the surface was read (trimesh's imports) stops it here
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
