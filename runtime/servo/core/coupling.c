@@ -67,16 +67,33 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
                 }
                 const double *ba = S->st[a].b, *bb = S->st[b].b;
                 double *Sab = S->cpl + 9 * ab, *Sba = S->cpl + 9 * ((size_t)b * n + a);
-                for (int k = 0; k < 9; k++) Sab[k] = 0.0;
+                /* Σ_ij w_ij P_ij in nine local sums (the compiler cannot keep Sab in registers: it may alias P), in
+                   the Python's order; a zero weight adds nothing, as the Python's skipped term */
+                double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0, s4 = 0.0, s5 = 0.0, s6 = 0.0, s7 = 0.0, s8 = 0.0;
                 for (int i = 0; i < 3; i++)
                     for (int j = 0; j < 3; j++) {
-                        double w = ba[i] * bb[j];
+                        const double w = ba[i] * bb[j];
                         if (w == 0.0) continue;
                         const double *o = P + 27 * i + 9 * j;
-                        for (int k = 0; k < 9; k++) Sab[k] += w * o[k];
+                        s0 += w * o[0];
+                        s1 += w * o[1];
+                        s2 += w * o[2];
+                        s3 += w * o[3];
+                        s4 += w * o[4];
+                        s5 += w * o[5];
+                        s6 += w * o[6];
+                        s7 += w * o[7];
+                        s8 += w * o[8];
                     }
-                for (int i = 0; i < 3; i++)
-                    for (int j = 0; j < 3; j++) Sba[3 * i + j] = Sab[3 * j + i];
+                Sab[0] = Sba[0] = s0;
+                Sab[4] = Sba[4] = s4;
+                Sab[8] = Sba[8] = s8;
+                Sab[1] = Sba[3] = s1;
+                Sab[2] = Sba[6] = s2;
+                Sab[3] = Sba[1] = s3;
+                Sab[5] = Sba[7] = s5;
+                Sab[6] = Sba[2] = s6;
+                Sab[7] = Sba[5] = s7;
             }
         }
 }
