@@ -249,3 +249,35 @@ def test_a_deep_contact_moves_with_the_probe_along_the_surface():
     assert linalg3.largest_curvature(S) == pytest.approx(100.0)
     assert linalg3.tracking_depth(S, 8e-3) == pytest.approx(5e-3) and linalg3.tracking_depth(S, 3e-3) == 3e-3
     np.testing.assert_allclose(linalg3.speed_up(S, 5e-3), np.diag([2.0, 2.0, 1.0]).ravel(), rtol=1e-14)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_frictionless_start_solves_the_complementarity_problem(seed):
+    """coupling.normal_start against the conditions that define the coupled frictionless contact (an LCP):
+    φ ≥ 0; A φ = δ̄ where φ > 0; w = δ̄ − A φ ≤ 0 where φ = 0 (a released contact is not pushed into), for 3-8
+    contacts with random normals, stiffnesses and couplings, some too shallow to press once the others dent
+    the surface.  To 1e-12 of δ̄ (Gaussian elimination on at most 8 unknowns: round-off ~1e-15).  Clipping
+    the all-pressing solve at zero, as the start did before, fails them whenever a contact is carried away."""
+    rng = np.random.default_rng(seed)
+    s = int(rng.integers(3, 9))
+    N = rng.normal(size=(s, 3))
+    N /= np.linalg.norm(N, axis=1)[:, None]
+    k = rng.uniform(50.0, 400.0, s)
+    # a compliance between the contacts: SPD with strong coupling (a patch of one body)
+    G = rng.normal(size=(3 * s, 3 * s))
+    C = 1e-3 * (0.3 * G @ G.T / (3 * s) + np.kron(np.full((s, s), 0.8), np.eye(3)) + 0.2 * np.eye(3 * s))
+    geo = [[*N[l], *[None] * (law.GEO_k - 3), float(k[l])] for l in range(s)]  # only N and k are read
+    coupling_blocks = {(l, m): list(C[3 * l:3 * l + 3, 3 * m:3 * m + 3].ravel()) for l in range(s) for m in range(s)
+                       if l != m}
+    depth = rng.uniform(-0.5e-3, 2e-3, s)
+    ubar = [tuple(-depth[l] * N[l]) for l in range(s)]
+    out = coupling.normal_start(list(range(s)), geo, ubar, coupling_blocks)
+    phi = np.array([-np.dot(out[l], N[l]) for l in range(s)])
+    A = np.diag(1.0 / k) + np.array([[0.0 if l == m else N[l] @ C[3 * l:3 * l + 3, 3 * m:3 * m + 3] @ N[m]
+                                      for m in range(s)] for l in range(s)])
+    delta = depth.copy()
+    w = delta - A @ phi
+    tol = 1e-12 * np.abs(delta).max()
+    assert np.all(phi >= 0.0)
+    assert np.all(np.abs(w[phi > 0]) <= tol), (w, phi)
+    assert np.all(w[phi == 0] <= tol), (w, phi)

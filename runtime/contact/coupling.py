@@ -59,11 +59,18 @@ def solve(c, states, active, geo, ubar):
 
 def normal_start(active, geo, ubar, coupling, states=None):
     """Frictionless contacts' start for the sweeps: the normal forces φ (f_l = −φ_l N_l) that solve the coupled
-    normal problem with every active contact pressing, A φ = δ̄ with A_ll = 1/k (the law's own
-    normal compliance, Nᵀ K̃⁻¹ N; past δ* 1/k* with δ̄ less δ* (1 − k/k*)), A_lk = N_lᵀ C_lk N_k and δ̄_l = −N_l · ū_l (the Delassus system, symmetric positive definite:
-    Gaussian elimination without pivoting), clipped at zero.  When no contact would pull (the usual case) this
-    is the solution and the sweeps stop after one; otherwise they release the pulling ones from there.  (From
-    last tick's forces the sweeps took 12-15 to converge to 1e-13.)"""
+    normal problem, the linear complementarity problem φ ≥ 0, w = δ̄ − A φ ≤ 0 on the released contacts and
+    A φ = δ̄ on the pressing ones, with A_ll = 1/k (the law's own normal compliance, Nᵀ K̃⁻¹ N; past δ* 1/k*
+    with δ̄ less δ* (1 − k/k*)), A_lk = N_lᵀ C_lk N_k and δ̄_l = −N_l · ū_l (the Delassus system, symmetric
+    positive definite).
+
+    Murty's least-index principal pivoting (Murty 1974; finite for a P-matrix such as A): solve A φ = δ̄ on
+    the pressing set by Gaussian elimination without pivoting (:func:`solve_spd`), then release the first
+    pressing contact that pulls (φ < 0) or press the first released one that would go in (w > 0), until
+    neither is left.  With every contact pressing (the usual case) this is one solve; with one pulled away
+    by the others it is the exact solution too, and the sweeps stop after one (the clipped solve they
+    started from before took 40-47 sweeps to converge to 1e-13 for four contacts, 60 for eight).  After
+    :data:`PIVOTS` ``s`` pivots the last solve, clipped at zero, goes to the sweeps as it is."""
     s = len(active)
     A = [[0.0] * s for _ in range(s)]
     r = [0.0] * s
@@ -86,13 +93,45 @@ def normal_start(active, geo, ubar, coupling, states=None):
                 cy = C[3] * Mx + C[4] * My + C[5] * Mz
                 cz = C[6] * Mx + C[7] * My + C[8] * Mz
                 A[x][y] = Nx * cx + Ny * cy + Nz * cz
-    phi = solve_spd(A, r)
+    pressing = [True] * s
+    phi = None
+    for _ in range(PIVOTS * s):
+        idx = [x for x in range(s) if pressing[x]]
+        sol = solve_spd([[A[i][j] for j in idx] for i in idx], [r[i] for i in idx])
+        if sol is None:
+            phi = None
+            break
+        phi = [0.0] * s
+        for t, i in enumerate(idx):
+            phi[i] = sol[t]
+        flip = -1
+        for x in range(s):
+            if pressing[x]:
+                if phi[x] < 0.0:
+                    flip = x
+                    break
+            else:
+                w = r[x]
+                for y in range(s):
+                    if pressing[y]:
+                        w = w - A[x][y] * phi[y]
+                if w > 0.0:
+                    flip = x
+                    break
+        if flip < 0:
+            break
+        pressing[flip] = not pressing[flip]
     out = {}
     for x, l in enumerate(active):
         p = 0.0 if phi is None else max(phi[x], 0.0)
         Nx, Ny, Nz = geo[l][0], geo[l][1], geo[l][2]
         out[l] = (-p * Nx, -p * Ny, -p * Nz)
     return out
+
+
+#: the frictionless start's pivots, at most this many times the number of contacts (Murty's rule ends far sooner:
+#: 1 for contacts that all press, 2-3 where one is pulled away)
+PIVOTS = 4
 
 
 def coupling_blocks(c, states, active):

@@ -119,7 +119,8 @@ static int solve_spd(double *A, double *r, double *x, int32_t s)
     return 0;
 }
 
-/* the frictionless start: the coupled normal problem with every active contact pressing (coupling.normal_start) */
+/* the frictionless start: the coupled normal problem, a linear complementarity problem solved exactly by Murty's
+ * least-index principal pivoting (coupling.normal_start) */
 static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
 {
     const int32_t n = S->n;
@@ -152,7 +153,37 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
             A[a * na + b] = Nx * cx + Ny * cy + Nz * cz;
         }
     }
-    int ok = solve_spd(A, r, x, na) == 0;
+    /* Murty's least-index principal pivoting on the pressing set (coupling.normal_start) */
+    int32_t *press = S->npress, *idx = S->nidx;
+    double *W = S->nW, *wr = S->nwr;
+    for (int32_t a = 0; a < na; a++) press[a] = 1;
+    int ok = 0;
+    for (int32_t it = 0; it < PIVOTS * na; it++) {
+        int32_t m = 0;
+        for (int32_t a = 0; a < na; a++)
+            if (press[a]) idx[m++] = a;
+        for (int32_t i = 0; i < m; i++) {
+            for (int32_t j = 0; j < m; j++) W[i * m + j] = A[idx[i] * na + idx[j]];
+            wr[i] = r[idx[i]];
+        }
+        ok = solve_spd(W, wr, S->nsol, m) == 0;
+        if (!ok) break;
+        for (int32_t a = 0; a < na; a++) x[a] = 0.0;
+        for (int32_t i = 0; i < m; i++) x[idx[i]] = S->nsol[i];
+        int32_t flip = -1;
+        for (int32_t a = 0; a < na && flip < 0; a++) {
+            if (press[a]) {
+                if (x[a] < 0.0) flip = a;
+            } else {
+                double w = r[a];
+                for (int32_t b = 0; b < na; b++)
+                    if (press[b]) w = w - A[a * na + b] * x[b];
+                if (w > 0.0) flip = a;
+            }
+        }
+        if (flip < 0) break;
+        press[flip] = !press[flip];
+    }
     for (int32_t a = 0; a < na; a++) {
         int32_t l = act[a];
         double p = ok ? PYMAX(x[a], 0.0) : 0.0;

@@ -50,6 +50,7 @@
 
 /* ------------------------------------------------------------------ constants (pmask.runtime.contact.state) */
 #define GS_SWEEPS 60
+#define PIVOTS 4
 #define FAR_FACTOR 10.0
 #define PASSIVITY_SLACK 0.10
 #define VELOCITY_FILTER 0.1
@@ -160,6 +161,8 @@ struct pm_servo {
     int64_t *pair_tri; /* n*n*2: the triangles each pair's kept vertex-pair blocks are for (-1: none) */
     double *pair_P;   /* n*n*81: those blocks (coupling.c) */
     double *nA, *nr, *nx;  /* the frictionless start's normal system (n*n, n, n) */
+    double *nW, *nwr, *nsol; /* its pressing contacts' system, eliminated in place, and solution (n*n, n, n) */
+    int32_t *npress, *nidx; /* which contacts press; their indices (n, n) */
     /* display solve */
     double *dC, *du;
     int32_t *dact;

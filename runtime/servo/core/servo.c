@@ -110,6 +110,11 @@ int pm_servo_create(const pm_table *t, int32_t n, const pm_options *opt, pm_serv
     ALLOC(s->nA, (size_t)n * n);
     ALLOC(s->nr, n);
     ALLOC(s->nx, n);
+    ALLOC(s->nW, (size_t)n * n);
+    ALLOC(s->nwr, n);
+    ALLOC(s->nsol, n);
+    ALLOC(s->npress, n);
+    ALLOC(s->nidx, n);
     ALLOC(s->dC, (size_t)9 * n * n);
     ALLOC(s->du, 3 * n);
     ALLOC(s->dact, n);
@@ -173,6 +178,11 @@ void pm_servo_free(pm_servo *s)
     free(s->nA);
     free(s->nr);
     free(s->nx);
+    free(s->nW);
+    free(s->nwr);
+    free(s->nsol);
+    free(s->npress);
+    free(s->nidx);
     free(s->dC);
     free(s->du);
     free(s->dact);
