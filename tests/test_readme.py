@@ -59,3 +59,15 @@ def test_the_readme_links_lead_somewhere():
         if target.startswith("http"):
             continue
         assert (ROOT / target).exists(), target
+
+
+def test_the_contacts_a_tick_holds_are_the_benchmarks():
+    """The README's counts of contacts each engine keeps in the 1 ms tick are the stored benchmark's
+    (bench/results.json, `make bench ONLY=haptics`), not typed from memory."""
+    import json
+
+    tick = json.loads((ROOT / "bench" / "results.json").read_text())["haptics"]["several_tick"]
+    m = re.search(r"in the 1 ms tick: up to (\d+) in the C core, (\d+) driven from Python, (\d+) in the pure-Python "
+                  r"engine", " ".join(README.split()))  # wherever the lines break
+    assert m, "the README no longer says how many contacts each engine keeps in the tick"
+    assert [int(x) for x in m.groups()] == [tick[k]["contacts"] for k in ("c", "binding", "python")]
