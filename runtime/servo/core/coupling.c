@@ -119,17 +119,15 @@ static int solve_spd(double *A, double *r, double *x, int32_t s)
     return 0;
 }
 
-/* the frictionless start: the coupled normal problem, a linear complementarity problem solved exactly by Murty's
- * least-index principal pivoting (coupling.normal_start) */
-static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
+/* the coupled normal problem's A (na x na, row-major) and δ̄ (coupling.normal_start); 0 or -1 (a zero stiffness:
+ * the Python's ZeroDivisionError) */
+static int normal_system(const pm_servo *S, const int32_t *act, int32_t na, double *A, double *r)
 {
     const int32_t n = S->n;
-    double *A = S->nA, *r = S->nr, *x = S->nx;
     for (int32_t a = 0; a < na; a++) {
         int32_t l = act[a];
         const geom *g = &S->geo[l];
         const double Nx = g->N[0], Ny = g->N[1], Nz = g->N[2];
-        for (int32_t b = 0; b < na; b++) A[a * na + b] = 0.0;
         const double *u = S->ubar + 3 * l;
         r[a] = -(Nx * u[0] + Ny * u[1] + Nz * u[2]);
         const cstate *st = &S->st[l];
@@ -139,7 +137,7 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
             A[a * na + a] = 1.0 / ks;
             r[a] = r[a] - st->frozen_depth * (1.0 - k / ks);
         } else {
-            if (g->k == 0.0) return -1;  /* the Python's ZeroDivisionError */
+            if (g->k == 0.0) return -1;
             A[a * na + a] = 1.0 / g->k;
         }
         for (int32_t b = 0; b < na; b++) {
@@ -153,36 +151,49 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
             A[a * na + b] = Nx * cx + Ny * cy + Nz * cz;
         }
     }
-    /* Murty's least-index principal pivoting on the pressing set (coupling.normal_start) */
+    return 0;
+}
+
+/* the frictionless start: the coupled normal problem, a linear complementarity problem solved exactly by Murty's
+ * least-index principal pivoting (coupling.normal_start) */
+static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
+{
+    double *A = S->nA, *r = S->nr, *x = S->nx, *W = S->nW, *wr = S->nwr;
     int32_t *press = S->npress, *idx = S->nidx;
-    double *W = S->nW, *wr = S->nwr;
-    for (int32_t a = 0; a < na; a++) press[a] = 1;
-    int ok = 0;
-    for (int32_t it = 0; it < PIVOTS * na; it++) {
-        int32_t m = 0;
-        for (int32_t a = 0; a < na; a++)
-            if (press[a]) idx[m++] = a;
-        for (int32_t i = 0; i < m; i++) {
-            for (int32_t j = 0; j < m; j++) W[i * m + j] = A[idx[i] * na + idx[j]];
-            wr[i] = r[idx[i]];
-        }
-        ok = solve_spd(W, wr, S->nsol, m) == 0;
-        if (!ok) break;
-        for (int32_t a = 0; a < na; a++) x[a] = 0.0;
-        for (int32_t i = 0; i < m; i++) x[idx[i]] = S->nsol[i];
-        int32_t flip = -1;
-        for (int32_t a = 0; a < na && flip < 0; a++) {
-            if (press[a]) {
-                if (x[a] < 0.0) flip = a;
-            } else {
-                double w = r[a];
-                for (int32_t b = 0; b < na; b++)
-                    if (press[b]) w = w - A[a * na + b] * x[b];
-                if (w > 0.0) flip = a;
+    /* every contact pressing (the usual case): the pivoting's first solve, eliminated in place of the system
+       itself; only when a contact pulls is the system built again (the same values) for the pivots */
+    if (normal_system(S, act, na, W, wr)) return -1;
+    int ok = solve_spd(W, wr, x, na) == 0, pulls = 0;
+    for (int32_t a = 0; ok && a < na; a++) pulls |= x[a] < 0.0;
+    if (pulls) {
+        if (normal_system(S, act, na, A, r)) return -1;
+        for (int32_t a = 0; a < na; a++) press[a] = 1;
+        for (int32_t it = 0; it < PIVOTS * na; it++) {
+            int32_t m = 0;
+            for (int32_t a = 0; a < na; a++)
+                if (press[a]) idx[m++] = a;
+            for (int32_t i = 0; i < m; i++) {
+                for (int32_t j = 0; j < m; j++) W[i * m + j] = A[idx[i] * na + idx[j]];
+                wr[i] = r[idx[i]];
             }
+            ok = solve_spd(W, wr, S->nsol, m) == 0;
+            if (!ok) break;
+            for (int32_t a = 0; a < na; a++) x[a] = 0.0;
+            for (int32_t i = 0; i < m; i++) x[idx[i]] = S->nsol[i];
+            int32_t flip = -1;
+            for (int32_t a = 0; a < na && flip < 0; a++) {
+                if (press[a]) {
+                    if (x[a] < 0.0) flip = a;
+                } else {
+                    double w = r[a];
+                    for (int32_t b = 0; b < na; b++)
+                        if (press[b]) w = w - A[a * na + b] * x[b];
+                    if (w > 0.0) flip = a;
+                }
+            }
+            if (flip < 0) break;
+            press[flip] = !press[flip];
         }
-        if (flip < 0) break;
-        press[flip] = !press[flip];
     }
     for (int32_t a = 0; a < na; a++) {
         int32_t l = act[a];
