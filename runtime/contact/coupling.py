@@ -69,8 +69,9 @@ def normal_start(active, geo, ubar, coupling, states=None):
     pressing contact that pulls (φ < 0) or press the first released one that would go in (w > 0), until
     neither is left.  With every contact pressing (the usual case) this is one solve; with one pulled away
     by the others it is the exact solution too, and the sweeps stop after one (the clipped solve they
-    started from before took 40-47 sweeps to converge to 1e-13 for four contacts, 60 for eight).  After
-    :data:`PIVOTS` ``s`` pivots the last solve, clipped at zero, goes to the sweeps as it is."""
+    started from before took 40-47 sweeps to converge to 1e-13 for four contacts, 60 for eight, counted by hand
+    on the bench's trace).  After :data:`PIVOTS` ``s`` pivots the last solve, clipped at zero, goes to the
+    sweeps as it is."""
     s = len(active)
     A = [[0.0] * s for _ in range(s)]
     r = [0.0] * s
