@@ -320,7 +320,7 @@ def several_contacts(exe, table_path: Path, surface, model, work: Path, counts=(
                 row["c_uncoupled_tight"] = c_bench(exe, table_path, trace, s, paced=0, uncoupled=True)["tight"]
         nat = Contacts(surface, s, engine="native") if _native() else None
         if nat is not None:
-            row["binding_tight"] = python_loop(nat.step, P[:2000])["tight"]
+            row["binding_tight"] = python_loop(nat.step, P)["tight"]  # the whole trace, as the others
             states = [nat.step(list(p))[1] for p in P[:ticks]]
             row["in_contact_fraction"] = float(np.mean([[x == 1 for x in r] for r in states]))
         if s <= 32:  # the whole trace, as the C (its first fifth is mostly the approach, out of contact)
