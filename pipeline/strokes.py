@@ -270,10 +270,12 @@ def tour_metrics(run: dict, probes: np.ndarray, segments: list[dict]) -> dict:
     return out
 
 
-def region_edge_slide(region_z: float = 0.0, depth: float = 0.002, speed: float = 0.02, rate: float = RATE):
+def region_edge_slide(region_z: float = 0.0, depth: float = 0.002, speed: float = 0.02, rate: float = RATE,
+                      parts: bool = False):
     """For an artifact precomputed with ``--contact "z>REGION_Z"`` (metres): press on the top face, slide
     down the lateral (+y) side across the region's edge at z = region_z and 10 mm beyond it, slide back and
-    lift off: a closed loop that crosses the edge twice."""
+    lift off: a closed loop that crosses the edge twice.  With ``parts``, also the sample ranges of the four
+    pieces, {"press", "out", "back", "lift"}: slices."""
     sp = speed / rate
     centre = np.array([0.0, 0.0, 0.0])
     ang = np.linspace(np.pi / 2 - 0.3, np.arcsin(np.clip((region_z - 0.01) / SEMI_AXES[2], -1, 1)), 3000)
@@ -281,4 +283,9 @@ def region_edge_slide(region_z: float = 0.0, depth: float = 0.002, speed: float 
     start = level_curve(centre, [0, 1.0, 0], [0, 0, 1.0], np.array([ang[0]]), 0.0)[0]
     n0, _, _ = _surface_frame(start)
     press = _line(start + 0.003 * n0, curve[0], sp)
-    return np.vstack([press, curve, curve[::-1], press[::-1]])
+    probes = np.vstack([press, curve, curve[::-1], press[::-1]])
+    if not parts:
+        return probes
+    a, b = len(press), len(press) + len(curve)
+    return probes, {"press": slice(0, a), "out": slice(a, b), "back": slice(b, b + len(curve)),
+                    "lift": slice(b + len(curve), len(probes))}

@@ -81,7 +81,7 @@ def test_the_proxy_moves_along_the_surface_by_at_most_its_limit(flat):
     np.testing.assert_allclose(x, target, atol=1e-12)
 
 
-def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dlin=math.inf):
+def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dlin=math.inf, gl=(0.0, 0.0, 0.0)):
     """The law's inputs (law.GEO_K ...) for a vertex stiffness K: K̃ scaled to the normal stiffness k (by
     default the Schur complement 1/(Nᵀ K⁻¹ N) times λ, as the surface's k_j)."""
     K = list(np.ravel(K))
@@ -89,7 +89,7 @@ def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dli
     if k is None:
         k = lam / law.normal_compliance(*N, Ki)
     Kt, Kti = law.scaled(K, Ki, k, *N)
-    return (*N, Kt, Kti, k, lam, g, [0.0] * 9 if S is None else list(np.ravel(S)), dlin)
+    return (*N, Kt, Kti, k, lam, g, [0.0] * 9 if S is None else list(np.ravel(S)), dlin, gl)
 
 
 def random_spd(rng):
@@ -231,6 +231,29 @@ def test_past_the_increment_depth_the_law_keeps_the_stiffness_where_it_began():
     np.testing.assert_allclose(f, (0.0, 0.0, -80.0 * 1.5e-3), rtol=1e-14)
     assert law.increment_depth(5e-3, 80.0, 3e3, 4e3, 0.0) == pytest.approx(80.0 / 8 / 5e3)
     assert law.increment_depth(5e-3, 80.0, 3.0, 4.0, 0.0) == 5e-3
+
+
+def test_a_frozen_contact_fades_out_with_the_region_instead_of_stepping():
+    """Past δ* in a contact region's edge band (λ = 0.4 under the proxy, ∇λ = (0, 30, 0) /m): the increments'
+    stiffness is tapered as k is, φ = k δ* + λ k* (δ − δ*), the contact stays frozen (it used to unfreeze there
+    in one tick: a step of (k* − k)(δ − δ*)), and the force's tangential part is the gradient of the energy
+    k (δ* δ − ½ δ*²) + ½ λ k* (δ − δ*)² along the surface: (δ* δ − ½ δ*²) ∇k + ½ k* (δ − δ*)² ∇λ (flat, S = 0)."""
+    c = Contacts(sheet(), 1, engine="python", normal_radius=0.0)
+    st = c._states[0]
+    st.frozen, st.frozen_depth, st.frozen_stiffness = True, 2e-3, 60.0
+    lam, k, gk, gl = 0.4, 32.0, np.array([5.0, 0.0, 0.0]), np.array([0.0, 30.0, 0.0])
+    geo = geo_of(np.diag([40.0, 50.0, 100.0]), lam=lam, k=k, g=tuple(gk), gl=tuple(gl))
+    delta = 3e-3
+    u = (0.0, 0.0, -delta)
+    f, u2, sliding, d = law.local_law(c, st, geo, *u)
+    phi = k * 2e-3 + lam * 60.0 * 1e-3
+    np.testing.assert_allclose(f, (0.0, 0.0, -phi), rtol=1e-14)
+    output.render(c, c._states, [0], {0: geo}, {0: u}, {0: ((f, u2, sliding, d), u)})
+    assert st.frozen and st.status == Status.REGION_EDGE
+    want = np.array(f) + (2e-3 * delta - 0.5 * 2e-3 ** 2) * gk + 0.5 * 60.0 * 1e-3 ** 2 * gl
+    np.testing.assert_allclose(st.body_force, want, rtol=1e-13)  # at rest: no velocity terms
+    output.render(c, c._states, [0], {0: geo}, {0: (0.0, 0.0, -1.5e-3)}, {0: ((f, u2, sliding, 1.5e-3), u)})
+    assert not st.frozen  # shallower than δ*: the linear law again
 
 
 def test_a_deep_contact_moves_with_the_probe_along_the_surface():

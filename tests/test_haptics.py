@@ -42,8 +42,9 @@ def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, opti
 
     - the energy the body gives the hand over every closed loop is <= 1 % of the loop's peak stored energy
       (a tick's work is the force the device holds times the probe's motion; the trapezoid rule too);
-    - the largest force change per tick anywhere is <= 3x the largest on smooth free surface at the same
-      speed (the tour's reference segments: slides over the top face, presses to 6 mm on four faces);
+    - the largest force change per tick anywhere is <= 2x the largest on smooth free surface at the same
+      speed (the tour's reference segments: slides over the top face, presses to 6 mm on four faces; the
+      hands issue's bound, 3x before; measured 1.6x sliding onto and across the hilum's support 5 mm deep);
     - the proxy never moves more than twice the probe's own motion in one tick.
 
     One allowance, 12 mm deep at the pole (DEEP, 5 mm past the pole's focal depth of 7 mm): rocking there, the
@@ -59,7 +60,7 @@ def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, opti
     for s in loops:
         assert s["given"] <= 0.01 and s["given_trapezoid"] <= 0.01, s
     for s in m["segments"]:
-        assert s["ratio"] <= (5.0 if s["name"].startswith("12 mm deep") else 3.0), s
+        assert s["ratio"] <= (5.0 if s["name"].startswith("12 mm deep") else 2.0), s
         assert s["proxy"] <= 2.0, s
     assert m["reference"] > 0
 
@@ -67,17 +68,30 @@ def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, opti
 @pytest.mark.parametrize("options", [{}, FRICTION], ids=["frictionless", "friction"])
 def test_crossing_the_edge_of_a_contact_region(kidney_top, options):
     """Across the edge of a --contact artifact the force fades out over r_max instead of dropping in one
-    tick, and the loop out and back is passive."""
+    tick, and the loop out and back is passive.
+
+    Frictionless, the largest force change per tick while crossing the edge band (REGION_EDGE) is at most 2x the
+    largest over the same slide inside the region, 2 mm deep at the same speed (the hands issue's bound; measured
+    1.4x; it was 7.7x when a contact frozen past δ* (law.py) unfroze at the band's first tick, a step of
+    (k* − k)(δ − δ*)).  With friction the contact sticks again on the way back in, where λ and with it the
+    friction cone grow, and a stuck contact dragged builds its force at the stuck stiffness times the speed,
+    as a press does (3.9x the sliding slide's largest change, measured); the bound there is the one below."""
     m = Model.load(kidney_top)
     s = m.stiffness("linear", 2 * m.mean_edge_length)
-    probes = region_edge_slide(0.0)
+    probes, parts = region_edge_slide(0.0, parts=True)
     r = run_contact(HapticContact(s, **options), probes)
-    statuses = set(r["status"].tolist())
-    assert {Status.CONTACT, Status.REGION_EDGE, Status.OUTSIDE_REGION} <= statuses
+    st = r["status"]
+    assert {Status.CONTACT, Status.REGION_EDGE, Status.OUTSIDE_REGION} <= set(st.tolist())
     dF = np.linalg.norm(np.diff(r["force"], axis=0), axis=1)
     f = np.linalg.norm(r["force"], axis=1)
     # the force changes per tick by a small fraction of its largest value (pressing 2 mm takes ~100 ticks)
     assert dF.max() <= 0.03 * f.max()
+    if not options:
+        out = np.arange(parts["out"].start + 200, parts["out"].stop - 1)  # settled 4 mm after the press
+        inside = out[(st[out] == Status.CONTACT) & (st[out + 1] == Status.CONTACT)]
+        band = np.flatnonzero((st[:-1] == Status.REGION_EDGE) | (st[1:] == Status.REGION_EDGE))
+        assert len(inside) > 500 and len(band) > 500
+        assert dF[band].max() <= 2.0 * dF[inside].max(), (dF[band].max(), dF[inside].max())
     given = np.einsum("ij,ij->i", r["force"][:-1], np.diff(probes, axis=0)).sum()
     assert given <= 0.01 * r["stored"].max()
 

@@ -20,7 +20,7 @@ The native core's ``core/coupling.c`` is the same code operation for operation.
 """
 from __future__ import annotations
 
-from pmask.runtime.contact.law import GEO_k, local_law
+from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_stiffness, local_law
 from pmask.runtime.contact.state import GS_SWEEPS
 
 
@@ -80,8 +80,8 @@ def normal_start(active, geo, ubar, coupling, states=None):
         ux, uy, uz = ubar[l]
         r[x] = -(Nx * ux + Ny * uy + Nz * uz)
         st = None if states is None else states[l]
-        if st is not None and st.frozen:  # φ = k δ* + k* (δ − δ*)
-            k, ks = geo[l][GEO_k], st.frozen_stiffness
+        if st is not None and st.frozen:  # φ = k δ* + λ k* (δ − δ*)
+            k, ks = geo[l][GEO_k], increment_stiffness(st, geo[l][GEO_LAM])
             A[x][x] = 1.0 / ks
             r[x] = r[x] - st.frozen_depth * (1.0 - k / ks)
         else:

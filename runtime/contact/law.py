@@ -34,12 +34,16 @@ the radius of curvature, :func:`pmask.runtime.contact.tracking.follow`); for the
 δ_t = min(δ_lin, k / (8 ‖∇k‖)) (where k changes by an eighth of itself; only inside the full contact
 region, λ = 1) the contact remembers δ* = δ_t and k* = k there, and while δ ≥ δ* its stored energy is
 
-    E = k(x) (δ* δ − ½ δ*²) + ½ k* (δ − δ*)²,
+    E = k(x) (δ* δ − ½ δ*²) + ½ λ(x) k* (δ − δ*)²,
 
-which is ½ k δ² where it begins: the normal force k(x) δ* + k* (δ − δ*) keeps growing, and equals k δ* where
-it ends again as δ falls below δ*, so entering and leaving are continuous and loops through it stay
-conservative (sliding out of the full region while deeper, λ < 1, drops the increments' part to k's: a step of
-(k* − k)(δ − δ*)); the tangential term (δ* δ − ½ δ*²) ∇k grows only as fast as the normal force, its share
+which is ½ k δ² where it begins: the normal force k(x) δ* + λ k* (δ − δ*) keeps growing, and equals k δ*
+where it ends again as δ falls below δ*, so entering and leaving are continuous and loops through it stay
+conservative.  The increments' stiffness is tapered as k is (:func:`increment_stiffness`), so a frozen contact
+that slides into a contact region's edge band fades out with the rest of the force; the energy's surface
+gradient then has the term ½ k* (δ − δ*)² ∇λ too (∇λ the triangle's own, :func:`taper_gradient`).  (It used to
+unfreeze at the band's first tick, a step of (k* − k)(δ − δ*) in one tick: 7.7x the slide's largest change per
+tick on the test's region-edge slide, 1.4x now.)  The tangential term (δ* δ − ½ δ*²) ∇k grows only as fast as
+the normal force, its share
 tending to δ* ‖A ∇k‖ / k* ≤ ‖A‖ / 8 with A = (I − δ_f S)⁻¹: within atan(2/8) = 14° of the normal at most, and
 10° where ‖A‖ ≤ 1.41 (measured in normal pushes to 15 mm: ≤ 9.2° at the pole, top, sides and hilum lip;
 17.5° at the support rim, where the stiffness rises tenfold within a few millimetres).  The law
@@ -58,8 +62,9 @@ from pmask.runtime.contact.surface import at
 from pmask.runtime.contact.tracking import normal, point
 
 #: where the law's inputs sit in :func:`geometry`'s first result, after N's three components: K̃ (9), K̃⁻¹ (9),
-#: k, λ, the energy gradient ∇k on the tangent plane (3), the shape operator on the tangent plane (9), δ_lin
-GEO_K, GEO_KI, GEO_k, GEO_LAM, GEO_G, GEO_S, GEO_DLIN = range(3, 10)
+#: k, λ, the energy gradient ∇k on the tangent plane (3), the shape operator on the tangent plane (9), δ_lin,
+#: and ∇λ on the tangent plane (3; the triangle's own gradient of the interpolated taper)
+GEO_K, GEO_KI, GEO_k, GEO_LAM, GEO_G, GEO_S, GEO_DLIN, GEO_GLAM = range(3, 11)
 
 
 def scaled(K, Ki, k, Nx, Ny, Nz):
@@ -70,7 +75,8 @@ def scaled(K, Ki, k, Nx, Ny, Nz):
 
 def geometry(c, st, p):
     """The law's inputs at the proxy (see :data:`GEO_K` ...: N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane,
-    δ_lin) and ū = p − r_tool N − x_a with x_a the proxy (frictionless) or the anchor the tool holds."""
+    δ_lin, ∇λ on the tangent plane) and ū = p − r_tool N − x_a with x_a the proxy (frictionless) or the anchor
+    the tool holds."""
     srf = c.surface
     t, (b0, b1, b2) = st.tri, st.b
     r = c.tool_radius
@@ -85,9 +91,22 @@ def geometry(c, st, p):
         an = Nx * (ax - cx) + Ny * (ay - cy) + Nz * (az - cz)
         cx, cy, cz = ax - an * Nx, ay - an * Ny, az - an * Nz
         st.anchor = (cx, cy, cz)
+    lx, ly, lz = taper_gradient(srf, t)
+    ln = lx * Nx + ly * Ny + lz * Nz
     return ((Nx, Ny, Nz, Kt, Kti, k, lam, (gx - gn * Nx, gy - gn * Ny, gz - gn * Nz), tangent_part(Nx, Ny, Nz, S),
-             dlin),
+             dlin, (lx - ln * Nx, ly - ln * Ny, lz - ln * Nz)),
             (p[0] - r * Nx - cx, p[1] - r * Ny - cy, p[2] - r * Nz - cz))
+
+
+def taper_gradient(srf, t):
+    """∇λ on triangle t: the gradient of the linearly interpolated taper, (λ_1 − λ_0) a + (λ_2 − λ_0) b with a, b
+    the duals of the triangle's edges (exact for the interpolant, so the frozen increments' energy ½ λ k* (δ − δ*)²
+    has it as its surface gradient)."""
+    i0, i1, i2 = srf._idx[t]
+    lam = srf._lam
+    _, _, _, ax, ay, az, bx, by, bz, _, _, _ = srf._tri[t]
+    d1, d2 = lam[i1] - lam[i0], lam[i2] - lam[i0]
+    return d1 * ax + d2 * bx, d1 * ay + d2 * by, d1 * az + d2 * bz
 
 
 #: past δ_t = min(δ_lin, FROZEN_CHANGE k / ‖∇k‖) increments of depth keep the stiffness where they began
@@ -102,12 +121,18 @@ def increment_depth(dlin, k, gx, gy, gz):
     return dlin
 
 
-def secant(st, k, delta):
+def increment_stiffness(st, lam):
+    """λ k*: the stiffness of the frozen increments of depth, tapered as k is (λ = 1 where freezing begins), so a
+    frozen contact that slides into a contact region's edge band fades out with it instead of stepping."""
+    return lam * st.frozen_stiffness
+
+
+def secant(st, k, lam, delta):
     """The frictionless normal force φ(δ) and its ratio q = φ / (k δ): k δ, or past δ*
-    k δ* + k* (δ − δ*)."""
+    k δ* + λ k* (δ − δ*)."""
     d0 = st.frozen_depth
     if st.frozen and delta > d0:
-        fc = k * d0 + st.frozen_stiffness * (delta - d0)
+        fc = k * d0 + increment_stiffness(st, lam) * (delta - d0)
         return fc, fc / (k * delta)
     return k * delta, 1.0
 
@@ -119,7 +144,7 @@ def local_law(c, st, geo, ux, uy, uz):
     delta = -(Nx * ux + Ny * uy + Nz * uz)
     if delta <= 0.0 or lam <= 0.0 or k <= 0.0:
         return (0.0, 0.0, 0.0), (ux, uy, uz), False, 0.0
-    fc, q = secant(st, k, delta)  # the frictionless normal force; q scales K̃ to the secant stiffness
+    fc, q = secant(st, k, lam, delta)  # the frictionless normal force; q scales K̃ to the secant stiffness
     if c._frictionless:
         fx, fy, fz = -fc * Nx, -fc * Ny, -fc * Nz
         u2x, u2y, u2z = mul3(Kti, fx, fy, fz)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 
-from pmask.runtime.contact.law import GEO_k, increment_depth
+from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_depth, increment_stiffness
 from pmask.runtime.contact.linalg3 import mul3, speed_up, tracking_depth
 from pmask.runtime.contact.state import PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
 
@@ -48,7 +48,7 @@ def render(c, states, active, geo, ubar, result) -> None:
         e = 0.5 * (f[0] * u2[0] + f[1] * u2[1] + f[2] * u2[2])
         delta, d0 = result[l][0][3], st.frozen_depth
         if st.frozen and delta > d0:  # the law's energy past δ* (law.py) less ½ φ δ
-            e += 0.5 * d0 * (delta - d0) * (geo[l][GEO_k] - st.frozen_stiffness)
+            e += 0.5 * d0 * (delta - d0) * (geo[l][GEO_k] - increment_stiffness(st, geo[l][GEO_LAM]))
         stored += e
         if hb[0] == 0.0 and hb[1] == 0.0 and hb[2] == 0.0:  # its first tick: the device held no force yet, the
             work += e                                       # energy of that tick's press is the hand's
@@ -65,7 +65,7 @@ def render(c, states, active, geo, ubar, result) -> None:
         st = states[l]
         (f, u2, sliding, delta), ueff = result[l]
         g = geo[l]
-        Nx, Ny, Nz, Kt, _, k, lam, (gx, gy, gz), S, dlin = g
+        Nx, Ny, Nz, Kt, _, k, lam, (gx, gy, gz), S, dlin, (lx, ly, lz) = g
         dpx, dpy, dpz = st.vel  # the velocity terms use the filtered motion
         # past δ_t (inside the full region) increments keep the stiffness where they began (law.py)
         full = lam >= 1.0 - 1e-9
@@ -74,17 +74,23 @@ def render(c, states, active, geo, ubar, result) -> None:
                 dt = increment_depth(dlin, k, gx, gy, gz)
                 if delta >= dt:
                     st.frozen, st.frozen_depth, st.frozen_stiffness = True, dt, k
-        elif delta < st.frozen_depth or not full:
+        elif delta < st.frozen_depth:
             st.frozen = False
         # the stored energy's gradient along the surface, ψ(δ) (I − δ_f S)⁻¹ ∇k: ψ = ½ δ², frozen
-        # δ* δ − ½ δ*²; δ_f = min(δ, R/2) the depth whose speed-up the proxy moves with (tracking.follow)
+        # δ* δ − ½ δ*² and the increments' ½ k* (δ − δ*)² (I − δ_f S)⁻¹ ∇λ; δ_f = min(δ, R/2) the depth whose
+        # speed-up the proxy moves with (tracking.follow)
         d0 = st.frozen_depth
         hd = d0 * delta - 0.5 * d0 * d0 if st.frozen else 0.5 * delta * delta
-        ax, ay, az = mul3(speed_up(S, tracking_depth(S, delta)), gx, gy, gz)
+        A = speed_up(S, tracking_depth(S, delta))
+        ax, ay, az = mul3(A, gx, gy, gz)
         bx, by, bz = f[0] + hd * ax, f[1] + hd * ay, f[2] + hd * az
+        if st.frozen:
+            hl = 0.5 * st.frozen_stiffness * (delta - d0) * (delta - d0)
+            ax, ay, az = mul3(A, lx, ly, lz)
+            bx, by, bz = bx + hl * ax, by + hl * ay, bz + hl * az
         # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): J = k N Nᵀ sliding (frictionless),
         # K̃ stuck
-        kt = st.frozen_stiffness if st.frozen else k  # the normal stiffness of an increment
+        kt = increment_stiffness(st, lam) if st.frozen else k  # the normal stiffness of an increment
         if sliding:
             hz = 0.5 * kt * (Nx * dpx + Ny * dpy + Nz * dpz)
             vx, vy, vz = hz * Nx, hz * Ny, hz * Nz

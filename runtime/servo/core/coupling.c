@@ -131,8 +131,8 @@ static int normal_system(const pm_servo *S, const int32_t *act, int32_t na, doub
         const double *u = S->ubar + 3 * l;
         r[a] = -(Nx * u[0] + Ny * u[1] + Nz * u[2]);
         const cstate *st = &S->st[l];
-        if (st->frozen) {  /* φ = k δ* + k* (δ − δ*) */
-            const double k = g->k, ks = st->frozen_stiffness;
+        if (st->frozen) {  /* φ = k δ* + λ k* (δ − δ*) */
+            const double k = g->k, ks = g->lam * st->frozen_stiffness;
             if (ks == 0.0) return -1;
             A[a * na + a] = 1.0 / ks;
             r[a] = r[a] - st->frozen_depth * (1.0 - k / ks);

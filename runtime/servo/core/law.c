@@ -5,7 +5,8 @@
  * cone's edge; the surface's own displacement K̃⁻¹ f.  See law.py for the derivation and the DEEP regime. */
 #include "pm_internal.h"
 
-/* the law's inputs at the proxy (law.geometry): N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane, δ_lin, and ū;
+/* the law's inputs at the proxy (law.geometry): N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane, δ_lin, ∇λ on
+ * the tangent plane, and ū;
  * 0 or -1 (where the Python raises) */
 int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom *g, double *u)
 {
@@ -44,6 +45,16 @@ int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom *g, double
     g->g[1] = gy - gn * Ny;
     g->g[2] = gz - gn * Nz;
     pm__tangent_part(g->N, Sm, g->S);
+    {  /* law.taper_gradient: (λ_1 − λ_0) a + (λ_2 − λ_0) b, a and b the duals of the triangle's edges */
+        const int64_t *v = tb->T + 3 * t;
+        const double *F = tb->frames + 12 * t;
+        const double d1 = tb->taper[v[1]] - tb->taper[v[0]], d2 = tb->taper[v[2]] - tb->taper[v[0]];
+        const double lx = d1 * F[3] + d2 * F[6], ly = d1 * F[4] + d2 * F[7], lz = d1 * F[5] + d2 * F[8];
+        const double ln = lx * Nx + ly * Ny + lz * Nz;
+        g->gl[0] = lx - ln * Nx;
+        g->gl[1] = ly - ln * Ny;
+        g->gl[2] = lz - ln * Nz;
+    }
     u[0] = p[0] - r * Nx - c[0];
     u[1] = p[1] - r * Ny - c[1];
     u[2] = p[2] - r * Nz - c[2];
@@ -62,12 +73,12 @@ static void result(lres *R, double fx, double fy, double fz, const double *u2, i
     R->delta = delta;
 }
 
-/* the frictionless normal force and its ratio to k δ (law.secant): k δ, or past δ* k δ* + k* (δ − δ*) */
-static double secant(const cstate *st, double k, double delta, double *q)
+/* the frictionless normal force and its ratio to k δ (law.secant): k δ, or past δ* k δ* + λ k* (δ − δ*) */
+static double secant(const cstate *st, double k, double lam, double delta, double *q)
 {
     const double d0 = st->frozen_depth;
     if (st->frozen && delta > d0) {
-        double fc = k * d0 + st->frozen_stiffness * (delta - d0);
+        double fc = k * d0 + lam * st->frozen_stiffness * (delta - d0);
         *q = fc / (k * delta);
         return fc;
     }
@@ -86,7 +97,7 @@ int pm__local_law(const pm_servo *S, const cstate *st, const geom *g, double ux,
         return 0;
     }
     double q;
-    const double fc = secant(st, k, delta, &q);
+    const double fc = secant(st, k, lam, delta, &q);
     if (S->frictionless) {
         double fx = -fc * Nx, fy = -fc * Ny, fz = -fc * Nz;
         pm__mul3(g->Kti, fx, fy, fz, u2);

@@ -29,7 +29,7 @@ int pm__render(pm_servo *S, int32_t na)
         double e = 0.5 * (R->f[0] * R->total[0] + R->f[1] * R->total[1] + R->f[2] * R->total[2]);
         const double d0 = st->frozen_depth;
         if (st->frozen && R->delta > d0)  /* the law's energy past δ* (law.py) less ½ φ δ */
-            e += 0.5 * d0 * (R->delta - d0) * (S->geo[l].k - st->frozen_stiffness);
+            e += 0.5 * d0 * (R->delta - d0) * (S->geo[l].k - S->geo[l].lam * st->frozen_stiffness);
         stored += e;
         if (hb[0] == 0.0 && hb[1] == 0.0 && hb[2] == 0.0) work += e;  /* its first tick: the hand's press */
     }
@@ -66,18 +66,26 @@ int pm__render(pm_servo *S, int32_t na)
                     st->frozen_stiffness = k;
                 }
             }
-        } else if (delta < st->frozen_depth || !full) {
+        } else if (delta < st->frozen_depth) {
             st->frozen = 0;
         }
-        /* the stored energy's gradient along the surface, ψ(δ) (I − δ_f S)⁻¹ ∇k */
+        /* the stored energy's gradient along the surface, ψ(δ) (I − δ_f S)⁻¹ ∇k, frozen also the increments'
+           ½ k* (δ − δ*)² (I − δ_f S)⁻¹ ∇λ */
         const double d0 = st->frozen_depth;
         const double hd = st->frozen ? d0 * delta - 0.5 * d0 * d0 : 0.5 * delta * delta;
         double A[9], a3[3];
         pm__speed_up(g->S, pm__tracking_depth(g->S, delta), A);
         pm__mul3(A, g->g[0], g->g[1], g->g[2], a3);
         double bx = f[0] + hd * a3[0], by = f[1] + hd * a3[1], bz = f[2] + hd * a3[2];
-        /* the zero-order hold's first-order error, ½ J Δp: J = k N Nᵀ sliding, K̃ stuck (DEEP: k*) */
-        const double kt = st->frozen ? st->frozen_stiffness : k;
+        if (st->frozen) {
+            const double hl = 0.5 * st->frozen_stiffness * (delta - d0) * (delta - d0);
+            pm__mul3(A, g->gl[0], g->gl[1], g->gl[2], a3);
+            bx = bx + hl * a3[0];
+            by = by + hl * a3[1];
+            bz = bz + hl * a3[2];
+        }
+        /* the zero-order hold's first-order error, ½ J Δp: J = k N Nᵀ sliding, K̃ stuck (DEEP: λ k*) */
+        const double kt = st->frozen ? lam * st->frozen_stiffness : k;
         double vx, vy, vz;
         if (sliding) {
             double hz = 0.5 * kt * (Nx * dpx + Ny * dpy + Nz * dpz);
