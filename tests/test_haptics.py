@@ -75,7 +75,8 @@ def test_crossing_the_edge_of_a_contact_region(kidney_top, options):
     1.4x; it was 7.7x when a contact frozen past δ* (law.py) unfroze at the band's first tick, a step of
     (k* − k)(δ − δ*)).  With friction the contact sticks again on the way back in, where λ and with it the
     friction cone grow, and a stuck contact dragged builds its force at the stuck stiffness times the speed,
-    as a press does (3.9x the sliding slide's largest change, measured); the bound there is the one below."""
+    as a press does (3.9x the sliding slide's largest change, measured); the bound there is 3 % of the peak force a
+    tick (the first assertion)."""
     m = Model.load(kidney_top)
     s = m.stiffness("linear", 2 * m.mean_edge_length)
     probes, parts = region_edge_slide(0.0, parts=True)
