@@ -81,7 +81,7 @@ def test_the_proxy_moves_along_the_surface_by_at_most_its_limit(flat):
     np.testing.assert_allclose(x, target, atol=1e-12)
 
 
-def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dlin=math.inf, gl=(0.0, 0.0, 0.0)):
+def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dlin=math.inf):
     """The law's inputs (law.GEO_K ...) for a vertex stiffness K: K̃ scaled to the normal stiffness k (by
     default the Schur complement 1/(Nᵀ K⁻¹ N) times λ, as the surface's k_j)."""
     K = list(np.ravel(K))
@@ -89,7 +89,7 @@ def geo_of(K, N=(0.0, 0.0, 1.0), lam=1.0, k=None, g=(0.0, 0.0, 0.0), S=None, dli
     if k is None:
         k = lam / law.normal_compliance(*N, Ki)
     Kt, Kti = law.scaled(K, Ki, k, *N)
-    return (*N, Kt, Kti, k, lam, g, [0.0] * 9 if S is None else list(np.ravel(S)), dlin, gl)
+    return (*N, Kt, Kti, k, lam, g, [0.0] * 9 if S is None else list(np.ravel(S)), dlin)
 
 
 def random_spd(rng):
@@ -238,11 +238,16 @@ def test_a_frozen_contact_fades_out_with_the_region_instead_of_stepping():
     stiffness is tapered as k is, φ = k δ* + λ k* (δ − δ*), the contact stays frozen (it used to unfreeze there
     in one tick: a step of (k* − k)(δ − δ*)), and the force's tangential part is the gradient of the energy
     k (δ* δ − ½ δ*²) + ½ λ k* (δ − δ*)² along the surface: (δ* δ − ½ δ*²) ∇k + ½ k* (δ − δ*)² ∇λ (flat, S = 0)."""
-    c = Contacts(sheet(), 1, engine="python", normal_radius=0.0)
+    flat = sheet()
+    gl = np.array([0.0, 30.0, 0.0])
+    taper = 0.25 + flat.points @ gl  # λ = 0.4 at y = 5 mm, 0.25-0.49 over the sheet
+    c = Contacts(SurfaceStiffness(flat.points, flat.triangles, flat.K_vertex, taper=taper), 1, engine="python",
+                 normal_radius=0.0)
     st = c._states[0]
+    st.tri = int(np.flatnonzero(np.all(np.abs(flat.points[flat.triangles, 1] - 5.5e-3) < 1e-3, axis=1))[0])
     st.frozen, st.frozen_depth, st.frozen_stiffness = True, 2e-3, 60.0
-    lam, k, gk, gl = 0.4, 32.0, np.array([5.0, 0.0, 0.0]), np.array([0.0, 30.0, 0.0])
-    geo = geo_of(np.diag([40.0, 50.0, 100.0]), lam=lam, k=k, g=tuple(gk), gl=tuple(gl))
+    lam, k, gk = 0.4, 32.0, np.array([5.0, 0.0, 0.0])
+    geo = geo_of(np.diag([40.0, 50.0, 100.0]), lam=lam, k=k, g=tuple(gk))
     delta = 3e-3
     u = (0.0, 0.0, -delta)
     f, u2, sliding, d = law.local_law(c, st, geo, *u)

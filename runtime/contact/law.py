@@ -62,9 +62,8 @@ from pmask.runtime.contact.surface import at
 from pmask.runtime.contact.tracking import normal, point
 
 #: where the law's inputs sit in :func:`geometry`'s first result, after N's three components: K̃ (9), K̃⁻¹ (9),
-#: k, λ, the energy gradient ∇k on the tangent plane (3), the shape operator on the tangent plane (9), δ_lin,
-#: and ∇λ on the tangent plane (3; the triangle's own gradient of the interpolated taper)
-GEO_K, GEO_KI, GEO_k, GEO_LAM, GEO_G, GEO_S, GEO_DLIN, GEO_GLAM = range(3, 11)
+#: k, λ, the energy gradient ∇k on the tangent plane (3), the shape operator on the tangent plane (9), δ_lin
+GEO_K, GEO_KI, GEO_k, GEO_LAM, GEO_G, GEO_S, GEO_DLIN = range(3, 10)
 
 
 def scaled(K, Ki, k, Nx, Ny, Nz):
@@ -75,8 +74,7 @@ def scaled(K, Ki, k, Nx, Ny, Nz):
 
 def geometry(c, st, p):
     """The law's inputs at the proxy (see :data:`GEO_K` ...: N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane,
-    δ_lin, ∇λ on the tangent plane) and ū = p − r_tool N − x_a with x_a the proxy (frictionless) or the anchor
-    the tool holds."""
+    δ_lin) and ū = p − r_tool N − x_a with x_a the proxy (frictionless) or the anchor the tool holds."""
     srf = c.surface
     t, (b0, b1, b2) = st.tri, st.b
     r = c.tool_radius
@@ -91,22 +89,23 @@ def geometry(c, st, p):
         an = Nx * (ax - cx) + Ny * (ay - cy) + Nz * (az - cz)
         cx, cy, cz = ax - an * Nx, ay - an * Ny, az - an * Nz
         st.anchor = (cx, cy, cz)
-    lx, ly, lz = taper_gradient(srf, t)
-    ln = lx * Nx + ly * Ny + lz * Nz
     return ((Nx, Ny, Nz, Kt, Kti, k, lam, (gx - gn * Nx, gy - gn * Ny, gz - gn * Nz), tangent_part(Nx, Ny, Nz, S),
-             dlin, (lx - ln * Nx, ly - ln * Ny, lz - ln * Nz)),
+             dlin),
             (p[0] - r * Nx - cx, p[1] - r * Ny - cy, p[2] - r * Nz - cz))
 
 
-def taper_gradient(srf, t):
-    """∇λ on triangle t: the gradient of the linearly interpolated taper, (λ_1 − λ_0) a + (λ_2 − λ_0) b with a, b
-    the duals of the triangle's edges (exact for the interpolant, so the frozen increments' energy ½ λ k* (δ − δ*)²
-    has it as its surface gradient)."""
+def taper_gradient(srf, t, Nx, Ny, Nz):
+    """∇λ on triangle t, on the tangent plane of N: the gradient of the linearly interpolated taper,
+    (λ_1 − λ_0) a + (λ_2 − λ_0) b with a, b the duals of the triangle's edges (exact for the interpolant, so the
+    frozen increments' energy ½ λ k* (δ − δ*)² has it as its surface gradient).  Only a frozen contact reads it
+    (step 4), so it is not among the per-tick inputs of :func:`geometry`."""
     i0, i1, i2 = srf._idx[t]
     lam = srf._lam
     _, _, _, ax, ay, az, bx, by, bz, _, _, _ = srf._tri[t]
     d1, d2 = lam[i1] - lam[i0], lam[i2] - lam[i0]
-    return d1 * ax + d2 * bx, d1 * ay + d2 * by, d1 * az + d2 * bz
+    lx, ly, lz = d1 * ax + d2 * bx, d1 * ay + d2 * by, d1 * az + d2 * bz
+    ln = lx * Nx + ly * Ny + lz * Nz
+    return lx - ln * Nx, ly - ln * Ny, lz - ln * Nz
 
 
 #: past δ_t = min(δ_lin, FROZEN_CHANGE k / ‖∇k‖) increments of depth keep the stiffness where they began

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 
-from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_depth, increment_stiffness
+from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_depth, increment_stiffness, taper_gradient
 from pmask.runtime.contact.linalg3 import mul3, speed_up, tracking_depth
 from pmask.runtime.contact.state import PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
 
@@ -65,7 +65,7 @@ def render(c, states, active, geo, ubar, result) -> None:
         st = states[l]
         (f, u2, sliding, delta), ueff = result[l]
         g = geo[l]
-        Nx, Ny, Nz, Kt, _, k, lam, (gx, gy, gz), S, dlin, (lx, ly, lz) = g
+        Nx, Ny, Nz, Kt, _, k, lam, (gx, gy, gz), S, dlin = g
         dpx, dpy, dpz = st.vel  # the velocity terms use the filtered motion
         # past δ_t (inside the full region) increments keep the stiffness where they began (law.py)
         full = lam >= 1.0 - 1e-9
@@ -86,7 +86,7 @@ def render(c, states, active, geo, ubar, result) -> None:
         bx, by, bz = f[0] + hd * ax, f[1] + hd * ay, f[2] + hd * az
         if st.frozen:
             hl = 0.5 * st.frozen_stiffness * (delta - d0) * (delta - d0)
-            ax, ay, az = mul3(A, lx, ly, lz)
+            ax, ay, az = mul3(A, *taper_gradient(c.surface, st.tri, Nx, Ny, Nz))
             bx, by, bz = bx + hl * ax, by + hl * ay, bz + hl * az
         # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): J = k N Nᵀ sliding (frictionless),
         # K̃ stuck

@@ -5,8 +5,7 @@
  * cone's edge; the surface's own displacement K̃⁻¹ f.  See law.py for the derivation and the DEEP regime. */
 #include "pm_internal.h"
 
-/* the law's inputs at the proxy (law.geometry): N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane, δ_lin, ∇λ on
- * the tangent plane, and ū;
+/* the law's inputs at the proxy (law.geometry): N, K̃, K̃⁻¹, k, λ, ∇k and S on the tangent plane, δ_lin, and ū;
  * 0 or -1 (where the Python raises) */
 int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom *g, double *u)
 {
@@ -45,16 +44,6 @@ int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom *g, double
     g->g[1] = gy - gn * Ny;
     g->g[2] = gz - gn * Nz;
     pm__tangent_part(g->N, Sm, g->S);
-    {  /* law.taper_gradient: (λ_1 − λ_0) a + (λ_2 − λ_0) b, a and b the duals of the triangle's edges */
-        const int64_t *v = tb->T + 3 * t;
-        const double *F = tb->frames + 12 * t;
-        const double d1 = tb->taper[v[1]] - tb->taper[v[0]], d2 = tb->taper[v[2]] - tb->taper[v[0]];
-        const double lx = d1 * F[3] + d2 * F[6], ly = d1 * F[4] + d2 * F[7], lz = d1 * F[5] + d2 * F[8];
-        const double ln = lx * Nx + ly * Ny + lz * Nz;
-        g->gl[0] = lx - ln * Nx;
-        g->gl[1] = ly - ln * Ny;
-        g->gl[2] = lz - ln * Nz;
-    }
     u[0] = p[0] - r * Nx - c[0];
     u[1] = p[1] - r * Ny - c[1];
     u[2] = p[2] - r * Nz - c[2];

@@ -6,6 +6,20 @@
 #include "pm_internal.h"
 
 /* the active contacts S->active[0..na) after the law: their forces, displacements, depths and statuses; 0 or -1 */
+/* ∇λ on triangle t, on the tangent plane of N (law.taper_gradient): (λ_1 − λ_0) a + (λ_2 − λ_0) b, a and b the
+ * duals of the triangle's edges; only a frozen contact reads it */
+static void taper_gradient(const pm_table *tb, int64_t t, const double *N, double *gl)
+{
+    const int64_t *v = tb->T + 3 * t;
+    const double *F = tb->frames + 12 * t;
+    const double d1 = tb->taper[v[1]] - tb->taper[v[0]], d2 = tb->taper[v[2]] - tb->taper[v[0]];
+    const double lx = d1 * F[3] + d2 * F[6], ly = d1 * F[4] + d2 * F[7], lz = d1 * F[5] + d2 * F[8];
+    const double ln = lx * N[0] + ly * N[1] + lz * N[2];
+    gl[0] = lx - ln * N[0];
+    gl[1] = ly - ln * N[1];
+    gl[2] = lz - ln * N[2];
+}
+
 int pm__render(pm_servo *S, int32_t na)
 {
     const int frictionless = S->frictionless;
@@ -79,7 +93,9 @@ int pm__render(pm_servo *S, int32_t na)
         double bx = f[0] + hd * a3[0], by = f[1] + hd * a3[1], bz = f[2] + hd * a3[2];
         if (st->frozen) {
             const double hl = 0.5 * st->frozen_stiffness * (delta - d0) * (delta - d0);
-            pm__mul3(A, g->gl[0], g->gl[1], g->gl[2], a3);
+            double gl[3];
+            taper_gradient(S->tab, st->tri, g->N, gl);
+            pm__mul3(A, gl[0], gl[1], gl[2], a3);
             bx = bx + hl * a3[0];
             by = by + hl * a3[1];
             bz = bz + hl * a3[2];

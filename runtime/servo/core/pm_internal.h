@@ -115,7 +115,6 @@ typedef struct {   /* the law's inputs at the proxy (law.c's geometry; law.GEO_K
     double Kt[9], Kti[9];       /* the law's K̃ = c K and K̃⁻¹ */
     double k, lam, g[3];        /* normal stiffness, taper, ∇k on the tangent plane */
     double S[9], dlin;          /* the shape operator on the tangent plane, δ_lin */
-    double gl[3];               /* ∇λ on the tangent plane (law.taper_gradient) */
 } geom;
 
 typedef struct {   /* the law's result and the displacement left to the contact */
