@@ -86,14 +86,14 @@ def normal_start(active, geo, ubar, coupling, states=None):
             r[x] = r[x] - st.frozen_depth * (1.0 - k / ks)
         else:
             A[x][x] = 1.0 / geo[l][GEO_k]
-        for y, k in enumerate(active):
-            if k != l:
-                C = coupling[(l, k)]
-                Mx, My, Mz = geo[k][0], geo[k][1], geo[k][2]
-                cx = C[0] * Mx + C[1] * My + C[2] * Mz
-                cy = C[3] * Mx + C[4] * My + C[5] * Mz
-                cz = C[6] * Mx + C[7] * My + C[8] * Mz
-                A[x][y] = Nx * cx + Ny * cy + Nz * cz
+        for y in range(x + 1, s):  # A is symmetric (C_kl = C_lkᵀ): each pair once
+            k = active[y]
+            C = coupling[(l, k)]
+            Mx, My, Mz = geo[k][0], geo[k][1], geo[k][2]
+            cx = C[0] * Mx + C[1] * My + C[2] * Mz
+            cy = C[3] * Mx + C[4] * My + C[5] * Mz
+            cz = C[6] * Mx + C[7] * My + C[8] * Mz
+            A[x][y] = A[y][x] = Nx * cx + Ny * cy + Nz * cz
     pressing = [True] * s
     phi = None
     for _ in range(PIVOTS * s):
@@ -153,9 +153,7 @@ def coupling_blocks(c, states, active):
                 S = [0.0] * 9
                 for x in range(3):
                     for y in range(3):
-                        w = ba[x] * bb[y]
-                        if w == 0.0:
-                            continue
+                        w = ba[x] * bb[y]  # a zero weight adds ±0: every sum stays as it was (P is finite)
                         o = 27 * x + 9 * y
                         for k in range(9):
                             S[k] += w * P[o + k]

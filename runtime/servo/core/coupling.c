@@ -47,54 +47,70 @@ static void pair_blocks(const pm_table *tb, int64_t ta, int64_t tbi, double *P)
     }
 }
 
+/* two doubles in one register (GCC's and Clang's vector extension): each lane is the scalar's multiply and add,
+ * so the sums below are the Python's to the bit (no fused multiply-add: -ffp-contract=off) */
+typedef double pm_v2 __attribute__((vector_size(16)));
+
+static inline pm_v2 load2(const double *p)
+{
+    pm_v2 v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
 /* C_lk for every pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks, kept while both
- * contacts stay on the same triangles (coupling.coupling_blocks) */
+ * contacts stay on the same triangles (coupling.coupling_blocks); act ascending, so a < b is x < y */
 static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
 {
     const pm_table *tb = S->tab;
     const int32_t n = S->n;
     for (int32_t x = 0; x < na; x++)
-        for (int32_t y = 0; y < na; y++) {
-            int32_t a = act[x], b = act[y];
-            if (a < b) {
-                size_t ab = (size_t)a * n + b;
-                double *P = S->pair_P + 81 * ab;
-                int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
-                if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
-                    pair_blocks(tb, ta, tbi, P);
-                    S->pair_tri[2 * ab] = ta;
-                    S->pair_tri[2 * ab + 1] = tbi;
-                }
-                const double *ba = S->st[a].b, *bb = S->st[b].b;
-                double *Sab = S->cpl + 9 * ab, *Sba = S->cpl + 9 * ((size_t)b * n + a);
-                /* Σ_ij w_ij P_ij in nine local sums (the compiler cannot keep Sab in registers: it may alias P), in
-                   the Python's order; a zero weight adds nothing, as the Python's skipped term */
-                double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0, s4 = 0.0, s5 = 0.0, s6 = 0.0, s7 = 0.0, s8 = 0.0;
-                for (int i = 0; i < 3; i++)
-                    for (int j = 0; j < 3; j++) {
-                        const double w = ba[i] * bb[j];
-                        if (w == 0.0) continue;
-                        const double *o = P + 27 * i + 9 * j;
-                        s0 += w * o[0];
-                        s1 += w * o[1];
-                        s2 += w * o[2];
-                        s3 += w * o[3];
-                        s4 += w * o[4];
-                        s5 += w * o[5];
-                        s6 += w * o[6];
-                        s7 += w * o[7];
-                        s8 += w * o[8];
-                    }
-                Sab[0] = Sba[0] = s0;
-                Sab[4] = Sba[4] = s4;
-                Sab[8] = Sba[8] = s8;
-                Sab[1] = Sba[3] = s1;
-                Sab[2] = Sba[6] = s2;
-                Sab[3] = Sba[1] = s3;
-                Sab[5] = Sba[7] = s5;
-                Sab[6] = Sba[2] = s6;
-                Sab[7] = Sba[5] = s7;
+        for (int32_t y = x + 1; y < na; y++) {
+            const int32_t a = act[x], b = act[y];
+            const size_t ab = (size_t)a * n + b;
+            const double *P = S->pair_P + 81 * ab;
+            const int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
+            if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
+                pair_blocks(tb, ta, tbi, S->pair_P + 81 * ab);
+                S->pair_tri[2 * ab] = ta;
+                S->pair_tri[2 * ab + 1] = tbi;
             }
+            const double *ba = S->st[a].b, *bb = S->st[b].b;
+            double *Sab = S->cpl + 9 * ab, *Sba = S->cpl + 9 * ((size_t)b * n + a);
+            /* Σ_ij w_ij P_ij in local sums, two entries a register, in the Python's order (i outer); a zero
+               weight adds w·P = ±0, which leaves every sum as it was (P is finite: the table's loader checks) */
+            pm_v2 s01 = {0.0, 0.0}, s23 = {0.0, 0.0}, s45 = {0.0, 0.0}, s67 = {0.0, 0.0};
+            double s8 = 0.0;
+#define PM_PAIR_TERM(i, j)                        \
+    do {                                          \
+        const double w = ba[i] * bb[j];           \
+        const pm_v2 wv = {w, w};                  \
+        const double *o = P + 27 * (i) + 9 * (j); \
+        s01 += wv * load2(o);                     \
+        s23 += wv * load2(o + 2);                 \
+        s45 += wv * load2(o + 4);                 \
+        s67 += wv * load2(o + 6);                 \
+        s8 += w * o[8];                           \
+    } while (0)
+            PM_PAIR_TERM(0, 0);
+            PM_PAIR_TERM(0, 1);
+            PM_PAIR_TERM(0, 2);
+            PM_PAIR_TERM(1, 0);
+            PM_PAIR_TERM(1, 1);
+            PM_PAIR_TERM(1, 2);
+            PM_PAIR_TERM(2, 0);
+            PM_PAIR_TERM(2, 1);
+            PM_PAIR_TERM(2, 2);
+#undef PM_PAIR_TERM
+            Sab[0] = Sba[0] = s01[0];
+            Sab[4] = Sba[4] = s45[0];
+            Sab[8] = Sba[8] = s8;
+            Sab[1] = Sba[3] = s01[1];
+            Sab[2] = Sba[6] = s23[0];
+            Sab[3] = Sba[1] = s23[1];
+            Sab[5] = Sba[7] = s45[1];
+            Sab[6] = Sba[2] = s67[0];
+            Sab[7] = Sba[5] = s67[1];
         }
 }
 
@@ -102,6 +118,15 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
  * pivot is not positive (coupling.solve_spd) */
 static int solve_spd(double *A, double *r, double *x, int32_t s)
 {
+    if (s == 2) {  /* a pair (a grasp's two jaws), the loops below written out: the same operations */
+        const double p = A[0];
+        if (!(p > 0.0)) return -1;
+        const double q = A[2] / p, a11 = A[3] - q * A[1], r1 = r[1] - q * r[0];
+        if (!(a11 > 0.0)) return -1;
+        x[1] = r1 / a11;
+        x[0] = (r[0] - A[1] * x[1]) / A[0];
+        return 0;
+    }
     for (int32_t k = 0; k < s; k++) {
         double p = A[k * s + k];
         if (!(p > 0.0)) return -1;
@@ -140,15 +165,14 @@ static int normal_system(const pm_servo *S, const int32_t *act, int32_t na, doub
             if (g->k == 0.0) return -1;
             A[a * na + a] = 1.0 / g->k;
         }
-        for (int32_t b = 0; b < na; b++) {
+        for (int32_t b = a + 1; b < na; b++) {  /* A is symmetric (C_kl = C_lkᵀ): each pair once */
             int32_t k = act[b];
-            if (k == l) continue;
             const double *C = S->cpl + 9 * ((size_t)l * n + k);
             const double Mx = S->geo[k].N[0], My = S->geo[k].N[1], Mz = S->geo[k].N[2];
             double cx = C[0] * Mx + C[1] * My + C[2] * Mz;
             double cy = C[3] * Mx + C[4] * My + C[5] * Mz;
             double cz = C[6] * Mx + C[7] * My + C[8] * Mz;
-            A[a * na + b] = Nx * cx + Ny * cy + Nz * cz;
+            A[a * na + b] = A[b * na + a] = Nx * cx + Ny * cy + Nz * cz;
         }
     }
     return 0;
