@@ -326,7 +326,8 @@ def selected_columns(L: dict, rows: np.ndarray, B) -> tuple[np.ndarray, dict]:
     for a consistent P2 load at vertex j those are j's neighbours, which lie on j's path or below j in
     several branches (2-4 on the kidney), so each supernode keeps the explicit set of W_B columns that
     reach it (:func:`column_sets`).  Then W_Eᵀ W_B is one gemm per supernode, scattered into the
-    set's columns.
+    set's columns.  A supernode's W_E and W_B are held from its first update to the end of its turn, so
+    the peak is the answer twice (D in pivot order and its gather) and little else (tested).
     """
     import scipy.sparse as sp
 
@@ -340,30 +341,56 @@ def selected_columns(L: dict, rows: np.ndarray, B) -> tuple[np.ndarray, dict]:
     pivE = tree.iperm[rows]
     loE, hiE, posE = tree.ranges(pivE)
     sets, posB = column_sets(tree, B)
-    WE = [np.zeros((hiE[s] - loE[s], tree.ncol[s]), order="F") for s in range(tree.ns)]
-    WB = [np.zeros((len(sets[s]), tree.ncol[s]), order="F") for s in range(tree.ns)]
-    for i, p in enumerate(pivE):
-        s = tree.snode[p]
-        WE[s][posE[i] - loE[s], p - tree.sup[s]] = 1.0
     nz_piv = tree.iperm[B.indices]
     col_of = np.repeat(np.arange(k), np.diff(B.indptr))
-    for c, p, v in zip(col_of, nz_piv, B.data):
-        t = tree.snode[p]
-        WB[t][np.searchsorted(sets[t], posB[c]), p - tree.sup[t]] += v
+    byE = np.argsort(tree.snode[pivE], kind="stable")  # the rows' pivots and B's non-zeros by supernode
+    firstE = np.searchsorted(tree.snode[pivE][byE], np.arange(tree.ns + 1))
+    byB = np.argsort(tree.snode[nz_piv], kind="stable")
+    firstB = np.searchsorted(tree.snode[nz_piv][byB], np.arange(tree.ns + 1))
+
+    def alloc_E(t):  # W_E[t] with its unit entries, on its first update or at its own turn (forward_sweep)
+        W = np.zeros((hiE[t] - loE[t], tree.ncol[t]), order="F")
+        i = byE[firstE[t]:firstE[t + 1]]
+        W[posE[i] - loE[t], pivE[i] - tree.sup[t]] = 1.0
+        return W
+
+    def alloc_B(t):  # W_B[t] with B's entries whose pivots are t's
+        W = np.zeros((len(sets[t]), tree.ncol[t]), order="F")
+        i = byB[firstB[t]:firstB[t + 1]]
+        np.add.at(W, (np.searchsorted(sets[t], posB[col_of[i]]), nz_piv[i] - tree.sup[t]), B.data[i])
+        return W
+
+    # W_E and W_B held only from a supernode's first update to the end of its turn, as in forward_sweep
+    # (allocating every block at the start held all of both)
+    WE, WB = [None] * tree.ns, [None] * tree.ns
     D = np.zeros((len(rows), k))
     flops = 0.0
     for s in range(tree.ns):
         mE, mB = hiE[s] - loE[s], len(sets[s])
         XE = XB = None
         if mE:
-            XE, f = _forward(tree, WE, loE, s)
+            if WE[s] is None:
+                WE[s] = alloc_E(s)
+            XE, f = _forward(tree, WE, loE, s, alloc=alloc_E)
             flops += f
         if mB:
-            XB, f = _forward(tree, WB, sets, s)
+            if WB[s] is None:
+                WB[s] = alloc_B(s)
+            XB, f = _forward(tree, WB, sets, s, alloc=alloc_B)
             flops += f
         if mE and mB:
-            D[loE[s]:hiE[s], sets[s]] += XE @ XB.T
+            c = sets[s]
+            V = D[loE[s]:hiE[s], c[0]:c[-1] + 1] if c[-1] - c[0] + 1 == mB else None
+            if V is not None and V.flags.c_contiguous:  # whole rows of D (the root's, the largest): Vᵀ += XB XEᵀ
+                R = blas.dgemm(1.0, XB, XE, beta=1.0, c=V.T, trans_b=1, overwrite_c=1)  # in place, no product copy
+                if not np.shares_memory(R, D):
+                    V[...] = R.T
+            elif V is not None:
+                V += XE @ XB.T
+            else:
+                D[loE[s]:hiE[s], c] += XE @ XB.T
             flops += 2.0 * mE * mB * tree.ncol[s]
+        WE[s] = WB[s] = XE = XB = None
     return np.ascontiguousarray(D[np.ix_(posE, posB)]), {"flops": flops}
 
 
