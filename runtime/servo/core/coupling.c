@@ -144,36 +144,45 @@ static int solve_spd(double *A, double *r, double *x, int32_t s)
     return 0;
 }
 
-/* the coupled normal problem's A (na x na, row-major) and δ̄ (coupling.normal_start); 0 or -1 (a zero stiffness:
- * the Python's ZeroDivisionError) */
+/* contact l's row of the coupled normal problem on the diagonal: A_ll and δ̄_l (coupling.normal_start); 0 or -1
+ * (a zero stiffness: the Python's ZeroDivisionError) */
+static inline int normal_diagonal(const pm_servo *S, int32_t l, double *A_ll, double *r_l)
+{
+    const geom *g = &S->geo[l];
+    const double *u = S->ubar + 3 * l;
+    double r = -(g->N[0] * u[0] + g->N[1] * u[1] + g->N[2] * u[2]);
+    const cstate *st = &S->st[l];
+    if (st->frozen) {  /* φ = k δ* + λ k* (δ − δ*) */
+        const double k = g->k, ks = g->lam * st->frozen_stiffness;
+        if (ks == 0.0) return -1;
+        *A_ll = 1.0 / ks;
+        r = r - st->frozen_depth * (1.0 - k / ks);
+    } else {
+        if (g->k == 0.0) return -1;
+        *A_ll = 1.0 / g->k;
+    }
+    *r_l = r;
+    return 0;
+}
+
+/* A_lk = N_lᵀ C_lk N_k (coupling.normal_start) */
+static inline double normal_coupling(const pm_servo *S, int32_t l, int32_t k)
+{
+    const double *C = S->cpl + 9 * ((size_t)l * S->n + k), *N = S->geo[l].N;
+    const double Mx = S->geo[k].N[0], My = S->geo[k].N[1], Mz = S->geo[k].N[2];
+    double cx = C[0] * Mx + C[1] * My + C[2] * Mz;
+    double cy = C[3] * Mx + C[4] * My + C[5] * Mz;
+    double cz = C[6] * Mx + C[7] * My + C[8] * Mz;
+    return N[0] * cx + N[1] * cy + N[2] * cz;
+}
+
+/* the coupled normal problem's A (na x na, row-major) and δ̄ (coupling.normal_start); 0 or -1 (a zero stiffness) */
 static int normal_system(const pm_servo *S, const int32_t *act, int32_t na, double *A, double *r)
 {
-    const int32_t n = S->n;
     for (int32_t a = 0; a < na; a++) {
-        int32_t l = act[a];
-        const geom *g = &S->geo[l];
-        const double Nx = g->N[0], Ny = g->N[1], Nz = g->N[2];
-        const double *u = S->ubar + 3 * l;
-        r[a] = -(Nx * u[0] + Ny * u[1] + Nz * u[2]);
-        const cstate *st = &S->st[l];
-        if (st->frozen) {  /* φ = k δ* + λ k* (δ − δ*) */
-            const double k = g->k, ks = g->lam * st->frozen_stiffness;
-            if (ks == 0.0) return -1;
-            A[a * na + a] = 1.0 / ks;
-            r[a] = r[a] - st->frozen_depth * (1.0 - k / ks);
-        } else {
-            if (g->k == 0.0) return -1;
-            A[a * na + a] = 1.0 / g->k;
-        }
-        for (int32_t b = a + 1; b < na; b++) {  /* A is symmetric (C_kl = C_lkᵀ): each pair once */
-            int32_t k = act[b];
-            const double *C = S->cpl + 9 * ((size_t)l * n + k);
-            const double Mx = S->geo[k].N[0], My = S->geo[k].N[1], Mz = S->geo[k].N[2];
-            double cx = C[0] * Mx + C[1] * My + C[2] * Mz;
-            double cy = C[3] * Mx + C[4] * My + C[5] * Mz;
-            double cz = C[6] * Mx + C[7] * My + C[8] * Mz;
-            A[a * na + b] = A[b * na + a] = Nx * cx + Ny * cy + Nz * cz;
-        }
+        if (normal_diagonal(S, act[a], &A[a * na + a], &r[a])) return -1;
+        for (int32_t b = a + 1; b < na; b++)  /* A is symmetric (C_kl = C_lkᵀ): each pair once */
+            A[a * na + b] = A[b * na + a] = normal_coupling(S, act[a], act[b]);
     }
     return 0;
 }
@@ -184,6 +193,30 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
 {
     double *A = S->nA, *r = S->nr, *x = S->nx, *W = S->nW, *wr = S->nwr;
     int32_t *press = S->npress, *idx = S->nidx;
+    if (na == 2) {  /* a pair pressing (a grasp: the usual coupled case) in registers, the same operations as
+                       normal_system and solve_spd; anything else goes the general way below (the same values) */
+        const int32_t l = act[0], k = act[1];
+        double a00, a11, r0, r1;
+        if (normal_diagonal(S, l, &a00, &r0) || normal_diagonal(S, k, &a11, &r1)) return -1;
+        const double a01 = normal_coupling(S, l, k);
+        if (a00 > 0.0) {
+            const double q = a01 / a00, d11 = a11 - q * a01, e1 = r1 - q * r0;
+            if (d11 > 0.0) {
+                const double x1 = e1 / d11, x0 = (r0 - a01 * x1) / a00;
+                if (x0 >= 0.0 && x1 >= 0.0) {
+                    const double *N = S->geo[l].N, *M = S->geo[k].N;
+                    double *gl = S->gsf + 3 * l, *gk = S->gsf + 3 * k;
+                    gl[0] = -x0 * N[0];
+                    gl[1] = -x0 * N[1];
+                    gl[2] = -x0 * N[2];
+                    gk[0] = -x1 * M[0];
+                    gk[1] = -x1 * M[1];
+                    gk[2] = -x1 * M[2];
+                    return 0;
+                }
+            }
+        }
+    }
     /* every contact pressing (the usual case): the pivoting's first solve, eliminated in place of the system
        itself; only when a contact pulls is the system built again (the same values) for the pivots */
     if (normal_system(S, act, na, W, wr)) return -1;
