@@ -153,7 +153,7 @@ def main() -> None:
             compress = compress_bench.main(HERE / "compress_results.json")
             print(f"wrote {report.write(report.stored()[0], compress)}")
             return None
-        if part == ["organ"]:  # issue #27's 50,000-vertex organ into the compressed-Ξ section, ~20-40 min
+        if part == ["organ"]:  # issue #27's 50,000-vertex organ into the compressed-Ξ section, ~30-45 min
             import compress_bench
             import report
 
