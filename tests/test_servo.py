@@ -138,6 +138,38 @@ def test_several_coupled_instruments(model, surface, n, friction):
     assert sum(s == Status.CONTACT for row in py[1] for s in row) > 0.5 * n * ticks
 
 
+def test_a_deep_coupled_pair_freezes_and_pulls_the_same_way_in_both_engines(model, surface):
+    """Two frictionless instruments 10-15 mm apart on the upper face pressed 6 mm, one after the other, and
+    released in turn: both freeze past δ*, and the shallower one is carried away by the other's dent on most
+    ticks (counted by hand: 156 ticks the pair presses with a frozen contact, the pair's normal problem solved
+    in registers in the C; 655 where one pulls, the general pivoting path): the C forces and statuses are the
+    Python's to 1e-12 N on every tick (they are bit-identical)."""
+    top = model.contact[model.core]
+    P = model.points
+    a = top[np.argmax(P[top, 2])]
+    near = top[np.argsort(np.linalg.norm(P[top] - P[a], axis=1))]
+    b = next(v for v in near if 0.010 < np.linalg.norm(P[v] - P[a]) < 0.015)
+    n = np.array([0.0, 0.0, 1.0])
+    ticks = 2000
+    trace = []
+    for k in range(ticks):
+        x = k / ticks  # a in from 0 to 0.5 and out by 0.75; b from 0.25 to 0.75 and out by 1
+        da = 6e-3 * max(0.0, math.sin(math.pi * min(x / 0.75, 1.0))) - 5e-4
+        db = 6e-3 * max(0.0, math.sin(math.pi * max(0.0, (x - 0.25) / 0.75))) - 5e-4
+        trace.append([P[a] - da * n, P[b] - db * n + np.array([1e-3 * math.sin(0.02 * k), 0.0, 0.0])])
+    py_contacts = Contacts(surface, 2, engine="python")
+    forces, statuses, frozen = [], [], set()
+    for probes in trace:
+        f, st_ = py_contacts.step(probes)
+        forces.append(f)
+        statuses.append(st_)
+        frozen |= {l for l, c in enumerate(py_contacts._states) if c.frozen}
+    c = run(Contacts(surface, 2, engine="native"), trace)
+    assert_same((np.array(forces, float), statuses), c)
+    assert frozen == {0, 1}  # both went past δ*: the frozen branch ran
+    assert sum(all(s in (Status.CONTACT, Status.DEEP) for s in row) for row in statuses) > 0.2 * ticks
+
+
 samples = st.one_of(
     st.tuples(*[st.floats(allow_nan=True, allow_infinity=True, width=64)] * 3),
     st.tuples(*[st.floats(-0.06, 0.06)] * 3),
