@@ -153,7 +153,7 @@ def test_a_deep_coupled_pair_freezes_and_pulls_the_same_way_in_both_engines(mode
     ticks = 2000
     trace = []
     for k in range(ticks):
-        x = k / ticks  # a in from 0 to 0.5 and out by 0.75; b from 0.25 to 0.75 and out by 1
+        x = k / ticks  # a deepest at 3/8 of the trace and out by 3/4; b in from 1/4, deepest at 5/8
         da = 6e-3 * max(0.0, math.sin(math.pi * min(x / 0.75, 1.0))) - 5e-4
         db = 6e-3 * max(0.0, math.sin(math.pi * max(0.0, (x - 0.25) / 0.75))) - 5e-4
         trace.append([P[a] - da * n, P[b] - db * n + np.array([1e-3 * math.sin(0.02 * k), 0.0, 0.0])])
