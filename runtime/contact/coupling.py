@@ -149,14 +149,13 @@ def coupling_blocks(c, states, active):
                 hit = cache.get((a, b))
                 if hit is None or hit[0] != ta or hit[1] != tb:
                     hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(ta, tb))
-                P, ba, bb = hit[2], states[a].b, states[b].b
-                S = [0.0] * 9
-                for x in range(3):
-                    for y in range(3):
-                        w = ba[x] * bb[y]  # a zero weight adds ±0: every sum stays as it was (P is finite)
-                        o = 27 * x + 9 * y
-                        for k in range(9):
-                            S[k] += w * P[o + k]
+                P, (a0, a1, a2), (b0, b1, b2) = hit[2], states[a].b, states[b].b
+                # S_k = Σ_xy w_xy P_xy,k summed from 0.0 in the order x outer, y inner (block xy at 9 (3x + y)),
+                # as the C's; a zero weight adds ±0, which leaves every sum as it was (P is finite)
+                w0, w1, w2, w3, w4 = a0 * b0, a0 * b1, a0 * b2, a1 * b0, a1 * b1
+                w5, w6, w7, w8 = a1 * b2, a2 * b0, a2 * b1, a2 * b2
+                S = [0.0 + w0 * P[k] + w1 * P[9 + k] + w2 * P[18 + k] + w3 * P[27 + k] + w4 * P[36 + k]
+                     + w5 * P[45 + k] + w6 * P[54 + k] + w7 * P[63 + k] + w8 * P[72 + k] for k in range(9)]
                 out[(a, b)] = S
                 out[(b, a)] = [S[3 * j + i] for i in range(3) for j in range(3)]
     return out
