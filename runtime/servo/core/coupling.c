@@ -68,10 +68,10 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
         for (int32_t y = x + 1; y < na; y++) {
             const int32_t a = act[x], b = act[y];
             const size_t ab = (size_t)a * n + b;
-            const double *P = S->pair_P + 81 * ab;
+            double *P = S->pair_P + 81 * ab;
             const int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
             if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
-                pair_blocks(tb, ta, tbi, S->pair_P + 81 * ab);
+                pair_blocks(tb, ta, tbi, P);
                 S->pair_tri[2 * ab] = ta;
                 S->pair_tri[2 * ab + 1] = tbi;
             }
@@ -193,28 +193,22 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
 {
     double *A = S->nA, *r = S->nr, *x = S->nx, *W = S->nW, *wr = S->nwr;
     int32_t *press = S->npress, *idx = S->nidx;
-    if (na == 2) {  /* a pair pressing (a grasp: the usual coupled case) in registers, the same operations as
-                       normal_system and solve_spd; anything else goes the general way below (the same values) */
+    if (na == 2) {  /* a pair pressing (a grasp: the usual coupled case) on the stack, the same operations as
+                       normal_system; anything else goes the general way below (the same values) */
         const int32_t l = act[0], k = act[1];
-        double a00, a11, r0, r1;
-        if (normal_diagonal(S, l, &a00, &r0) || normal_diagonal(S, k, &a11, &r1)) return -1;
-        const double a01 = normal_coupling(S, l, k);
-        if (a00 > 0.0) {
-            const double q = a01 / a00, d11 = a11 - q * a01, e1 = r1 - q * r0;
-            if (d11 > 0.0) {
-                const double x1 = e1 / d11, x0 = (r0 - a01 * x1) / a00;
-                if (x0 >= 0.0 && x1 >= 0.0) {
-                    const double *N = S->geo[l].N, *M = S->geo[k].N;
-                    double *gl = S->gsf + 3 * l, *gk = S->gsf + 3 * k;
-                    gl[0] = -x0 * N[0];
-                    gl[1] = -x0 * N[1];
-                    gl[2] = -x0 * N[2];
-                    gk[0] = -x1 * M[0];
-                    gk[1] = -x1 * M[1];
-                    gk[2] = -x1 * M[2];
-                    return 0;
-                }
-            }
+        double A2[4], r2[2], x2[2];
+        if (normal_diagonal(S, l, &A2[0], &r2[0]) || normal_diagonal(S, k, &A2[3], &r2[1])) return -1;
+        A2[1] = A2[2] = normal_coupling(S, l, k);
+        if (solve_spd(A2, r2, x2, 2) == 0 && x2[0] >= 0.0 && x2[1] >= 0.0) {
+            const double *N = S->geo[l].N, *M = S->geo[k].N;
+            double *gl = S->gsf + 3 * l, *gk = S->gsf + 3 * k;
+            gl[0] = -x2[0] * N[0];
+            gl[1] = -x2[0] * N[1];
+            gl[2] = -x2[0] * N[2];
+            gk[0] = -x2[1] * M[0];
+            gk[1] = -x2[1] * M[1];
+            gk[2] = -x2[1] * M[2];
+            return 0;
         }
     }
     /* every contact pressing (the usual case): the pivoting's first solve, eliminated in place of the system

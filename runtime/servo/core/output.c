@@ -5,7 +5,6 @@
  * hand did not put in beyond a slack of 10 % of the stored energy.  The velocity terms fade with the contact. */
 #include "pm_internal.h"
 
-/* the active contacts S->active[0..na) after the law: their forces, displacements, depths and statuses; 0 or -1 */
 /* ∇λ on triangle t, on the tangent plane of N (law.taper_gradient): (λ_1 − λ_0) a + (λ_2 − λ_0) b, a and b the
  * duals of the triangle's edges; only a frozen contact reads it */
 static void taper_gradient(const pm_table *tb, int64_t t, const double *N, double *gl)
@@ -20,6 +19,7 @@ static void taper_gradient(const pm_table *tb, int64_t t, const double *N, doubl
     gl[2] = lz - ln * N[2];
 }
 
+/* the active contacts S->active[0..na) after the law: their forces, displacements, depths and statuses; 0 or -1 */
 int pm__render(pm_servo *S, int32_t na)
 {
     const int frictionless = S->frictionless;
