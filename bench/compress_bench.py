@@ -15,6 +15,9 @@ from pathlib import Path
 import numpy as np
 
 R_MAX = 0.01  # a 10 mm probe tip
+#: the 50,000 row again with masks up to 5 mm (a 10 mm-wide tip): the exact near field holds every pair within
+#: r_max, ∝ r_max² at a given mesh, so this is what a smaller tip buys (`make bench ONLY=organ-5mm`)
+ORGAN_R_MAX = 0.005
 TOL = 1e-4
 #: P1 throughout: the element whose Ξ the tiles read from W's store and store once per symmetric pair (P2,
 #: the default for ν = 0.45, solves each panel from a copy of its larger factor: at 20,000 vertices the
@@ -109,21 +112,21 @@ def errors(size, work: Path) -> dict:
     return out
 
 
-def large(params: dict, work: Path, n_check: int = 8) -> dict:
+def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> dict:
     """The organ-scale run: a kidney with ~20,000 contact vertices, compressed on 2 local workers through
-    the whole pipeline, peak RSS of the process tree; the dense route's refusal (and its Ξ's size); the
-    compressed Ξ's columns of ``n_check`` random vertices against the same columns solved from the factor
-    (native selected inversion per panel: another code path than the tiles' W store)."""
+    the whole pipeline (masks up to ``r_max``), peak RSS of the process tree; the dense route's refusal (and
+    its Ξ's size); the compressed Ξ's columns of ``n_check`` random vertices against the same columns solved
+    from the factor (native selected inversion per panel: another code path than the tiles' W store)."""
     from pmask.errors import ResourceError
     from pmask.pipeline import stages
     from pmask.precompute import compress, elements
     from pmask.runtime import Model
 
-    spec = stages.Spec(model="kidney", params=params, r_max=R_MAX, compress=TOL, workers=2, element=ELEMENT)
+    spec = stages.Spec(model="kidney", params=params, r_max=r_max, compress=TOL, workers=2, element=ELEMENT)
     p = work / "large.h5"
     with PeakRSS() as m:
         s = stages.run(spec, p, force=True)
-    out = {"params": params, "greens_s": s["timings"]["greens"], "total_s": sum(s["timings"].values()),
+    out = {"params": params, "r_max_m": r_max, "greens_s": s["timings"]["greens"], "total_s": sum(s["timings"].values()),
            "timings": s["timings"], "peak_rss_gib": m.peak / 2**30,
            "peak_rss_per_process_gib": sorted((v / 2**30 for v in m.per.values()), reverse=True)[:4],
            "bytes": p.stat().st_size, "stats": s["factor_stats"]["compress"], "dofs": s["factor_stats"]["dofs"]}
@@ -136,7 +139,7 @@ def large(params: dict, work: Path, n_check: int = 8) -> dict:
     out["far_field"] = type(c.Xi.U).__name__
     with PeakRSS() as mk:
         t0 = time.perf_counter()
-        c.stiffness("linear", R_MAX).K_full  # every K_i: the near field only
+        c.stiffness("linear", r_max).K_full  # every K_i: the near field only
         out["all_K_s"] = time.perf_counter() - t0
     out["all_K_peak_rss_gib"] = mk.peak / 2**30  # the loaded model included
     n = len(c.contact)
@@ -149,10 +152,10 @@ def large(params: dict, work: Path, n_check: int = 8) -> dict:
     from scipy.spatial import cKDTree
 
     Pc = c.points[c.contact]
-    within = int(cKDTree(Pc).query_ball_point(Pc, R_MAX, return_length=True).sum())  # ordered pairs, i = j too
+    within = int(cKDTree(Pc).query_ball_point(Pc, r_max, return_length=True).sum())  # ordered pairs, i = j too
     out["pairs_within_r_max_bytes"] = 72 * (within + n) // 2
     out["compressed_stored_bytes"] = c.Xi.nbytes
-    dense = stages.Spec(model="kidney", params=params, r_max=R_MAX, element=ELEMENT)
+    dense = stages.Spec(model="kidney", params=params, r_max=r_max, element=ELEMENT)
     mesh = stages.support_stage(dense, stages.mesh_stage(dense))
     out["dense_need_gib"] = elements.get_element("P1").memory_estimate(len(mesh.points), n)["total"] / 2**30
     try:
@@ -172,7 +175,7 @@ def large(params: dict, work: Path, n_check: int = 8) -> dict:
     out["columns_checked"] = int(n_check)
     out["columns_rel_err"] = float(np.linalg.norm(got - exact) / np.linalg.norm(exact))
     P = c.points[c.contact]
-    near = np.linalg.norm(P[:, None] - P[pick][None], axis=2) <= R_MAX  # (n, n_check)
+    near = np.linalg.norm(P[:, None] - P[pick][None], axis=2) <= r_max  # (n, n_check)
     nm = np.repeat(np.repeat(near, 3, axis=0), 3, axis=1)
     out["near_max_abs_rel"] = float(np.abs(got - exact)[nm].max() / np.abs(exact).max())
     return out
@@ -254,26 +257,33 @@ def main(out: Path) -> dict:
         print(json.dumps(res["eight_workers"]), flush=True)
     print("AMG vs factor ...", flush=True)
     res["amg_vs_factor"] = amg_vs_factor((0.0085, 0.005, 0.003))
-    if out.exists() and "organ" in (kept := json.loads(out.read_text())):  # `ONLY=organ`'s run, kept
-        res["organ"] = kept["organ"]
+    kept = json.loads(out.read_text()) if out.exists() else {}
+    for key in (k for k in kept if k.startswith("organ")):  # `ONLY=organ`'s runs, kept
+        res[key] = kept[key]
     out.write_text(json.dumps(res, indent=1, default=float))
     return res
 
 
-def organ(out: Path) -> dict:
-    """The organ-scale run at ORGAN (issue #27's 50,000 contact vertices), from a fresh work folder, stored
-    beside the compressed-Ξ section's other results in ``out`` under "organ" (its own date)."""
+def organ_key(r_max: float) -> str:
+    """Where an organ run at ``r_max`` is kept in the results: "organ" at the section's R_MAX."""
+    return "organ" if r_max == R_MAX else f"organ_{r_max * 1e3:g}mm"
+
+
+def organ(out: Path, r_max: float = R_MAX) -> dict:
+    """The organ-scale run at ORGAN (issue #27's 50,000 contact vertices) with masks up to ``r_max``, from a
+    fresh work folder, stored beside the compressed-Ξ section's other results in ``out`` under
+    :func:`organ_key` (its own date)."""
     import tempfile
 
     res = json.loads(out.read_text()) if out.exists() else {"r_max_m": R_MAX, "tolerance": TOL, "element": ELEMENT}
-    print(f"organ scale: kidney {ORGAN} ...", flush=True)
+    print(f"organ scale: kidney {ORGAN}, r_max {r_max} m ...", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        r = large(ORGAN, Path(tmp))
+        r = large(ORGAN, Path(tmp), r_max=r_max)
     from run import machine
 
     r["date"] = time.strftime("%Y-%m-%d %H:%M")
     r["machine"] = machine()
-    res["organ"] = r
+    res[organ_key(r_max)] = r
     print(json.dumps(r, default=str)[:600], flush=True)
     out.write_text(json.dumps(res, indent=1, default=float))
     return res
@@ -383,6 +393,12 @@ def markdown(res: dict) -> str:
         m = o.get("machine")
         where = (f", {m['cpu']}, {m['cores']} cores" if m else ", on a machine this page did not record")
         L += ["", organ_paragraph(o, res, f"Issue #27's 50,000 (measured {o.get('date', '')}{where})")]
+    for key in sorted(k for k in res if k.startswith("organ_")):  # the same organ with a smaller r_max
+        o = res[key]
+        m = o.get("machine")
+        where = (f", {m['cpu']}, {m['cores']} cores" if m else ", on a machine this page did not record")
+        L += ["", organ_paragraph(o, res, f"The same 50,000 with masks up to r_max = {o['r_max_m'] * 1e3:g} mm "
+                                          f"(measured {o.get('date', '')}{where})")]
     if g and "near_bytes" in g:
         L += ["", extrapolation(res)]
     e = res["eight_workers"]
