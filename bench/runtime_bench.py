@@ -106,7 +106,7 @@ def write_trace(path: Path, probes: np.ndarray) -> Path:
 
 
 def c_bench(exe: Path, table: Path, trace: Path, n: int = 1, paced: int = PACED_TICKS, batch: int = 0,
-            reacquire: int = 0, uncoupled: bool = False) -> dict:
+            reacquire: int = 0, uncoupled: bool = False, ratio: int = 0) -> dict:
     import os
 
     env = dict(os.environ, **({"PMASK_BENCH_UNCOUPLED": "1"} if uncoupled else {}))
@@ -115,6 +115,8 @@ def c_bench(exe: Path, table: Path, trace: Path, n: int = 1, paced: int = PACED_
         args += ["--batch", str(batch)]
     if reacquire:
         args += ["--reacquire", str(reacquire)]
+    if ratio:
+        args += ["--ratio", str(ratio)]
     return json.loads(subprocess.run(args, check=True, capture_output=True, text=True, env=env).stdout)
 
 
@@ -291,6 +293,12 @@ def deformation_bench(stiff, model, engine: str, repeats: int = 30) -> dict:
 TICK_SHARE = 0.5
 
 
+#: rounds of the side-by-side comparison of two coupled contacts with one (servo_bench --ratio): each round
+#: passes the whole trace through one, two coupled and two independent contacts in turn; the spread of the
+#: rounds' ratios is printed beside their median
+RATIO_ROUNDS = 41
+
+
 def several_contacts(exe, table_path: Path, surface, model, work: Path, counts=(1, 2, 4, 8, 16, 32, 64)) -> dict:
     """s instruments on the upper face of the default kidney, pressing 0.5-1.5 mm and circling: per-tick cost
     in C (coupled and, for comparison, the s contacts independent), through the binding, and in Python (up to
@@ -318,6 +326,8 @@ def several_contacts(exe, table_path: Path, surface, model, work: Path, counts=(
             row["c_tight"] = c["tight"]
             if s > 1:
                 row["c_uncoupled_tight"] = c_bench(exe, table_path, trace, s, paced=0, uncoupled=True)["tight"]
+            if s == 2:  # the hands issue's bound (≤ 2x one), side by side in one process
+                row["c_ratio"] = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS)["ratio"]
         nat = Contacts(surface, s, engine="native") if _native() else None
         if nat is not None:
             row["binding_tight"] = python_loop(nat.step, P)["tight"]  # the whole trace, as the others
@@ -466,6 +476,16 @@ def markdown(res: dict) -> str:
                  f"{(str(round(u['median_us'], 2))) if u else '—'} | "
                  f"{r['binding_tight']['median_us']:.2f} / {r['binding_tight']['p99_us']:.2f} | {pys} | "
                  f"{r.get('in_contact_fraction', float('nan')):.2f} |" if c else f"| {s} | — | — | — | — | — |")
+    rt = res["several"].get("2", {}).get("c_ratio")
+    if rt:
+        L += ["", f"Side by side in one process ({rt['rounds']} rounds, each the whole trace through one contact, two "
+                  f"coupled and two independent ones in turn, the least of a few passes each; the mean tick): one "
+                  f"{rt['one_us']:.3f} µs, two coupled {rt['coupled_us']:.3f} µs, two independent "
+                  f"{rt['independent_us']:.3f} µs; two coupled against one "
+                  f"{rt['coupled_over_one']['median']:.2f}x (median of the rounds, "
+                  f"{rt['coupled_over_one']['min']:.2f}–{rt['coupled_over_one']['max']:.2f}x), two independent "
+                  f"{rt['independent_over_one']['median']:.2f}x "
+                  f"({rt['independent_over_one']['min']:.2f}–{rt['independent_over_one']['max']:.2f}x)."]
     tick = res.get("several_tick")
     if tick:
         def kept(route):

@@ -1,6 +1,7 @@
 /* Benchmark of the native servo core, called from C as a C/C++ haptic application calls it.
  *
  *   servo_bench TABLE TRACE N [--friction MU] [--paced TICKS] [--batch QUERIES] [--reacquire COUNT]
+ *               [--ratio ROUNDS]
  *
  * TRACE: little-endian int64 tick count, then ticks x N x 3 float64 probe positions.  Prints one JSON
  * object:
@@ -15,6 +16,11 @@
  *              same bytes (32 read, 72 written per query) moved by memcpy and memset
  *   reacquire  the step on a tick where tracking restarts (the first tick after a reset, at a trace point
  *              near the surface): the spatial grid's query plus a short walk (median, p99, max µs)
+ *   ratio      (N > 1) the N contacts coupled, the N contacts independent and the first contact alone, side by
+ *              side in this one process: ROUNDS rounds, each the whole trace through each of the three servos
+ *              in turn (the order rotating; the least of RATIO_PASSES passes), one clock reading around each
+ *              pass (no timer in the ticks): the mean tick of each, and per round the ratios to the one contact
+ *              (median, min, max)
  */
 #define _POSIX_C_SOURCE 200809L
 #include <math.h>
@@ -56,20 +62,103 @@ static double urand(void)
     return (double)(rng_state >> 11) * (1.0 / 9007199254740992.0);
 }
 
+/* The whole trace through a servo (reset first): seconds per tick, one clock reading around the pass. */
+static double pass(pm_servo *servo, const double *trace, int64_t ticks, int32_t n, double *forces, int32_t *status)
+{
+    pm_servo_reset(servo);
+    double a = now_s();
+    for (int64_t k = 0; k < ticks; k++) pm_servo_step(servo, trace + 3 * (size_t)n * (size_t)k, forces, status);
+    return (now_s() - a) / (double)ticks;
+}
+
+static void ratio_stats(const char *name, double *r, size_t m, int comma)
+{
+    qsort(r, m, sizeof(double), cmp);
+    printf("\"%s\": {\"median\": %.4f, \"min\": %.4f, \"max\": %.4f}%s", name, r[m / 2], r[0], r[m - 1],
+           comma ? ", " : "");
+}
+
+#define RATIO_PASSES 5
+
+/* "ratio": the N contacts coupled, independent, and the first contact alone, side by side (see the top). */
+static int ratio_rounds(const pm_table *table, const pm_options *opt, const double *trace, int64_t ticks, int32_t n,
+                        long rounds)
+{
+    char err[512];
+    pm_options o1 = *opt, oc = *opt, ou = *opt;
+    oc.coupled = 1;
+    ou.coupled = 0;
+    pm_servo *s1 = NULL, *sc = NULL, *su = NULL;
+    double *one = malloc((size_t)ticks * 3 * sizeof(double));
+    double *forces = malloc(3 * (size_t)n * sizeof(double));
+    int32_t *status = malloc((size_t)n * sizeof(int32_t));
+    double *t = malloc(3 * (size_t)rounds * sizeof(double));
+    double *rc = malloc((size_t)rounds * sizeof(double)), *ru = malloc((size_t)rounds * sizeof(double));
+    if (!one || !forces || !status || !t || !rc || !ru || pm_servo_create(table, 1, &o1, &s1, err, sizeof err) ||
+        pm_servo_create(table, n, &oc, &sc, err, sizeof err) || pm_servo_create(table, n, &ou, &su, err, sizeof err)) {
+        fprintf(stderr, "ratio: %s\n", err);
+        return 1;
+    }
+    for (int64_t k = 0; k < ticks; k++) memcpy(one + 3 * k, trace + 3 * (size_t)n * (size_t)k, 3 * sizeof(double));
+    pass(s1, one, ticks, 1, forces, status); /* warm: the tables and the code in cache for all three */
+    pass(sc, trace, ticks, n, forces, status);
+    pass(su, trace, ticks, n, forces, status);
+    for (long r = 0; r < rounds; r++) {
+        double *tr = t + 3 * r;  /* one, coupled, independent */
+        for (int j = 0; j < 3; j++) {
+            int w = (int)((j + r) % 3);
+            double best = 1e30;
+            for (int q = 0; q < RATIO_PASSES; q++) {  /* a pass is ~1 ms: the least of a few drops preemptions */
+                double x = w == 0 ? pass(s1, one, ticks, 1, forces, status)
+                         : pass(w == 1 ? sc : su, trace, ticks, n, forces, status);
+                if (x < best) best = x;
+            }
+            tr[w] = best;
+        }
+        rc[r] = tr[1] / tr[0];
+        ru[r] = tr[2] / tr[0];
+    }
+    double *col = malloc((size_t)rounds * sizeof(double));
+    if (!col) return 1;
+    printf("\"ratio\": {\"rounds\": %ld, ", rounds);
+    const char *names[3] = {"one_us", "coupled_us", "independent_us"};
+    for (int j = 0; j < 3; j++) {
+        for (long r = 0; r < rounds; r++) col[r] = 1e6 * t[3 * r + j];
+        qsort(col, (size_t)rounds, sizeof(double), cmp);
+        printf("\"%s\": %.4f, ", names[j], col[rounds / 2]);
+    }
+    ratio_stats("coupled_over_one", rc, (size_t)rounds, 1);
+    ratio_stats("independent_over_one", ru, (size_t)rounds, 0);
+    printf("}, ");
+    free(col);
+    free(one);
+    free(forces);
+    free(status);
+    free(t);
+    free(rc);
+    free(ru);
+    pm_servo_free(s1);
+    pm_servo_free(sc);
+    pm_servo_free(su);
+    return 0;
+}
+
 int main(int argc, char **argv)
 {
     if (argc < 4) {
-        fprintf(stderr, "usage: %s TABLE TRACE N [--friction MU] [--paced TICKS] [--batch Q] [--reacquire C]\n", argv[0]);
+        fprintf(stderr, "usage: %s TABLE TRACE N [--friction MU] [--paced TICKS] [--batch Q] [--reacquire C] "
+                        "[--ratio ROUNDS]\n", argv[0]);
         return 2;
     }
     int32_t n = atoi(argv[3]);
     double friction = 0.0;
-    long paced = 0, batch = 0, reacq = 0;
+    long paced = 0, batch = 0, reacq = 0, rounds = 0;
     for (int i = 4; i + 1 < argc; i += 2) {
         if (!strcmp(argv[i], "--friction")) friction = atof(argv[i + 1]);
         else if (!strcmp(argv[i], "--paced")) paced = atol(argv[i + 1]);
         else if (!strcmp(argv[i], "--batch")) batch = atol(argv[i + 1]);
         else if (!strcmp(argv[i], "--reacquire")) reacq = atol(argv[i + 1]);
+        else if (!strcmp(argv[i], "--ratio")) rounds = atol(argv[i + 1]);
     }
     char err[512];
     pm_table *table;
@@ -235,6 +324,7 @@ int main(int argc, char **argv)
         stats("reacquire", t_re, (size_t)m, 1);
         free(t_re);
     }
+    if (rounds > 0 && n > 1 && ratio_rounds(table, &opt, trace, ticks, n, rounds)) return 1;
     printf("\"triangles\": %lld}\n", (long long)pm_table_triangles(table));
     pm_servo_free(servo);
     pm_table_free(table);
