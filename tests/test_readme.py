@@ -71,3 +71,14 @@ def test_the_contacts_a_tick_holds_are_the_benchmarks():
                   r"engine", " ".join(README.split()))  # wherever the lines break
     assert m, "the README no longer says how many contacts each engine keeps in the tick"
     assert [int(x) for x in m.groups()] == [tick[k]["contacts"] for k in ("c", "binding", "python")]
+
+
+def test_the_side_of_twice_the_readme_gives_two_coupled_contacts_is_the_benchmarks():
+    """The README says two coupled contacts cost a little more than twice one in C (the hands issue asked at most
+    twice); the stored benchmark's side-by-side ratio (one process, bench/results.json) says which side of 2 it
+    is, so the sentence changes with it."""
+    import json
+
+    ratio = json.loads((ROOT / "bench" / "results.json").read_text())["haptics"]["several"]["2"]["c_ratio"]
+    above = "two coupled contacts cost a little more than twice one in C" in " ".join(README.split())
+    assert above == (ratio["coupled_over_one"]["median"] > 2.0), ratio
