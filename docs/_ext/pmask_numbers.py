@@ -6,8 +6,9 @@
 reference table (``tests/reference/NAME.csv``, recomputed by CI and by ``make reference``; its rows as a list),
 PATH is a dotted path into its JSON (list indices as numbers; ``a[key=value]`` picks the first element of a
 list whose ``key`` equals ``value``), FORMAT a Python format spec (``,`` for thousands, ``.2f``, ``.1e``...;
-``%`` multiplies by 100), after ``GiB`` or ``MiB`` for a number of bytes shown in that unit (``GiB.2f``).  A path that does not resolve is an error, so a page cannot quote a number its
-generated file no longer has: every measured number in the docs comes from a generated file.
+``%`` multiplies by 100), after ``GiB`` or ``MiB`` for a number of bytes shown in that unit (``GiB.2f``).
+A path that does not resolve is an error, so a page cannot quote a number its generated file no longer has:
+every measured number in the docs comes from a generated file.
 """
 from __future__ import annotations
 
