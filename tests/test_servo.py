@@ -142,7 +142,7 @@ def test_a_deep_coupled_pair_freezes_and_pulls_the_same_way_in_both_engines(mode
     """Two frictionless instruments 10-15 mm apart on the upper face pressed 6 mm, one after the other, and
     released in turn: both freeze past δ*, and the shallower one is carried away by the other's dent on most
     ticks (counted by hand: 156 ticks the pair presses with a frozen contact, the pair's normal problem solved
-    in registers in the C; 655 where one pulls, the general pivoting path): the C forces and statuses are the
+    on the stack in the C; 655 where one pulls, the general pivoting path): the C forces and statuses are the
     Python's to 1e-12 N on every tick (they are bit-identical)."""
     top = model.contact[model.core]
     P = model.points
