@@ -76,7 +76,7 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
                 S->pair_tri[2 * ab + 1] = tbi;
             }
             const double *ba = S->st[a].b, *bb = S->st[b].b;
-            double *Sab = S->cpl + 9 * ab, *Sba = S->cpl + 9 * ((size_t)b * n + a);
+            double *Sab = S->cpl + 9 * ab;
             /* Σ_ij w_ij P_ij in local sums, two entries a register, in the Python's order (i outer); a zero
                weight adds w·P = ±0, which leaves every sum as it was (P is finite: the table's loader checks) */
             pm_v2 s01 = {0.0, 0.0}, s23 = {0.0, 0.0}, s45 = {0.0, 0.0}, s67 = {0.0, 0.0};
@@ -102,15 +102,15 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
             PM_PAIR_TERM(2, 1);
             PM_PAIR_TERM(2, 2);
 #undef PM_PAIR_TERM
-            Sab[0] = Sba[0] = s01[0];
-            Sab[4] = Sba[4] = s45[0];
-            Sab[8] = Sba[8] = s8;
-            Sab[1] = Sba[3] = s01[1];
-            Sab[2] = Sba[6] = s23[0];
-            Sab[3] = Sba[1] = s23[1];
-            Sab[5] = Sba[7] = s45[1];
-            Sab[6] = Sba[2] = s67[0];
-            Sab[7] = Sba[5] = s67[1];
+            Sab[0] = s01[0];
+            Sab[1] = s01[1];
+            Sab[2] = s23[0];
+            Sab[3] = s23[1];
+            Sab[4] = s45[0];
+            Sab[5] = s45[1];
+            Sab[6] = s67[0];
+            Sab[7] = s67[1];
+            Sab[8] = s8;
         }
 }
 
@@ -118,15 +118,6 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
  * pivot is not positive (coupling.solve_spd) */
 static int solve_spd(double *A, double *r, double *x, int32_t s)
 {
-    if (s == 2) {  /* a pair (a grasp's two jaws), the loops below written out: the same operations */
-        const double p = A[0];
-        if (!(p > 0.0)) return -1;
-        const double q = A[2] / p, a11 = A[3] - q * A[1], r1 = r[1] - q * r[0];
-        if (!(a11 > 0.0)) return -1;
-        x[1] = r1 / a11;
-        x[0] = (r[0] - A[1] * x[1]) / A[0];
-        return 0;
-    }
     for (int32_t k = 0; k < s; k++) {
         double p = A[k * s + k];
         if (!(p > 0.0)) return -1;
@@ -144,24 +135,34 @@ static int solve_spd(double *A, double *r, double *x, int32_t s)
     return 0;
 }
 
-/* contact l's row of the coupled normal problem on the diagonal: A_ll and δ̄_l (coupling.normal_start); 0 or -1
- * (a zero stiffness: the Python's ZeroDivisionError) */
-static inline int normal_diagonal(const pm_servo *S, int32_t l, double *A_ll, double *r_l)
+/* contact l's row of the coupled normal problem: its normal stiffness s_l (k, or past δ* λ k*) and δ̄_l (with δ*
+ * (1 − k/k*) taken off past δ*) (coupling.normal_start); 0 or -1 (a zero stiffness: the Python's
+ * ZeroDivisionError) */
+static inline int normal_row(const pm_servo *S, int32_t l, double *s_l, double *r_l)
 {
     const geom *g = &S->geo[l];
     const double *u = S->ubar + 3 * l;
     double r = -(g->N[0] * u[0] + g->N[1] * u[1] + g->N[2] * u[2]);
     const cstate *st = &S->st[l];
+    double s = g->k;
     if (st->frozen) {  /* φ = k δ* + λ k* (δ − δ*) */
-        const double k = g->k, ks = g->lam * st->frozen_stiffness;
-        if (ks == 0.0) return -1;
-        *A_ll = 1.0 / ks;
-        r = r - st->frozen_depth * (1.0 - k / ks);
-    } else {
-        if (g->k == 0.0) return -1;
-        *A_ll = 1.0 / g->k;
+        s = g->lam * st->frozen_stiffness;
+        if (s == 0.0) return -1;
+        r = r - st->frozen_depth * (1.0 - g->k / s);
+    } else if (s == 0.0) {
+        return -1;
     }
+    *s_l = s;
     *r_l = r;
+    return 0;
+}
+
+/* its diagonal A_ll = 1/s_l */
+static inline int normal_diagonal(const pm_servo *S, int32_t l, double *A_ll, double *r_l)
+{
+    double s;
+    if (normal_row(S, l, &s, r_l)) return -1;
+    *A_ll = 1.0 / s;
     return 0;
 }
 
@@ -193,22 +194,27 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
 {
     double *A = S->nA, *r = S->nr, *x = S->nx, *W = S->nW, *wr = S->nwr;
     int32_t *press = S->npress, *idx = S->nidx;
-    if (na == 2) {  /* a pair pressing (a grasp: the usual coupled case) on the stack, the same operations as
-                       normal_system; anything else goes the general way below (the same values) */
+    if (na == 2) {  /* a pair pressing (a grasp: the usual coupled case), each row times its stiffness so that one
+                       division is on the way (the elimination's chain of three showed in the pair's tick);
+                       anything else goes the general way below */
         const int32_t l = act[0], k = act[1];
-        double A2[4], r2[2], x2[2];
-        if (normal_diagonal(S, l, &A2[0], &r2[0]) || normal_diagonal(S, k, &A2[3], &r2[1])) return -1;
-        A2[1] = A2[2] = normal_coupling(S, l, k);
-        if (solve_spd(A2, r2, x2, 2) == 0 && x2[0] >= 0.0 && x2[1] >= 0.0) {
-            const double *N = S->geo[l].N, *M = S->geo[k].N;
-            double *gl = S->gsf + 3 * l, *gk = S->gsf + 3 * k;
-            gl[0] = -x2[0] * N[0];
-            gl[1] = -x2[0] * N[1];
-            gl[2] = -x2[0] * N[2];
-            gk[0] = -x2[1] * M[0];
-            gk[1] = -x2[1] * M[1];
-            gk[2] = -x2[1] * M[2];
-            return 0;
+        double s0, s1, r0, r1;
+        if (normal_row(S, l, &s0, &r0) || normal_row(S, k, &s1, &r1)) return -1;
+        const double c = normal_coupling(S, l, k);
+        const double e0 = s0 * r0, e1 = s1 * r1, g0 = c * s0, g1 = c * s1, d = 1.0 - g0 * g1;
+        if (s0 > 0.0 && s1 > 0.0 && d > 0.0) {
+            const double x1 = (e1 - g1 * e0) / d, x0 = e0 - g0 * x1;
+            if (x0 >= 0.0 && x1 >= 0.0) {
+                const double *N = S->geo[l].N, *M = S->geo[k].N;
+                double *gl = S->gsf + 3 * l, *gk = S->gsf + 3 * k;
+                gl[0] = -x0 * N[0];
+                gl[1] = -x0 * N[1];
+                gl[2] = -x0 * N[2];
+                gk[0] = -x1 * M[0];
+                gk[1] = -x1 * M[1];
+                gk[2] = -x1 * M[2];
+                return 0;
+            }
         }
     }
     /* every contact pressing (the usual case): the pivoting's first solve, eliminated in place of the system
@@ -257,10 +263,27 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
     return 0;
 }
 
+/* u less C_lk g_k, the others' push on contact l through the body; C_lk is stored for l < k only (C_kl = C_lkᵀ) */
+static inline void less_coupling(const pm_servo *S, int32_t l, int32_t k, double *u)
+{
+    const double *g = S->gsf + 3 * k;
+    const double gx = g[0], gy = g[1], gz = g[2];
+    if (l < k) {
+        const double *C = S->cpl + 9 * ((size_t)l * S->n + k);
+        u[0] -= C[0] * gx + C[1] * gy + C[2] * gz;
+        u[1] -= C[3] * gx + C[4] * gy + C[5] * gz;
+        u[2] -= C[6] * gx + C[7] * gy + C[8] * gz;
+    } else {
+        const double *C = S->cpl + 9 * ((size_t)k * S->n + l);
+        u[0] -= C[0] * gx + C[3] * gy + C[6] * gz;
+        u[1] -= C[1] * gx + C[4] * gy + C[7] * gz;
+        u[2] -= C[2] * gx + C[5] * gy + C[8] * gz;
+    }
+}
+
 int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
 {
     const int coupled = S->o.coupled && na > 1;
-    const int32_t n = S->n;
     if (coupled) coupling_blocks(S, act, na);
     if (coupled && S->frictionless) {
         if (normal_start(S, act, na)) return -1;
@@ -272,22 +295,33 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
             S->gsf[3 * l + 2] = S->st[l].law_force[2];
         }
     }
-    int sweeps = coupled ? GS_SWEEPS : 1;
+    /* block Gauss-Seidel, each contact's law on ū less the others' latest forces through C_lk; from the exact
+       frictionless start the first sweep is Jacobi instead (every ū' from the start, so the laws do not wait on
+       one another; the start solves their normal problem, so the sweep only confirms it) */
+    const int sweeps = coupled ? GS_SWEEPS : 1, jacobi = coupled && S->frictionless;
     for (int sw = 0; sw < sweeps; sw++) {
         double change = 0.0, size = 0.0;
+        if (sw == 0 && jacobi)
+            for (int32_t x = 0; x < na; x++) {
+                const int32_t l = act[x];
+                double *u = S->res[l].ueff;
+                memcpy(u, S->ubar + 3 * l, 3 * sizeof *u);
+                for (int32_t y = 0; y < na; y++)
+                    if (y != x) less_coupling(S, l, act[y], u);
+            }
         for (int32_t x = 0; x < na; x++) {
-            int32_t l = act[x];
+            const int32_t l = act[x];
             double ux = S->ubar[3 * l], uy = S->ubar[3 * l + 1], uz = S->ubar[3 * l + 2];
             if (coupled) {
-                for (int32_t y = 0; y < na; y++) {
-                    int32_t k = act[y];
-                    if (k == l) continue;
-                    const double *C = S->cpl + 9 * ((size_t)l * n + k), *g = S->gsf + 3 * k;
-                    const double gx = g[0], gy = g[1], gz = g[2];
-                    ux -= C[0] * gx + C[1] * gy + C[2] * gz;
-                    uy -= C[3] * gx + C[4] * gy + C[5] * gz;
-                    uz -= C[6] * gx + C[7] * gy + C[8] * gz;
-                }
+                double u[3] = {ux, uy, uz};
+                if (sw == 0 && jacobi)
+                    memcpy(u, S->res[l].ueff, sizeof u);
+                else
+                    for (int32_t y = 0; y < na; y++)
+                        if (y != x) less_coupling(S, l, act[y], u);
+                ux = u[0];
+                uy = u[1];
+                uz = u[2];
             }
             lres *R = &S->res[l];
             if (pm__local_law(S, &S->st[l], &S->geo[l], ux, uy, uz, R)) return -1;
