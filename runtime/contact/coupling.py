@@ -28,8 +28,9 @@ def solve(c, states, active, geo, ubar):
     """The contact law for every active contact, the several coupled by block Gauss-Seidel on the compliance
     (one sweep when uncoupled).  Returns {l: ((f, ū', sliding, δ), ū left to l)}."""
     coupling = coupling_blocks(c, states, active) if c.coupled and len(active) > 1 else None
+    start = None
     if coupling and c._frictionless:
-        force = normal_start(active, geo, ubar, coupling, states)
+        force, start = normal_start(active, geo, ubar, coupling, states)
     else:
         force = {l: states[l].law_force for l in active}  # warm start: last tick's forces
     result = {}
@@ -37,9 +38,10 @@ def solve(c, states, active, geo, ubar):
         change, size = 0.0, 0.0
         # from the exact frictionless start the first sweep is Jacobi (every ū' from the start, so in the native
         # core the laws do not wait on one another; the bench's side-by-side ratio measures it); the start solves
-        # their normal problem, so that sweep only confirms it
-        left = {l: less_coupling(ubar[l], l, active, coupling, force)
-                for l in active} if coupling and sweep == 0 and c._frictionless else None
+        # their normal problem, so that sweep only confirms it.  A pair's start gives its ū' itself.
+        left = None
+        if coupling and sweep == 0 and c._frictionless:
+            left = start or {l: less_coupling(ubar[l], l, active, coupling, force) for l in active}
         for l in active:
             if left is not None:
                 ux, uy, uz = left[l]
@@ -86,7 +88,10 @@ def normal_start(active, geo, ubar, coupling, states=None):
     by the others it is the exact solution too, and the sweeps stop after one (the clipped solve they
     started from before took 40-47 sweeps to converge to 1e-13 for four contacts, 60 for eight, counted by hand
     on the bench's trace).  After :data:`PIVOTS` ``s`` pivots the last solve, clipped at zero, goes to the
-    sweeps as it is."""
+    sweeps as it is.
+
+    Returns (the forces {l: f_l}, and for a pair pressing what each leaves the other {l: ū_l − C_lk f_k},
+    else None)."""
     s = len(active)
     A = [[0.0] * s for _ in range(s)]
     r = [0.0] * s
@@ -119,9 +124,18 @@ def normal_start(active, geo, ubar, coupling, states=None):
         if s0 > 0.0 and s1 > 0.0 and d > 0.0:
             x1 = (e1 - g1 * e0) / d
             x0 = e0 - g0 * x1
-            if x0 >= 0.0 and x1 >= 0.0:
+            if x0 >= 0.0 and x1 >= 0.0:  # and what each leaves the other: ū_l − C_lk f_k = ū_l + φ_k C_lk N_k
                 (l, k), N, M = active, geo[active[0]], geo[active[1]]
-                return {l: (-x0 * N[0], -x0 * N[1], -x0 * N[2]), k: (-x1 * M[0], -x1 * M[1], -x1 * M[2])}
+                C, (ul, uk) = coupling[(l, k)], (ubar[l], ubar[k])
+                cx = C[0] * M[0] + C[1] * M[1] + C[2] * M[2]  # C_lk N_k, as A_lk's
+                cy = C[3] * M[0] + C[4] * M[1] + C[5] * M[2]
+                cz = C[6] * M[0] + C[7] * M[1] + C[8] * M[2]
+                wx = C[0] * N[0] + C[3] * N[1] + C[6] * N[2]  # C_kl N_l = C_lkᵀ N_l
+                wy = C[1] * N[0] + C[4] * N[1] + C[7] * N[2]
+                wz = C[2] * N[0] + C[5] * N[1] + C[8] * N[2]
+                force = {l: (-x0 * N[0], -x0 * N[1], -x0 * N[2]), k: (-x1 * M[0], -x1 * M[1], -x1 * M[2])}
+                return force, {l: (ul[0] + x1 * cx, ul[1] + x1 * cy, ul[2] + x1 * cz),
+                               k: (uk[0] + x0 * wx, uk[1] + x0 * wy, uk[2] + x0 * wz)}
     pressing = [True] * s
     phi = None
     for _ in range(PIVOTS * s):
@@ -155,7 +169,7 @@ def normal_start(active, geo, ubar, coupling, states=None):
         p = 0.0 if phi is None else max(phi[x], 0.0)
         Nx, Ny, Nz = geo[l][0], geo[l][1], geo[l][2]
         out[l] = (-p * Nx, -p * Ny, -p * Nz)
-    return out
+    return out, None
 
 
 #: the frictionless start's pivots, at most this many times the number of contacts (Murty's rule ends far sooner:
@@ -178,12 +192,13 @@ def coupling_blocks(c, states, active):
                 if hit is None or hit[0] != ta or hit[1] != tb:
                     hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(ta, tb))
                 P, (a0, a1, a2), (b0, b1, b2) = hit[2], states[a].b, states[b].b
-                # S_k = Σ_xy w_xy P_xy,k summed from 0.0 in the order x outer, y inner (block xy at 9 (3x + y)),
-                # as the C's; a zero weight adds ±0, which leaves every sum as it was (P is finite)
+                # S_k = Σ_xy w_xy P_xy,k as three row sums t_x = Σ_y w_xy P_xy,k (block xy at 9 (3x + y)), then
+                # (t_0 + t_1) + t_2, as the C's (whose tick waits on the chain of adds); a zero weight adds ±0,
+                # which leaves a sum as it was (P is finite)
                 w0, w1, w2, w3, w4 = a0 * b0, a0 * b1, a0 * b2, a1 * b0, a1 * b1
                 w5, w6, w7, w8 = a1 * b2, a2 * b0, a2 * b1, a2 * b2
-                S = [0.0 + w0 * P[k] + w1 * P[9 + k] + w2 * P[18 + k] + w3 * P[27 + k] + w4 * P[36 + k]
-                     + w5 * P[45 + k] + w6 * P[54 + k] + w7 * P[63 + k] + w8 * P[72 + k] for k in range(9)]
+                S = [(w0 * P[k] + w1 * P[9 + k] + w2 * P[18 + k]) + (w3 * P[27 + k] + w4 * P[36 + k] + w5 * P[45 + k])
+                     + (w6 * P[54 + k] + w7 * P[63 + k] + w8 * P[72 + k]) for k in range(9)]
                 out[(a, b)] = S
                 out[(b, a)] = [S[3 * j + i] for i in range(3) for j in range(3)]
     return out

@@ -58,8 +58,9 @@ static inline pm_v2 load2(const double *p)
     return v;
 }
 
-/* C_lk for every pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks, kept while both
- * contacts stay on the same triangles (coupling.coupling_blocks); act ascending, so a < b is x < y */
+/* C_lk for every pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks (those kept while both
+ * contacts stay on the same triangles) (coupling.coupling_blocks); act ascending, so a < b is x < y, and only C_ab
+ * is stored (C_ba = C_abᵀ is read transposed: less_coupling) */
 static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
 {
     const pm_table *tb = S->tab;
@@ -77,31 +78,25 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
             }
             const double *ba = S->st[a].b, *bb = S->st[b].b;
             double *Sab = S->cpl + 9 * ab;
-            /* Σ_ij w_ij P_ij in local sums, two entries a register, in the Python's order (i outer); a zero
-               weight adds w·P = ±0, which leaves every sum as it was (P is finite: the table's loader checks) */
-            pm_v2 s01 = {0.0, 0.0}, s23 = {0.0, 0.0}, s45 = {0.0, 0.0}, s67 = {0.0, 0.0};
-            double s8 = 0.0;
-#define PM_PAIR_TERM(i, j)                        \
-    do {                                          \
-        const double w = ba[i] * bb[j];           \
-        const pm_v2 wv = {w, w};                  \
-        const double *o = P + 27 * (i) + 9 * (j); \
-        s01 += wv * load2(o);                     \
-        s23 += wv * load2(o + 2);                 \
-        s45 += wv * load2(o + 4);                 \
-        s67 += wv * load2(o + 6);                 \
-        s8 += w * o[8];                           \
-    } while (0)
-            PM_PAIR_TERM(0, 0);
-            PM_PAIR_TERM(0, 1);
-            PM_PAIR_TERM(0, 2);
-            PM_PAIR_TERM(1, 0);
-            PM_PAIR_TERM(1, 1);
-            PM_PAIR_TERM(1, 2);
-            PM_PAIR_TERM(2, 0);
-            PM_PAIR_TERM(2, 1);
-            PM_PAIR_TERM(2, 2);
-#undef PM_PAIR_TERM
+            /* Σ_ij w_ij P_ij, two entries a register: three independent row sums t_i = Σ_j w_ij P_ij, then
+               (t_0 + t_1) + t_2 (a shorter chain of dependent adds than nine in a row: the pair's tick waits on
+               it), in the Python's order; a zero weight adds w·P = ±0, which leaves a sum as it was (P is
+               finite: the table's loader checks) */
+            pm_v2 r01[3], r23[3], r45[3], r67[3];
+            double r8[3];
+            for (int i = 0; i < 3; i++) {
+                const double *o = P + 27 * i;
+                const double w0 = ba[i] * bb[0], w1 = ba[i] * bb[1], w2 = ba[i] * bb[2];
+                const pm_v2 v0 = {w0, w0}, v1 = {w1, w1}, v2 = {w2, w2};
+                r01[i] = v0 * load2(o) + v1 * load2(o + 9) + v2 * load2(o + 18);
+                r23[i] = v0 * load2(o + 2) + v1 * load2(o + 11) + v2 * load2(o + 20);
+                r45[i] = v0 * load2(o + 4) + v1 * load2(o + 13) + v2 * load2(o + 22);
+                r67[i] = v0 * load2(o + 6) + v1 * load2(o + 15) + v2 * load2(o + 24);
+                r8[i] = w0 * o[8] + w1 * o[17] + w2 * o[26];
+            }
+            const pm_v2 s01 = r01[0] + r01[1] + r01[2], s23 = r23[0] + r23[1] + r23[2];
+            const pm_v2 s45 = r45[0] + r45[1] + r45[2], s67 = r67[0] + r67[1] + r67[2];
+            const double s8 = r8[0] + r8[1] + r8[2];
             Sab[0] = s01[0];
             Sab[1] = s01[1];
             Sab[2] = s23[0];
@@ -190,22 +185,27 @@ static int normal_system(const pm_servo *S, const int32_t *act, int32_t na, doub
 
 /* the frictionless start: the coupled normal problem, a linear complementarity problem solved exactly by Murty's
  * least-index principal pivoting (coupling.normal_start) */
-static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
+static int normal_start(pm_servo *S, const int32_t *act, int32_t na, int *left)
 {
     double *A = S->nA, *r = S->nr, *x = S->nx, *W = S->nW, *wr = S->nwr;
     int32_t *press = S->npress, *idx = S->nidx;
+    *left = 0;
     if (na == 2) {  /* a pair pressing (a grasp: the usual coupled case), each row times its stiffness so that one
-                       division is on the way (the elimination's chain of three showed in the pair's tick);
-                       anything else goes the general way below */
+                       division is on the way (the elimination's chain of three showed in the pair's tick), and
+                       what each leaves the other, ū_l − C_lk f_k = ū_l + φ_k C_lk N_k, from the products A_lk
+                       is made of; anything else goes the general way below */
         const int32_t l = act[0], k = act[1];
         double s0, s1, r0, r1;
         if (normal_row(S, l, &s0, &r0) || normal_row(S, k, &s1, &r1)) return -1;
-        const double c = normal_coupling(S, l, k);
+        const double *C = S->cpl + 9 * ((size_t)l * S->n + k), *N = S->geo[l].N, *M = S->geo[k].N;
+        const double cx = C[0] * M[0] + C[1] * M[1] + C[2] * M[2];  /* C_lk N_k */
+        const double cy = C[3] * M[0] + C[4] * M[1] + C[5] * M[2];
+        const double cz = C[6] * M[0] + C[7] * M[1] + C[8] * M[2];
+        const double c = N[0] * cx + N[1] * cy + N[2] * cz;  /* A_lk = N_lᵀ C_lk N_k */
         const double e0 = s0 * r0, e1 = s1 * r1, g0 = c * s0, g1 = c * s1, d = 1.0 - g0 * g1;
         if (s0 > 0.0 && s1 > 0.0 && d > 0.0) {
             const double x1 = (e1 - g1 * e0) / d, x0 = e0 - g0 * x1;
             if (x0 >= 0.0 && x1 >= 0.0) {
-                const double *N = S->geo[l].N, *M = S->geo[k].N;
                 double *gl = S->gsf + 3 * l, *gk = S->gsf + 3 * k;
                 gl[0] = -x0 * N[0];
                 gl[1] = -x0 * N[1];
@@ -213,6 +213,18 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
                 gk[0] = -x1 * M[0];
                 gk[1] = -x1 * M[1];
                 gk[2] = -x1 * M[2];
+                const double wx = C[0] * N[0] + C[3] * N[1] + C[6] * N[2];  /* C_kl N_l = C_lkᵀ N_l */
+                const double wy = C[1] * N[0] + C[4] * N[1] + C[7] * N[2];
+                const double wz = C[2] * N[0] + C[5] * N[1] + C[8] * N[2];
+                const double *ul = S->ubar + 3 * l, *uk = S->ubar + 3 * k;
+                double *vl = S->res[l].ueff, *vk = S->res[k].ueff;
+                vl[0] = ul[0] + x1 * cx;
+                vl[1] = ul[1] + x1 * cy;
+                vl[2] = ul[2] + x1 * cz;
+                vk[0] = uk[0] + x0 * wx;
+                vk[1] = uk[1] + x0 * wy;
+                vk[2] = uk[2] + x0 * wz;
+                *left = 1;
                 return 0;
             }
         }
@@ -264,7 +276,7 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na)
 }
 
 /* u less C_lk g_k, the others' push on contact l through the body; C_lk is stored for l < k only (C_kl = C_lkᵀ) */
-static inline void less_coupling(const pm_servo *S, int32_t l, int32_t k, double *u)
+static inline __attribute__((always_inline)) void less_coupling(const pm_servo *S, int32_t l, int32_t k, double *u)
 {
     const double *g = S->gsf + 3 * k;
     const double gx = g[0], gy = g[1], gz = g[2];
@@ -285,8 +297,9 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
 {
     const int coupled = S->o.coupled && na > 1;
     if (coupled) coupling_blocks(S, act, na);
+    int left = 0;  /* the pair's start also left each contact its ū' (res[l].ueff) */
     if (coupled && S->frictionless) {
-        if (normal_start(S, act, na)) return -1;
+        if (normal_start(S, act, na, &left)) return -1;
     } else {
         for (int32_t x = 0; x < na; x++) {  /* warm start: last tick's forces */
             int32_t l = act[x];
@@ -301,7 +314,7 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
     const int sweeps = coupled ? GS_SWEEPS : 1, jacobi = coupled && S->frictionless;
     for (int sw = 0; sw < sweeps; sw++) {
         double change = 0.0, size = 0.0;
-        if (sw == 0 && jacobi)
+        if (sw == 0 && jacobi && !left)
             for (int32_t x = 0; x < na; x++) {
                 const int32_t l = act[x];
                 double *u = S->res[l].ueff;
