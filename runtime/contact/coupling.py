@@ -7,7 +7,8 @@ the law (:func:`pmask.runtime.contact.law.local_law`) to the displacement left t
 friction in the same local law (as SOFA's LCP does).  A contact whose penetration that leaves is ≤ 0 takes no
 force this tick (the LCP's complementarity: the others' pushes carried the surface away from its tool) but
 stays in contact while its own probe is inside.  Frictionless contacts start from the exact solution of the
-coupled normal problem (the Delassus system).
+coupled normal problem (the Delassus system), and their first sweep is Jacobi (each law on what the start
+leaves it), which is what the laws then confirm.
 
 Why the full K̃⁻¹ on the diagonal: with contacts that press through each other the off-diagonal blocks are of
 the diagonal's size (a grasp's two jaws: 0.026 against 0.036 m/N), and the whole matrix is then positive

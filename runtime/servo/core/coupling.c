@@ -2,7 +2,7 @@
  *
  * Block Gauss-Seidel on the compliance whose diagonal blocks are the local laws' own and whose off-diagonal
  * blocks C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i) come from the Green's functions; frictionless contacts start
- * from the exact solution of the coupled normal problem (the Delassus system). */
+ * from the exact solution of the coupled normal problem (the Delassus system), with a Jacobi first sweep. */
 #include "pm_internal.h"
 
 void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tbi, const double *bb, double *C)
