@@ -247,8 +247,9 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
                 raise ArtifactError(f"{path}: incomplete artifact, missing {', '.join(missing)}")
             digests: dict = {}
             blocks = _block_digests(attrs) if verify and not legacy else {}
-            data = {d: (_read(f[d], digests if verify and not legacy else None, d, blocks.get(d)) if d in f else None)
-                    for d in wanted if d not in in_file}
+            finite: dict = {}  # datasets whose finiteness the reading threads checked, block by block
+            data = {d: (_read(f[d], digests if verify and not legacy else None, d, blocks.get(d), finite)
+                        if d in f else None) for d in wanted if d not in in_file}
     except ArtifactError:
         raise
     except (OSError, KeyError, RuntimeError) as exc:
@@ -263,7 +264,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
             except (TypeError, ValueError) as exc:
                 raise ArtifactError(f"{path}: attribute {key} is not valid JSON") from exc
     data = {k: v for k, v in data.items() if k in datasets}
-    _check_shapes(path, data)
+    _check_shapes(path, data, finite)
     data.update({d: FileArray(path, d) for d in in_file if d in datasets})
     return {"attrs": attrs, **data}
 
@@ -288,16 +289,18 @@ def _block_digests(attrs: dict) -> dict:
         return {}
 
 
-def _read(ds, digests: dict | None, name: str, blocks: dict | None = None) -> np.ndarray:
+def _read(ds, digests: dict | None, name: str, blocks: dict | None = None, finite: dict | None = None) -> np.ndarray:
     """A dataset's values; with ``digests``, also its SHA-256 (:func:`array_digest`) into ``digests[name]``,
     computed in a second thread on each block of rows while the next block is read (hashlib releases the
     GIL): a 20,000-vertex compressed artifact's 0.7 GB near field is read and hashed in the time of the
     slower of the two, not of both.  With ``blocks`` (the file's per-block digests, format 1.5), each block of
     ``blocks["rows"]`` rows is hashed on its own, by two threads while the next is read, and
     ``digests[name]`` is the list of their digests: one SHA-256 of the whole is a serial chain, the blocks'
-    are not (0.54 s on one core, 0.32 on two for that near field, by hand)."""
+    are not (0.54 s on one core, 0.32 on two for that near field, by hand).  The same threads check each block
+    for NaN and inf (:func:`all_finite`) into ``finite[name]``, which the shape checks then use instead of
+    another pass over the array."""
     if blocks is not None and digests is not None and ds.ndim > 0 and ds.size:
-        return _read_blocks(ds, digests, name, int(blocks["rows"]))
+        return _read_blocks(ds, digests, name, int(blocks["rows"]), finite)
     if digests is None or ds.ndim == 0 or ds.size * ds.dtype.itemsize <= READ_BLOCK_BYTES:
         arr = ds[()]
         if digests is not None:
@@ -322,9 +325,9 @@ def _read(ds, digests: dict | None, name: str, blocks: dict | None = None) -> np
     return arr
 
 
-def _read_blocks(ds, digests: dict, name: str, rows: int) -> np.ndarray:
+def _read_blocks(ds, digests: dict, name: str, rows: int, finite: dict | None = None) -> np.ndarray:
     """:func:`_read` for a dataset with per-block digests: its blocks of ``rows`` rows read in order, each
-    hashed by one of two threads while the next is read."""
+    hashed (and checked for NaN and inf) by one of two threads while the next is read."""
     from concurrent.futures import ThreadPoolExecutor
 
     arr = np.empty(ds.shape, ds.dtype)
@@ -333,9 +336,16 @@ def _read_blocks(ds, digests: dict, name: str, rows: int) -> np.ndarray:
         for r0 in range(0, len(arr), rows):
             block = np.s_[r0:r0 + rows]
             ds.read_direct(arr, block, block)
-            pending.append(pool.submit(array_digest, arr[block]))
-        digests[name] = [p.result() for p in pending]
+            pending.append(pool.submit(_digest_and_finite, arr[block]))
+        done = [p.result() for p in pending]
+    digests[name] = [h for h, _ in done]
+    if finite is not None:
+        finite[name] = all(ok for _, ok in done)
     return arr
+
+
+def _digest_and_finite(block: np.ndarray) -> tuple[str, bool]:
+    return array_digest(block), all_finite(block)
 
 
 def all_finite(x) -> bool:
@@ -382,7 +392,12 @@ def _verify(path, attrs: dict, data: dict, legacy: bool, digests: dict | None = 
             raise ArtifactError(altered % f"dataset {name}")
 
 
-def _check_shapes(path, d) -> None:
+def _check_shapes(path, d, finite: dict | None = None) -> None:
+    finite = finite or {}
+
+    def is_finite(name):  # as the reading threads found it, else one pass now
+        return finite[name] if name in finite else all_finite(d[name])
+
     problems = []
     ns = len(d["surface/points"]) if "surface/points" in d else None
     nc = len(d["surface/contact"]) if "surface/contact" in d else None
@@ -390,13 +405,13 @@ def _check_shapes(path, d) -> None:
     if d.get("greens/Xi") is not None and nc is not None:
         if d["greens/Xi"].shape != (3 * nc, 3 * nc):
             problems.append(f"Xi has shape {d['greens/Xi'].shape}, expected {(3 * nc, 3 * nc)}")
-        elif not all_finite(d["greens/Xi"]):
+        elif not is_finite("greens/Xi"):
             problems.append("Xi holds NaN or inf")
     if d.get("greens/hmatrix/perm") is not None and nc is not None:
         perm = d["greens/hmatrix/perm"]
         if len(perm) != nc or not np.array_equal(np.sort(perm), np.arange(nc)):
             problems.append("the compressed Green's functions' vertex order is not a permutation of the contact vertices")
-        elif not all(all_finite(d[f"greens/hmatrix/{k}"]) for k in ("dense", "U", "V")
+        elif not all(is_finite(f"greens/hmatrix/{k}") for k in ("dense", "U", "V")
                      if f"greens/hmatrix/{k}" in d):  # (a far field left in the file is checked as it is read)
             problems.append("Xi holds NaN or inf")
     if d.get("greens/reactions") is not None and nu is not None and nc is not None:

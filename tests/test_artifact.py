@@ -131,6 +131,42 @@ def test_large_datasets_hashed_block_by_block_still_see_one_changed_value(artifa
         Model.load(copy)
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_nan_signed_with_every_digest_is_found_by_the_reading_threads(tmp_path, monkeypatch, bad):
+    """Format 1.5's block reads check each block for NaN and inf in the threads that hash it (the shape checks
+    then skip their own pass over the array): a NaN or inf written into Ξ with the block's, the dataset's and
+    the metadata's digests all recomputed (so every SHA-256 passes) is still refused, and the intact file's
+    datasets were all found finite that way."""
+    from pmask.precompute import writer
+    from pmask.runtime import artifact as art
+
+    monkeypatch.setattr(writer, "BLOCK_DIGEST_BYTES", 1 << 16)
+    monkeypatch.setattr(art, "READ_BLOCK_BYTES", 1 << 14)
+    out = tmp_path / "blocks.h5"
+    run(Spec(model="loop1"), out)
+    seen = {}
+    real = art._check_shapes
+    monkeypatch.setattr(art, "_check_shapes", lambda path, d, finite=None: (seen.update(finite or {}),
+                                                                            real(path, d, finite))[1])
+    Model.load(out)
+    assert seen.get("greens/Xi") is True  # checked by the threads, not again
+    with h5py.File(out, "r+") as f:
+        covers = json.loads(f.attrs["sha256_covers"])
+        rows = covers["blocks"]["greens/Xi"]["rows"]
+        Xi = f["greens/Xi"][()]
+        r = len(Xi) - 2
+        Xi[r, 1] = bad
+        f["greens/Xi"][...] = Xi
+        covers["blocks"]["greens/Xi"]["sha256"][r // rows] = array_digest(Xi[(r // rows) * rows:(r // rows + 1) * rows])
+        covers["datasets"]["greens/Xi"] = array_digest(Xi)
+        f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        f.attrs["metadata_sha256"] = metadata_digest(attrs, covers)
+    with pytest.raises(ArtifactError, match="NaN or inf"):
+        Model.load(out)
+    assert seen.get("greens/Xi") is False
+
+
 def test_per_block_digests_are_verified_and_name_the_altered_rows(tmp_path, monkeypatch):
     """Format 1.5: a dataset above BLOCK_DIGEST_BYTES also has the SHA-256 of each block of rows, which the
     reader hashes on two threads (one SHA-256 of the whole is a serial chain).  With the threshold at 64 KiB and
