@@ -223,3 +223,20 @@ def test_force_and_deformation_validation(model):
             stiff.force(t, [1, 0, 0], bad)
         with pytest.raises(ValueError, match="finite|3"):
             stiff.deformation(t, [1, 0, 0], bad)
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64])
+def test_edges_are_each_shared_edge_once(model, dtype):
+    """geometry.edges (one integer key per edge for np.unique): on the kidney's closed surface every edge is
+    shared by two triangles, so there are 3T/2 of them and Euler's V − E + F = 2 holds; each is (smaller, larger)
+    and they are the sorted unique rows of the triangles' sides; an empty mesh has none."""
+    from pmask.runtime.geometry import edges
+
+    T = model.triangles.astype(dtype)
+    e = edges(T)
+    sides = np.sort(np.concatenate([T[:, [0, 1]], T[:, [1, 2]], T[:, [2, 0]]]), axis=1)
+    assert e.dtype == dtype and len(e) == 3 * len(T) // 2
+    assert len(model.points) - len(e) + len(T) == 2
+    assert np.all(e[:, 0] < e[:, 1])
+    np.testing.assert_array_equal(e, np.unique(sides, axis=0))
+    assert edges(np.zeros((0, 3), dtype)).shape == (0, 2)
