@@ -57,6 +57,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pmask.errors import InputError, ResourceError
+from pmask.runtime.artifact import READ_BLOCK_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -520,13 +521,57 @@ def far_dtype(tol: float, dtype=np.float64):
     return np.dtype(np.float32) if tol >= FLOAT32_TOLERANCE else np.dtype(dtype)
 
 
+class Concatenated:
+    """One of the artifact's flat arrays (the near field, U, V) as the runs of the tile store's datasets and the
+    merged blocks it is the concatenation of, read a slice at a time when the writer stores it: the client never
+    holds the compressed Ξ whole (its near field is most of it at organ scale).  ``np.asarray`` reads it
+    all (tests).  The tile store must stay on disk until the artifact is written (the run's work folder)."""
+
+    def __init__(self, path: Path, dtype, runs: list):
+        self.path, self.dtype = Path(path), np.dtype(dtype)
+        self.runs = [r for r in runs if (r[2] - r[1] if isinstance(r[0], str) else len(r[0]))]  # (name, a, b) | array
+        sizes = [r[2] - r[1] if isinstance(r[0], str) else len(r[0]) for r in self.runs]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)])
+        self.shape, self.ndim = (int(self.offsets[-1]),), 1
+        self.size, self.nbytes = self.shape[0], self.shape[0] * self.dtype.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not isinstance(key, slice) or key.step not in (None, 1):
+            raise TypeError("a Concatenated array is read in contiguous slices")
+        import h5py
+
+        start, stop, _ = key.indices(len(self))
+        out = np.empty(max(stop - start, 0), self.dtype)
+        first = int(np.searchsorted(self.offsets, start, side="right")) - 1
+        with h5py.File(self.path, "r") as f:
+            for q in range(max(first, 0), len(self.runs)):
+                lo, hi = int(self.offsets[q]), int(self.offsets[q + 1])
+                if lo >= stop:
+                    break
+                a, b = max(start, lo), min(stop, hi)
+                src = self.runs[q]
+                if isinstance(src[0], str):
+                    part = f[src[0]][src[1] + a - lo:src[1] + b - lo]
+                else:
+                    part = src[0][a - lo:b - lo]
+                out[a - start:b - start] = part  # (cast to the artifact's dtype: --float32)
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        whole = self[0:len(self)]
+        return whole if dtype is None else whole.astype(dtype)
+
+
 def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtype=np.float64,
              lowrank_dtype=None) -> tuple[dict, dict]:
     """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from the finished tiles
-    in ``store``: whole blocks copied, the pieces of blocks wider than a panel merged
-    (:func:`merge_pieces`, within ``tol``), one block's pieces at a time; the tiles' own arrays are read
-    one tile at a time into arrays allocated once at their final size.  Also the tiles' summed timings
-    and the merge's."""
+    in ``store``: whole blocks stay where the tiles wrote them, the near field and the factors returned as
+    :class:`Concatenated` runs of the store's datasets the writer reads a slice at a time; the pieces of blocks
+    wider than a panel are merged (:func:`merge_pieces`, within ``tol``), one block's pieces at a time, and only
+    they are held, until written.  Also the tiles' summed timings and the merge's."""
     names = sorted(store.file, key=lambda g: tree.start[int(g.split("-")[1])])
     groups = [store.file[g] for g in names]
     index = [g["lowrank_index"][()].reshape(-1, 8) for g in groups]
@@ -536,6 +581,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     for t, (li, w) in enumerate(zip(index, whole)):
         for e in np.flatnonzero(~w):
             blocks.setdefault((int(li[e, 0]), int(li[e, 1]), int(li[e, 7])), []).append((int(li[e, 2]), t, e))
+    lowrank_dtype = np.dtype(lowrank_dtype or dtype)
     merged = []  # (r0, r1, c0, c1, k, U, V)
     for (r0, r1, j), parts in blocks.items():
         pieces = []
@@ -544,50 +590,51 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
             pieces.append((groups[t]["U"][uo:uo + 3 * (r1 - r0) * k].reshape(-1, k),
                            groups[t]["V"][vo:vo + 3 * (c1 - c0) * k].reshape(-1, k)))
         U, V = merge_pieces(pieces, tol)
-        merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1], U.ravel(), V.ravel()))
+        merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1],
+                       U.ravel().astype(lowrank_dtype, copy=False), V.ravel().astype(lowrank_dtype, copy=False)))
     merge_s = time.perf_counter() - t0
-    size = {"dense_index": sum(g["dense_index"].shape[0] for g in groups),
-            "dense": sum(g["dense"].shape[0] for g in groups),
-            "lowrank_index": sum(int(w.sum()) for w in whole) + len(merged)}
-    size["U"], size["V"] = sum(m[5].size for m in merged), sum(m[6].size for m in merged)
-    for li, w in zip(index, whole):
-        size["U"] += int(np.sum(3 * (li[w, 1] - li[w, 0]) * li[w, 4]))
-        size["V"] += int(np.sum(3 * (li[w, 3] - li[w, 2]) * li[w, 4]))
-    lowrank_dtype = lowrank_dtype or dtype
-    out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
-           "dense_index": np.zeros((size["dense_index"], 5), np.int64),
-           "lowrank_index": np.zeros((size["lowrank_index"], 7), np.int64),
-           "dense": np.empty(size["dense"], dtype), **{k: np.empty(size[k], lowrank_dtype) for k in ("U", "V")}}
+    dense_index, lowrank_index, runs = [], [], {"dense": [], "U": [], "V": []}
     at = dict.fromkeys(TileStore.FIELDS, 0)
     times = {"solve_s": 0.0, "compress_s": 0.0}
 
-    def put_lowrank(r0, r1, c0, c1, k, U, V):
-        out["lowrank_index"][at["lowrank_index"]] = (r0, r1, c0, c1, k, at["U"], at["V"])
-        out["U"][at["U"]:at["U"] + len(U)] = U
-        out["V"][at["V"]:at["V"] + len(V)] = V
-        at["lowrank_index"] += 1
-        at["U"] += len(U)
-        at["V"] += len(V)
+    def run(field, name, a, b):  # the next run of a field, joined to the last when it continues it
+        last = runs[field][-1] if runs[field] else None
+        if last is not None and last[0] == name and last[2] == a:
+            runs[field][-1] = (name, last[1], b)
+        else:
+            runs[field].append((name, a, b))
 
     for g, li, w in zip(groups, index, whole):
         di = g["dense_index"][()].reshape(-1, 5)
         di[:, 4] += at["dense"]
-        out["dense_index"][at["dense_index"]:at["dense_index"] + len(di)] = di
-        at["dense_index"] += len(di)
-        n = g["dense"].shape[0]
-        if n and out["dense"].dtype == g["dense"].dtype:
-            g["dense"].read_direct(out["dense"], dest_sel=np.s_[at["dense"]:at["dense"] + n])
-        elif n:  # --float32: cast one tile at a time
-            out["dense"][at["dense"]:at["dense"] + n] = g["dense"][()]
+        dense_index.append(di)
+        n = int(g["dense"].shape[0])
+        run("dense", f"{g.name}/dense", 0, n)
         at["dense"] += n
-        if w.any():
-            U, V = g["U"][()], g["V"][()]
-            for r0, r1, c0, c1, k, uo, vo, _ in li[w]:
-                put_lowrank(r0, r1, c0, c1, k, U[uo:uo + 3 * (r1 - r0) * k], V[vo:vo + 3 * (c1 - c0) * k])
+        keep = li[w]
+        sizes = {"U": 3 * (keep[:, 1] - keep[:, 0]) * keep[:, 4], "V": 3 * (keep[:, 3] - keep[:, 2]) * keep[:, 4]}
+        entry = np.empty((len(keep), 7), np.int64)
+        entry[:, :5] = keep[:, :5]
+        for col, field, src in ((5, "U", keep[:, 5]), (6, "V", keep[:, 6])):
+            ends = np.cumsum(sizes[field])
+            entry[:, col] = at[field] + ends - sizes[field]
+            for a, b in zip(src, src + sizes[field]):
+                run(field, f"{g.name}/{field}", int(a), int(b))
+            at[field] += int(ends[-1]) if len(ends) else 0
+        lowrank_index.append(entry)
         for k in times:
             times[k] += float(g.attrs[k])
-    for m in merged:
-        put_lowrank(*m)
+    for r0, r1, c0, c1, k, U, V in merged:
+        lowrank_index.append(np.array([[r0, r1, c0, c1, k, at["U"], at["V"]]], np.int64))
+        runs["U"].append((U,))
+        runs["V"].append((V,))
+        at["U"] += len(U)
+        at["V"] += len(V)
+    out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
+           "dense_index": np.concatenate(dense_index).astype(np.int64) if dense_index else np.zeros((0, 5), np.int64),
+           "lowrank_index": np.concatenate(lowrank_index) if lowrank_index else np.zeros((0, 7), np.int64),
+           "dense": Concatenated(store.path, dtype, runs["dense"]),
+           **{k: Concatenated(store.path, lowrank_dtype, runs[k]) for k in ("U", "V")}}
     times.update({"merge_s": merge_s, "merged_blocks": len(merged),
                   "merged_pieces": int(sum(len(p) for p in blocks.values()))})
     return out, times
@@ -739,23 +786,31 @@ def check_phase_memory(phase: str, need: float, advice: str) -> None:
                             f"the {avail / 2**30:.2f} GiB this machine has available now; {advice}")
 
 
-def assembly_bytes(tree: ClusterTree, store: "TileStore", dense_dtype=np.float64, lowrank_dtype=np.float64) -> int:
-    """What :func:`assemble` holds at its peak (bytes), from the finished tiles' indices (nothing else read):
-    the artifact's arrays at their final size (the near field exact; U and V no larger than the tiles'
-    pieces) and the merged blocks (float64), held until they are copied in.  An upper bound: a block merged
-    from several pieces is counted as all of them (its rank is known only once merged), so it is tight when
-    few blocks are split (the tests' kidney: within 4 % of the measured peak) and loose when many are (the
-    bench's organ row prints it beside the run's peak)."""
-    dense = pieces = split = 0
+def assembly_bytes(tree: ClusterTree, store: "TileStore", lowrank_dtype=np.float64) -> int:
+    """What :func:`assemble` holds at its peak (bytes), from the finished tiles' indices (nothing else read): the
+    blocks merged from pieces (in ``lowrank_dtype``, each counted as all its pieces: its rank is known only once
+    merged, so an upper bound, loose where many blocks are split), the largest block's merge in float64 four times
+    its pieces (the pieces, their stacked U, its Q and the merged factors), and the indices; the near field and
+    the tiles' whole blocks stay in the tile store (:class:`Concatenated`), and the writer adds
+    :data:`WRITE_BYTES`."""
+    split = blocks = 0
+    merging: dict = {}  # (r0, r1, J) -> its pieces' numbers
     for name in store.file:
         g = store.file[name]
-        dense += int(g["dense"].shape[0])
         li = g["lowrank_index"][()].reshape(-1, 8)
         size = 3 * ((li[:, 1] - li[:, 0]) + (li[:, 3] - li[:, 2])) * li[:, 4]
-        whole = (li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]])
-        pieces += int(size.sum())
-        split += int(size[~whole].sum())
-    return dense * np.dtype(dense_dtype).itemsize + pieces * np.dtype(lowrank_dtype).itemsize + 8 * split
+        part = ~((li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]]))
+        split += int(size[part].sum())
+        for e in np.flatnonzero(part):
+            key = (int(li[e, 0]), int(li[e, 1]), int(li[e, 7]))
+            merging[key] = merging.get(key, 0) + int(size[e])
+        blocks += len(li) + int(g["dense_index"].shape[0])
+    return split * np.dtype(lowrank_dtype).itemsize + 4 * 8 * max(merging.values(), default=0) + 8 * 8 * blocks
+
+
+#: what the writer holds while it stores a compressed Ξ read from the tile store (:class:`Concatenated`): a block
+#: of rows as read, as cast and as hashed (:data:`pmask.runtime.artifact.READ_BLOCK_BYTES` each)
+WRITE_BYTES = 3 * READ_BLOCK_BYTES
 
 
 def factor_bytes(factor) -> int:
@@ -776,7 +831,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     """Ξ compressed (the artifact's ``greens/hmatrix`` arrays) and statistics, from ``factor`` for the
     contact vertices at ``points``; the tiles run as Dask tasks (module docstring).  ``store``: the tile
     store's path, reused when ``key`` (factor and parameters) matches; ``client``: an open Client to use
-    instead of connecting; ``on_tile(tile)``: called with each finished tile (tests, progress)."""
+    instead of connecting; ``on_tile(tile)``: called with each finished tile (tests, progress).  The near field
+    and the factors come back as :class:`Concatenated` runs of the tile store, read when the writer stores them
+    (so ``store`` must stay until then)."""
     from distributed import as_completed
 
     tol = check_tolerance(tol)
@@ -856,14 +913,14 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     todo = lost
             for p in (w_path, SweepStore.index_path(w_path)):  # every tile is in the store: W is not needed again
                 p.unlink(missing_ok=True)
-        finally:  # the workers go before the assembly: the client then holds the compressed Ξ once
+        finally:  # the workers go before the assembly
             if own and client is not None:
                 cluster = getattr(client, "cluster", None)
                 client.close()
                 if cluster is not None:
                     cluster.close()
-        stats["assembly_bytes"] = assembly_bytes(tree, ts, dtype, far_dtype(tol, dtype))
-        check_phase_memory("assembly", stats["assembly_bytes"], f"every tile is kept in {store}: run again where "
+        stats["assembly_bytes"] = assembly_bytes(tree, ts, far_dtype(tol, dtype))
+        check_phase_memory("assembly", stats["assembly_bytes"] + WRITE_BYTES, f"every tile is kept in {store}: run again where "
                            "more memory is free (the tiles are reused), or with a larger tolerance (--compress TOL)")
         out, times = assemble(tree, ts, tol, dtype, far_dtype(tol, dtype))
         out["scale"] = factor.scale[0::3].astype(np.float64) if symmetric else np.zeros(0)

@@ -71,7 +71,8 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
             for name, arr in small.items():
                 f.create_dataset(name, data=arr)
             for name, (arr, dt) in big.items():
-                digests[name], per_block = _write_blocks(f, name, np.asarray(arr), dt, sliced=name in SLICED)
+                arr = arr if hasattr(arr, "shape") else np.asarray(arr)  # (a compressed Ξ's arrays: read in slices)
+                digests[name], per_block = _write_blocks(f, name, arr, dt, sliced=name in SLICED)
                 if per_block is not None:
                     blocks[name] = per_block
             covers = {"attributes": sorted(attrs), "datasets": dict(sorted(digests.items()))}

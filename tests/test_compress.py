@@ -27,6 +27,12 @@ R_MAX = 0.01
 TOL = 1e-4
 
 
+def read(arrays: dict) -> dict:
+    """compressed_greens' arrays in memory: it returns the near field and the factors as runs of its tile store
+    (compress.Concatenated), which the writer reads a slice at a time; np.asarray reads them whole."""
+    return {k: np.asarray(v) for k, v in arrays.items()}
+
+
 def _pair(d, element=None):
     dense, comp = d / "dense.h5", d / "compressed.h5"
     extra = {"element": element} if element else {}
@@ -243,7 +249,7 @@ def test_a_killed_worker_loses_no_finished_tile(pair, tmp_path, monkeypatch):
     first = finished[0]
     assert [c for c, _ in runs].count(first) == 1  # the tile finished before the kill never ran again
     assert any(pid == killed[0] for _, pid in runs)  # the victim had been working
-    C = CompressedXi(**arrays, tolerance=TOL)
+    C = CompressedXi(**read(arrays), tolerance=TOL)
     X = pair[0].Xi
     # every block within TOL of its own norm, so the whole within TOL of Ξ's (the tiles after the kill too)
     assert np.linalg.norm(C.to_dense() - X) <= TOL * np.linalg.norm(X)
@@ -341,7 +347,7 @@ def test_p2_compresses_by_solving_each_panel(tmp_path):
     arrays, stats = compress.compressed_greens(factor, pts, R_MAX, tol=TOL, store=tmp_path / "t.h5", key="p2",
                                                panel=64, workers=1)
     assert stats["route"] == "solve per panel" and stats["lowrank_blocks"] > 0
-    C = CompressedXi(**arrays, tolerance=TOL)
+    C = CompressedXi(**read(arrays), tolerance=TOL)
     # every block within TOL of its norm, so the whole within TOL of Ξ's
     assert np.linalg.norm(C.to_dense() - Xi) <= TOL * np.linalg.norm(Xi)
     for r0, r1, c0, c1, off in C.dense_index:  # near field: the dense route's numbers
@@ -423,9 +429,11 @@ def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path):
 
 def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatch):
     """#27 item 3: the W sweep's and the assembly's memory, modelled from the factor's tree and the
-    finished tiles' indices, equal what tracemalloc measures while each runs (within 5 %: the emitted chunks
-    and the interpreter's small objects are outside the models); short of either, the run stops before that
-    phase with one line naming it, and a rerun with the memory reuses what was done."""
+    finished tiles' indices, against what tracemalloc measures while each runs: the sweep's equal to it (within
+    5 %: the emitted chunks and the interpreter's small objects are outside the model), the assembly's above it
+    and within 1.5x (an upper bound: a merged block is counted as all its pieces, its merge as four times them;
+    the near field stays in the tile store, so what it holds is the merged blocks); short of either, the run
+    stops before that phase with one line naming it, and a rerun with the memory reuses what was done."""
     import tracemalloc
 
     from pmask.precompute import greens
@@ -450,7 +458,8 @@ def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatc
     finally:
         tracemalloc.stop()
     assert abs(measured["sweep"] - stats["sweep_peak_bytes"]) <= 0.05 * measured["sweep"], (measured, stats)
-    assert abs(measured["assembly"] - stats["assembly_bytes"]) <= 0.05 * measured["assembly"], (measured, stats)
+    assert measured["assembly"] <= stats["assembly_bytes"] <= 1.5 * measured["assembly"], (measured, stats)
+    assert stats["assembly_bytes"] < 0.5 * stats["stored_bytes"]  # the near field is not held (it was, whole)
     monkeypatch.setattr(compress, "sweep", real_sweep)
     monkeypatch.setattr(compress, "assemble", real_assemble)
 
@@ -474,6 +483,30 @@ def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatc
     avail["bytes"] = 2**40
     _, again = compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", panel=48, workers=1)
     assert again["tiles_reused"] == again["tiles"] > 1
+
+
+def test_the_artifact_arrays_are_read_from_the_tile_store_in_any_slices(tmp_path):
+    """compressed_greens returns the near field and the factors as runs of its tile store (compress.Concatenated),
+    which the writer reads a block of rows at a time: any contiguous slice equals that slice of the whole array
+    (slices across tiles' runs and into the merged blocks), a strided or fancy index is refused, and their
+    sizes are the stored bytes the statistics report."""
+    factor, pts = _small_factor()
+    arrays, stats = compress.compressed_greens(factor, pts, R_MAX, store=tmp_path / "t.h5", key="k", panel=48,
+                                               workers=1)
+    assert stats["merged_blocks"] > 0  # the U and V runs end in merged blocks held in memory
+    rng = np.random.default_rng(5)
+    for k in ("dense", "U", "V"):
+        lazy = arrays[k]
+        whole = np.asarray(lazy)
+        assert isinstance(lazy, compress.Concatenated) and len(whole) == len(lazy) > 1000
+        assert len(lazy.runs) > 1
+        cuts = np.concatenate([[0, len(whole)], lazy.offsets[1:-1], rng.integers(0, len(whole), 20)])
+        for a, b in zip(cuts, rng.permutation(cuts)):
+            np.testing.assert_array_equal(lazy[min(a, b):max(a, b)], whole[min(a, b):max(a, b)])
+        np.testing.assert_array_equal(lazy[-7:], whole[-7:])
+        with pytest.raises(TypeError):
+            lazy[::2]
+    assert stats["stored_bytes"] == sum(arrays[k].nbytes for k in ("dense", "U", "V"))
 
 
 @pytest.mark.parametrize("tol", [0.0, 1.0, -1e-4, float("nan"), 2.0])
@@ -770,7 +803,7 @@ def test_blocks_are_set_by_the_cluster_tree_not_by_the_panels(tmp_path):
     for k in ("dense_index", "lowrank_index"):
         assert sorted(map(tuple, wide[k][:, :4])) == sorted(map(tuple, narrow[k][:, :4]))
     X, _ = greens.greens_functions(factor)
-    C = CompressedXi(**narrow, tolerance=TOL)
+    C = CompressedXi(**read(narrow), tolerance=TOL)
     dofs = (3 * C.perm[:, None] + np.arange(3)).ravel()
     Xp = X[np.ix_(dofs, dofs)]
     for r0, r1, c0, c1, k, uo, vo in C.lowrank_index:
