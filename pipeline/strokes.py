@@ -276,11 +276,27 @@ def region_edge_slide(region_z: float = 0.0, depth: float = 0.002, speed: float 
     down the lateral (+y) side across the region's edge at z = region_z and 10 mm beyond it, slide back and
     lift off: a closed loop that crosses the edge twice.  With ``parts``, also the sample ranges of the four
     pieces, {"press", "out", "back", "lift"}: slices."""
-    sp = speed / rate
-    centre = np.array([0.0, 0.0, 0.0])
-    ang = np.linspace(np.pi / 2 - 0.3, np.arcsin(np.clip((region_z - 0.01) / SEMI_AXES[2], -1, 1)), 3000)
-    curve = resample(level_curve(centre, [0, 1.0, 0], [0, 0, 1.0], ang, depth), sp)
-    start = level_curve(centre, [0, 1.0, 0], [0, 0, 1.0], np.array([ang[0]]), 0.0)[0]
+    end = np.arcsin(np.clip((region_z - 0.01) / SEMI_AXES[2], -1, 1))
+    return _out_and_back(np.zeros(3), [0, 1.0, 0], np.pi / 2 - 0.3, end, depth, speed / rate, parts)
+
+
+def rim_out_and_back(depth: float = 0.002, end: float = 0.0, speed: float = 0.02, rate: float = RATE,
+                     parts: bool = False):
+    """Press on the top face (x = 0, 13 mm off the middle towards the hilum), slide ``depth`` deep down the
+    medial (−y) side, over the hilum's lip (the rim of its fixed support, at about 0.35 rad) into the hilum
+    to the angle ``end`` (0: the hilum's middle; angles from −y towards +z about (0, 4 mm, 0)), slide back
+    and lift off: the hands issue's out-and-back across the support rim, a closed path.  ``parts`` as in
+    :func:`region_edge_slide`."""
+    return _out_and_back(np.array([0.0, 0.004, 0.0]), [0, -1.0, 0], np.pi / 2 - 0.3, end, depth, speed / rate,
+                         parts)
+
+
+def _out_and_back(centre, e1, a0: float, a1: float, depth: float, sp: float, parts: bool):
+    """Press to ``depth`` at angle a0 in the plane of e1 and +z through ``centre``, slide to a1 at that depth
+    (:func:`level_curve`), slide back, lift off (3 mm above the surface at both ends)."""
+    ang = np.linspace(a0, a1, 3000)
+    curve = resample(level_curve(centre, e1, [0, 0, 1.0], ang, depth), sp)
+    start = level_curve(centre, e1, [0, 0, 1.0], np.array([a0]), 0.0)[0]
     n0, _, _ = _surface_frame(start)
     press = _line(start + 0.003 * n0, curve[0], sp)
     probes = np.vstack([press, curve, curve[::-1], press[::-1]])

@@ -26,7 +26,7 @@ import numpy as np
 
 from pmask.errors import InputError
 from pmask.runtime.contact import coupling, law, output, tracking
-from pmask.runtime.contact.state import SPIN, TOUCHING, ContactState, Status, hold, release
+from pmask.runtime.contact.state import PROXY_SPEED, SPIN, TOUCHING, ContactState, Status, hold, release
 from pmask.runtime.contact.surface import ContactSurface
 from pmask.runtime.device import Device
 
@@ -81,7 +81,9 @@ class Contacts:
         factor per tick on the last good force while samples are bad; reset_after : after this many
         implausible samples in a row, tracking restarts.
     proxy_speed
-        the proxy moves at most this many times the probe's own motion per tick.
+        the proxy moves at most this many times the probe's own motion per tick (default 1.75: the speed of the
+        probe's projection 0.43 radii of curvature deep; deeper than half a radius the proxy moves by dead
+        reckoning instead, :func:`pmask.runtime.contact.tracking.follow`).
     normal_radius
         near a crease sharper than 30°, the contact normal blends into the normal averaged over
         a ball of this radius (default: 3 mask radii; :func:`pmask.runtime.geometry.contact_normals`).  The
@@ -96,7 +98,7 @@ class Contacts:
 
     def __init__(self, stiffness, n: int = 1, *, friction=0.0, dynamic_friction=None, damping=0.0,
                  tool_radius=0.0, slip_length=None, device: Device | None = None, passivity: bool = True, max_jump=None,
-                 decay=0.9, reset_after: int = 50, max_walk: int = 24, proxy_speed=1.25, coupled=None,
+                 decay=0.9, reset_after: int = 50, max_walk: int = 24, proxy_speed=PROXY_SPEED, coupled=None,
                  normal_radius=None, engine: str | None = None):
         self.n = _int("n", n)
         self.friction = _num("friction", friction)

@@ -52,6 +52,7 @@
 #define GS_SWEEPS 60
 #define PIVOTS 4
 #define FAR_FACTOR 10.0
+#define PROXY_SPEED 1.75
 #define PASSIVITY_SLACK 0.10
 #define VELOCITY_FILTER 0.1
 #define PC_DAMPING_MAX 1.0

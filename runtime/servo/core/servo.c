@@ -28,7 +28,7 @@ void pm_options_default(const pm_table *t, pm_options *o)
     o->rate = 1000.0;
     o->max_jump = 5.0 * t->mean_edge;
     o->decay = 0.9;
-    o->proxy_speed = 1.25;
+    o->proxy_speed = PROXY_SPEED;
     o->reset_after = 50;
     o->max_walk = 24;
     o->passivity = 1;
