@@ -327,47 +327,21 @@ def _read(ds, digests: dict | None, name: str, blocks: dict | None = None, finit
 
 def _read_blocks(ds, digests: dict, name: str, rows: int, finite: dict | None = None) -> np.ndarray:
     """:func:`_read` for a dataset with per-block digests: its blocks of ``rows`` rows read in order, each
-    hashed (and checked for NaN and inf) by one of two threads while the next is read.  A dataset stored as
-    one contiguous run (every such dataset the writer stores, :func:`mapped`) is mapped from the file instead
-    of copied out of it: the threads hash the file's pages as the system reads them in."""
+    hashed (and checked for NaN and inf) by one of two threads while the next is read."""
     from concurrent.futures import ThreadPoolExecutor
 
-    arr = mapped(ds)
+    arr = np.empty(ds.shape, ds.dtype)
     with ThreadPoolExecutor(2) as pool:
-        if arr is not None:
-            pending = [pool.submit(_digest_and_finite, arr[r0:r0 + rows]) for r0 in range(0, len(arr), rows)]
-        else:
-            arr = np.empty(ds.shape, ds.dtype)
-            pending = []
-            for r0 in range(0, len(arr), rows):
-                block = np.s_[r0:r0 + rows]
-                ds.read_direct(arr, block, block)
-                pending.append(pool.submit(_digest_and_finite, arr[block]))
+        pending = []
+        for r0 in range(0, len(arr), rows):
+            block = np.s_[r0:r0 + rows]
+            ds.read_direct(arr, block, block)
+            pending.append(pool.submit(_digest_and_finite, arr[block]))
         done = [p.result() for p in pending]
     digests[name] = [h for h, _ in done]
     if finite is not None:
         finite[name] = all(ok for _, ok in done)
     return arr
-
-
-def mapped(ds) -> np.ndarray | None:
-    """A dataset's values mapped from its file, copy on write (a change stays in this process), when HDF5
-    stores them as one contiguous run of native-order numbers without filters; None otherwise (then read).
-
-    Copying the 20,000-vertex compressed artifact's 0.7 GB near field out of the page cache was a quarter of
-    the time to open it (0.60-0.68 s to read and hash it on two threads, 0.48-0.55 s mapped, by hand); mapped,
-    its pages are the page cache's, not a second copy.  The writer replaces an artifact by renaming a new
-    file over it (:func:`pmask.runtime.files.atomic_write`), so a mapped artifact is never changed under a
-    reader that has it open."""
-    try:
-        offset = ds.id.get_offset()
-        if (offset is None or ds.chunks is not None or ds.compression is not None or ds.ndim == 0
-                or not ds.dtype.isnative or ds.dtype.kind not in "fiu"
-                or ds.id.get_storage_size() != ds.size * ds.dtype.itemsize):
-            return None
-        return np.memmap(ds.file.filename, ds.dtype, "c", int(offset), ds.shape).view(np.ndarray)
-    except (OSError, ValueError, TypeError):  # not a local regular file, or a layout h5py cannot place
-        return None
 
 
 def _digest_and_finite(block: np.ndarray) -> tuple[str, bool]:

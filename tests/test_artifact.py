@@ -199,39 +199,6 @@ def test_per_block_digests_are_verified_and_name_the_altered_rows(tmp_path, monk
     assert first <= row <= last
 
 
-def test_a_large_dataset_is_mapped_from_the_file_copy_on_write(tmp_path, monkeypatch):
-    """A dataset with per-block digests that HDF5 stores as one contiguous run is mapped from the file rather
-    than copied out of it (the 20,000-vertex near field: a quarter of the time to open it), and mapped copy on
-    write: the loaded values equal h5py's, a change to them stays in the process (the file still loads and
-    verifies), and the file's own bytes are what the digests were checked against (one changed through h5py is
-    refused).  Layouts a map cannot read, chunked or of the other byte order, are read as before."""
-    from pmask.precompute import writer
-    from pmask.runtime import artifact as art
-
-    monkeypatch.setattr(writer, "BLOCK_DIGEST_BYTES", 1 << 16)
-    out = tmp_path / "mapped.h5"
-    run(Spec(model="loop1"), out)
-    Xi = art.read_artifact(out, datasets=("greens/Xi",))["greens/Xi"]
-    base = Xi
-    while base is not None and not isinstance(base, np.memmap):
-        base = base.base
-    assert isinstance(base, np.memmap)
-    with h5py.File(out, "r") as f:
-        stored = f["greens/Xi"][()]
-    np.testing.assert_array_equal(Xi, stored)
-    Xi[0, 0] += 1.0  # copy on write: this process's page only
-    with h5py.File(out, "r") as f:
-        assert f["greens/Xi"][0, 0] == stored[0, 0]
-    Model.load(out)  # still verifies
-    with h5py.File(tmp_path / "layouts.h5", "w") as f:
-        f.create_dataset("chunked", data=stored, chunks=(8, 8))
-        f.create_dataset("swapped", data=stored.astype(">f8"))
-        f.create_dataset("flat", data=stored)
-    with h5py.File(tmp_path / "layouts.h5", "r") as f:
-        assert art.mapped(f["chunked"]) is None and art.mapped(f["swapped"]) is None
-        np.testing.assert_array_equal(art.mapped(f["flat"]), stored)
-
-
 def test_a_nan_anywhere_in_a_large_array_is_found():
     """all_finite (one summing pass instead of isfinite's boolean array): a NaN or an inf anywhere is found,
     and finite values whose sum overflows are not mistaken for one."""
