@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pmask.errors import InputError
+from pmask.runtime.spatial import pairs_within
 
 PROFILES = {
     "linear": lambda s: 1.0 - s,
@@ -84,7 +85,7 @@ def check_radius(kind: str, radius, r_max: float = np.inf) -> float:
 
 
 def pressure_masks(points: np.ndarray, areas: np.ndarray, centres: np.ndarray, kind: str = "linear",
-                   radius: float | None = None, *, chunk: int = 1024) -> Masks:
+                   radius: float | None = None, *, chunk: int = 256) -> Masks:
     """Collocated, normalised masks around each of ``centres``.
 
     Parameters
@@ -101,15 +102,10 @@ def pressure_masks(points: np.ndarray, areas: np.ndarray, centres: np.ndarray, k
         vals = 1.0 / areas[centres]
         return Masks(np.arange(len(centres) + 1), centres.copy(), vals, centres, kind, 0.0, len(centres))
     profile = PROFILES[kind]
-    points = np.asarray(points, float)
-    sq = np.einsum("ij,ij->i", points, points)
     idx_parts, val_parts, counts = [], [], []
-    for c0 in range(0, len(centres), chunk):
-        c = centres[c0:c0 + chunk]
-        d2 = sq[c][:, None] + sq[None, :] - 2.0 * points[c] @ points.T
-        d2[np.arange(len(c)), c] = 0.0  # vertex i is always in its own mask, at s = 0 exactly
-        rows, cols = np.nonzero(d2 < r * r)
-        w = profile(np.sqrt(np.maximum(d2[rows, cols], 0.0)) / r)
+    # vertex i is always in its own mask, at s = 0 exactly; a grid of cells finds the rest (pairs_within)
+    for c, rows, cols, d2 in pairs_within(points, centres, r, chunk=chunk):
+        w = profile(np.sqrt(np.maximum(d2, 0.0)) / r)
         idx_parts.append(cols)
         val_parts.append(w)
         counts.append(np.bincount(rows, minlength=len(c)))
