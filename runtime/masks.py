@@ -85,7 +85,7 @@ def check_radius(kind: str, radius, r_max: float = np.inf) -> float:
 
 
 def pressure_masks(points: np.ndarray, areas: np.ndarray, centres: np.ndarray, kind: str = "linear",
-                   radius: float | None = None, *, chunk: int = 256) -> Masks:
+                   radius: float | None = None) -> Masks:
     """Collocated, normalised masks around each of ``centres``.
 
     Parameters
@@ -104,7 +104,7 @@ def pressure_masks(points: np.ndarray, areas: np.ndarray, centres: np.ndarray, k
     profile = PROFILES[kind]
     idx_parts, val_parts, counts = [], [], []
     # vertex i is always in its own mask, at s = 0 exactly; a grid of cells finds the rest (pairs_within)
-    for c, rows, cols, d2 in pairs_within(points, centres, r, chunk=chunk):
+    for c, rows, cols, d2 in pairs_within(points, centres, r):
         w = profile(np.sqrt(np.maximum(d2, 0.0)) / r)
         idx_parts.append(cols)
         val_parts.append(w)

@@ -148,34 +148,38 @@ def _pymax0(x: np.ndarray) -> np.ndarray:
     return np.where(0.0 > x, 0.0, x)
 
 
-def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, chunk: int = 256):
-    """Every (centre, vertex) pair with squared distance below r², by a grid of cells of edge r (a vertex
-    within r of a centre is in its cell or one of the 26 around it): O(pairs) work instead of a scan of
-    every vertex per centre.  Yields, per chunk of ``chunk`` centres, the chunk's centres, the rows (position in
-    the chunk), the vertex indices ascending within each row, and the squared distances |p_c − p_j|² (a centre
-    is paired with itself at 0 exactly).  (The whole-matrix scan it replaces, 7.3 s for the 20,000-vertex organ's
-    10 mm masks against 5 s, by hand, wrote them sq_c + sq_j − 2 p_c·p_j, which cancels: the masks' values moved
-    by ~1e-13 relative.)"""
+def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, candidates: int = 1 << 22):
+    """Every (centre, vertex) pair with squared distance below r², by a grid of cells of edge at least r (a
+    vertex within r of a centre is in its cell or one of the 26 around it): O(pairs) work instead of a scan of
+    every vertex per centre.  Yields, per run of centres whose cells hold at most about ``candidates`` vertices
+    together (the temporaries: ~100 bytes each; at least one centre a run), the run's centres, the rows
+    (position in the run), the vertex indices ascending within each row, and the squared distances
+    |p_c − p_j|² (a centre is paired with itself at 0 exactly).  (The whole-matrix scan it replaces, 7.3 s for
+    the 20,000-vertex organ's 10 mm masks against 5 s, by hand, wrote them sq_c + sq_j − 2 p_c·p_j, which
+    cancels: the masks' values moved by ~1e-13 relative.)"""
     P = np.asarray(points, float)
     centres = np.asarray(centres, np.int64)
-    if len(P) == 0:
+    if len(P) == 0 or len(centres) == 0:
         return
-    lo = P.min(axis=0)
-    ijk = np.floor((P - lo) / r).astype(np.int64)
-    dims = ijk.max(axis=0) + 3  # a margin of one cell on each side: neighbour keys never wrap
-    ijk += 1
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    cell = max(float(r), float((hi - lo).max()) / 2**20)  # a cell never smaller than r; keys stay within int64
+    ijk = np.floor((P - lo) / cell).astype(np.int64) + 1  # a margin of one cell on each side: neighbour keys
+    dims = ijk.max(axis=0) + 2                            # never wrap
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     order = np.argsort(key, kind="stable")
     skey = key[order]
     offsets = np.array([(a * dims[1] + b) * dims[2] + c for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
-    for c0 in range(0, len(centres), chunk):
-        c = centres[c0:c0 + chunk]
-        nk = (key[c][:, None] + offsets[None, :]).ravel()  # (len(c) * 27,) the cells around each centre
-        a, b = np.searchsorted(skey, nk, "left"), np.searchsorted(skey, nk, "right")
-        lens = b - a
+    nk = key[centres][:, None] + offsets[None, :]  # (centres, 27): the cells around each centre
+    first_all, last_all = np.searchsorted(skey, nk, "left"), np.searchsorted(skey, nk, "right")
+    ends = np.cumsum((last_all - first_all).sum(axis=1))
+    start = 0
+    while start < len(centres):
+        done = int(ends[start - 1]) if start else 0
+        stop = min(len(centres), max(start + 1, int(np.searchsorted(ends, done + candidates, "right"))))
+        c = centres[start:stop]
+        a, lens = first_all[start:stop].ravel(), (last_all[start:stop] - first_all[start:stop]).ravel()
         total = int(lens.sum())
-        first = np.cumsum(lens) - lens
-        cols = order[np.repeat(a - first, lens) + np.arange(total)]
+        cols = order[np.repeat(a - (np.cumsum(lens) - lens), lens) + np.arange(total)]
         rows = np.repeat(np.repeat(np.arange(len(c)), 27), lens)
         d = P[c][rows] - P[cols]
         d2 = np.einsum("ij,ij->i", d, d)
@@ -183,3 +187,4 @@ def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, chunk: in
         rows, cols, d2 = rows[keep], cols[keep], d2[keep]
         s = np.lexsort((cols, rows))
         yield c, rows[s], cols[s], d2[s]
+        start = stop

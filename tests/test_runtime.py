@@ -61,11 +61,13 @@ def test_masks_normalised_and_compact_on_uneven_mesh(kind):
         assert m.single_vertex == int(np.sum(np.sum(d < r, axis=1) == 1))
 
 
-def test_pairs_within_a_radius_are_the_whole_scan_s():
-    """The masks' neighbour search (a grid of cells of edge r, spatial.pairs_within) finds exactly the pairs a
-    scan of every vertex finds, columns ascending per centre, with |p_c − p_j|² to round-off: on points spread
-    over three decades of spacing, including pairs exactly r apart on the axes (excluded: d² < r²), centres a
-    subset in any order, and chunks that split the centres unevenly."""
+def test_pairs_within_a_radius_are_those_a_whole_scan_finds():
+    """The masks' neighbour search (a grid of cells of edge at least r, spatial.pairs_within) finds exactly the
+    pairs a scan of every vertex finds, columns ascending per centre, with |p_c − p_j|² to round-off: on points
+    spread over three decades of spacing, including pairs exactly r apart on the axes (excluded: d² < r²),
+    centres a subset in any order, and runs of centres cut by the candidates' budget; a radius far below the
+    spacing (cells then larger than r, the keys' range bounded) finds each centre alone."""
+
     from pmask.runtime.spatial import pairs_within
 
     rng = np.random.default_rng(7)
@@ -76,9 +78,10 @@ def test_pairs_within_a_radius_are_the_whole_scan_s():
     centres = np.concatenate([centres, [len(pts) - 3]])
     d2 = ((pts[centres][:, None] - pts[None]) ** 2).sum(axis=2)
     want_rows, want_cols = np.nonzero(d2 < r * r)
-    got = list(pairs_within(pts, centres, r, chunk=37))
-    assert [len(c) for c, *_ in got] == [37] * 9 + [351 - 9 * 37]
-    rows = np.concatenate([k * 37 + rr for k, (_, rr, _, _) in enumerate(got)])
+    got = list(pairs_within(pts, centres, r, candidates=3000))
+    assert len(got) > 5 and np.array_equal(np.concatenate([c for c, *_ in got]), centres)
+    offset = np.cumsum([0] + [len(c) for c, *_ in got])
+    rows = np.concatenate([offset[k] + rr for k, (_, rr, _, _) in enumerate(got)])
     cols = np.concatenate([cc for _, _, cc, _ in got])
     dd = np.concatenate([x for *_, x in got])
     np.testing.assert_array_equal(rows, want_rows)
@@ -86,6 +89,10 @@ def test_pairs_within_a_radius_are_the_whole_scan_s():
     np.testing.assert_allclose(dd, d2[want_rows, want_cols], rtol=1e-12, atol=1e-20)
     assert np.all(dd[cols == centres[rows]] == 0.0) and np.sum(cols == centres[rows]) == len(centres)
     assert list(pairs_within(np.zeros((0, 3)), np.zeros(0, np.int64), r)) == []
+    (c, rows, cols, dd), = pairs_within(pts, centres, 1e-30)
+    np.testing.assert_array_equal(cols, centres)
+    np.testing.assert_array_equal(rows, np.arange(len(centres)))
+    assert np.all(dd == 0.0)
 
 
 def test_radius_validation(model):
