@@ -105,7 +105,7 @@ def pressure_masks(points: np.ndarray, areas: np.ndarray, centres: np.ndarray, k
     idx_parts, val_parts, counts = [], [], []
     # vertex i is always in its own mask, at s = 0 exactly; a grid of cells finds the rest (pairs_within)
     for c, rows, cols, d2 in pairs_within(points, centres, r):
-        w = profile(np.sqrt(np.maximum(d2, 0.0)) / r)
+        w = profile(np.sqrt(d2) / r)  # (a sum of squares: never negative)
         idx_parts.append(cols)
         val_parts.append(w)
         counts.append(np.bincount(rows, minlength=len(c)))
