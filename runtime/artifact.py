@@ -81,6 +81,9 @@ HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index",
 #: the datasets a reader may leave in the file and read in slices without their SHA-256 (a large organ's far
 #: field: :class:`FileArray`); only these carry HDF5's Fletcher-32 (format 1.5)
 SLICED = ("greens/hmatrix/U", "greens/hmatrix/V")
+#: the exact near field, which a reader may read when first needed, a block at a time, each block checked by its
+#: SHA-256 (:class:`BlocksOnDemand`)
+NEAR = ("greens/hmatrix/dense",)
 #: datasets above this size also get a SHA-256 per block of rows (format 1.5), verified on both cores
 BLOCK_DIGEST_BYTES = 64 << 20
 #: of these, optional (before format 1.4 every block was stored: no scale)
@@ -211,13 +214,15 @@ class FileArray:
 
 
 def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, verify: bool = True,
-                  in_file=()) -> dict:
+                  in_file=(), on_demand=()) -> dict:
     """Read and check an artifact; return the requested datasets and the decoded attributes.
 
     ``datasets``: the names to read (default: everything this reader knows; the runtime asks for
     :data:`RUNTIME` only).  An optional dataset the file does not have (``greens/reactions``) is
     returned as None.  ``in_file``: names among them returned as :class:`FileArray` (read when sliced,
-    checked by HDF5's Fletcher-32 rather than by their SHA-256).  Raises :class:`ArtifactError` for a
+    checked by HDF5's Fletcher-32 rather than by their SHA-256).  ``on_demand``: names among them returned as
+    :class:`BlocksOnDemand` (read when first indexed, a block at a time, each checked by its SHA-256: format
+    1.5's per-block digests, or the dataset's own as one block; read at once from a file older than 1.5).  Raises :class:`ArtifactError` for a
     missing, truncated, corrupt, altered or foreign file, or one whose major format version this reader
     does not know.
     """
@@ -248,8 +253,9 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
             digests: dict = {}
             blocks = _block_digests(attrs) if verify and not legacy else {}
             finite: dict = {}  # datasets whose finiteness the reading threads checked, block by block
+            later = [d for d in on_demand if d in datasets and d in f and not legacy and d not in in_file]
             data = {d: (_read(f[d], digests if verify and not legacy else None, d, blocks.get(d), finite)
-                        if d in f else None) for d in wanted if d not in in_file}
+                        if d in f else None) for d in wanted if d not in in_file and d not in later}
     except ArtifactError:
         raise
     except (OSError, KeyError, RuntimeError) as exc:
@@ -266,6 +272,18 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
     data = {k: v for k, v in data.items() if k in datasets}
     _check_shapes(path, data, finite)
     data.update({d: FileArray(path, d) for d in in_file if d in datasets})
+    for d in later:  # their digests, from sha256_covers, which the metadata digest has just vouched for
+        covered = attrs["sha256_covers"]["datasets"] if verify else {}
+        if verify and d not in covered:
+            raise ArtifactError(f"{path}: dataset {d} is not covered by the file's checksums; recompute it")
+        if d in blocks:
+            data[d] = BlocksOnDemand(path, d, int(blocks[d]["rows"]), blocks[d]["sha256"])
+        elif verify:  # below the per-block threshold: one block, the dataset's own digest
+            data[d] = BlocksOnDemand(path, d, 1 << 62, [covered[d]])
+        else:
+            with h5py.File(path, "r") as f:
+                shape, itemsize = f[d].shape, f[d].dtype.itemsize
+            data[d] = BlocksOnDemand(path, d, digest_block_rows(shape, itemsize), None)
     return {"attrs": attrs, **data}
 
 
@@ -328,20 +346,110 @@ def _read(ds, digests: dict | None, name: str, blocks: dict | None = None, finit
 def _read_blocks(ds, digests: dict, name: str, rows: int, finite: dict | None = None) -> np.ndarray:
     """:func:`_read` for a dataset with per-block digests: its blocks of ``rows`` rows read in order, each
     hashed (and checked for NaN and inf) by one of two threads while the next is read."""
-    from concurrent.futures import ThreadPoolExecutor
-
     arr = np.empty(ds.shape, ds.dtype)
-    with ThreadPoolExecutor(2) as pool:
-        pending = []
-        for r0 in range(0, len(arr), rows):
-            block = np.s_[r0:r0 + rows]
-            ds.read_direct(arr, block, block)
-            pending.append(pool.submit(_digest_and_finite, arr[block]))
-        done = [p.result() for p in pending]
+    done = _read_and_hash(ds, arr, rows, range(-(-len(arr) // rows)))
     digests[name] = [h for h, _ in done]
     if finite is not None:
         finite[name] = all(ok for _, ok in done)
     return arr
+
+
+def _read_and_hash(ds, arr: np.ndarray, rows: int, blocks) -> list:
+    """Read the given blocks of ``rows`` rows of ``ds`` into ``arr`` in order, each hashed and checked for NaN
+    and inf (:func:`_digest_and_finite`) by one of two threads while the next is read; their (digest, finite)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        pending = []
+        for k in blocks:
+            block = np.s_[k * rows:(k + 1) * rows]
+            ds.read_direct(arr, block, block)
+            pending.append(pool.submit(_digest_and_finite, arr[block]))
+        return [p.result() for p in pending]
+
+
+class BlocksOnDemand:
+    """A dataset read a block of rows at a time when first indexed, each block checked by its SHA-256 and for
+    NaN and inf as it is read (a large organ's exact near field: the artifact opens without reading it, and the
+    first K_i or coupling reads the blocks it touches; what is read stays in memory).
+
+    ``rows`` and ``sha256``: the blocks and their digests (format 1.5's per-block list, or the whole dataset's
+    digest as one block; None reads them unchecked, as ``verify=False`` does).  Indexing with a slice or an integer array reads every block between the lowest and
+    the highest index it names; a block whose digest or values are wrong raises :class:`ArtifactError` naming
+    its rows, and is read (and refused) again if asked for again.  Safe to index from several threads."""
+
+    def __init__(self, path, name: str, rows: int, sha256: list):
+        import threading
+
+        import h5py
+
+        self._file = h5py.File(path, "r")
+        self._data = self._file[name]
+        self.name, self.path = name, str(path)
+        self.shape, self.dtype = self._data.shape, self._data.dtype
+        self.ndim = len(self.shape)
+        self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
+        self.rows = max(1, int(rows))
+        n_blocks = -(-self.shape[0] // self.rows)
+        self._sha256 = None if sha256 is None else list(sha256)  # None: read unverified (verify=False)
+        if self._sha256 is not None and len(self._sha256) != n_blocks:
+            self.close()
+            raise ArtifactError(f"{path}: the block digests of {name} do not cover its rows; recompute it with --force")
+        self._arr = np.empty(self.shape, self.dtype)  # pages are taken as blocks are read into it
+        self._read = np.zeros(n_blocks, bool)
+        self._lock = threading.Lock()
+        self.complete = n_blocks == 0
+
+    def __len__(self) -> int:
+        return int(self.shape[0])
+
+    @property
+    def fraction_read(self) -> float:
+        """Share of the blocks read so far."""
+        return float(self._read.mean()) if len(self._read) else 1.0
+
+    def __getitem__(self, key):
+        if not self.complete:
+            if isinstance(key, slice):
+                lo, hi, _ = key.indices(self.shape[0])
+                self.ensure(lo, hi)
+            else:
+                idx = np.asarray(key)
+                if not np.issubdtype(idx.dtype, np.integer) or idx.size and idx.min() < 0:
+                    self.ensure(0, self.shape[0])  # a mask, a tuple, negative indices: all of it
+                elif idx.size:
+                    self.ensure(int(idx.min()), int(idx.max()) + 1)
+        return self._arr[key]
+
+    def ensure(self, lo: int, hi: int) -> None:
+        """Read (and check) the blocks holding rows lo..hi-1 that are not read yet."""
+        want = np.arange(max(lo, 0) // self.rows, -(-min(hi, self.shape[0]) // self.rows))
+        with self._lock:
+            todo = want[~self._read[want]]
+            if not len(todo):
+                return
+            try:
+                done = _read_and_hash(self._data, self._arr, self.rows, todo)
+            except OSError as exc:
+                raise ArtifactError(f"{self.path}: cannot read {self.name} ({exc}); it is corrupt or truncated, "
+                                    "recompute it with --force") from exc
+            for k, (digest, finite) in zip(todo, done):
+                where = f"{self.name} (rows {k * self.rows} to {min((k + 1) * self.rows, self.shape[0]) - 1})"
+                if self._sha256 is not None and digest != self._sha256[k]:
+                    raise ArtifactError(f"{self.path}: checksum mismatch: dataset {where} was altered after "
+                                        "writing; recompute it with --force")
+                if not finite:
+                    raise ArtifactError(f"{self.path}: inconsistent artifact: {where} holds NaN or inf")
+                self._read[k] = True
+            if self._read.all():
+                self.complete = True
+                self.close()
+
+    def close(self) -> None:
+        try:
+            self._file.close()
+        except Exception:  # noqa: BLE001  (already closed)
+            pass
 
 
 def _digest_and_finite(block: np.ndarray) -> tuple[str, bool]:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
-from pmask.runtime.artifact import REACTIONS, RUNTIME, SLICED, VOLUME, read_artifact, stored_bytes
+from pmask.runtime.artifact import NEAR, REACTIONS, RUNTIME, SLICED, VOLUME, read_artifact, stored_bytes
 from pmask.runtime.compressed import CompressedXi
 from pmask.runtime.device import Device
 from pmask.runtime.geometry import mean_edge_length
@@ -53,24 +53,39 @@ class Model:
 
     #: far fields larger than this stay in the file (far_field="auto")
     FAR_FIELD_IN_MEMORY = 512 * 2**20
+    #: near fields larger than this are read when first needed (near_field="auto")
+    NEAR_FIELD_AT_OPEN = 256 * 2**20
 
     @classmethod
-    def load(cls, path, *, verify: bool = True, far_field: str = "auto") -> "Model":
+    def load(cls, path, *, verify: bool = True, far_field: str = "auto", near_field: str = "auto") -> "Model":
         """Read what the runtime uses (the surface and Ξ) and check it; refuses foreign, corrupt,
         altered or newer-major files (``ArtifactError``).
 
         far_field: for a compressed artifact, where its low-rank far field lives: "memory", "file" (read in
-        slices when a deformation or a coupling needs them, :class:`pmask.runtime.artifact.FileArray`; the
-        near field, all K_i need, is read either way), or "auto": in the file when larger than
-        :data:`FAR_FIELD_IN_MEMORY` (a far field a single contact never reads: the bench page gives its size at
-        20,000 vertices)."""
+        slices when a deformation or a coupling needs them, :class:`pmask.runtime.artifact.FileArray`), or
+        "auto": in the file when larger than :data:`FAR_FIELD_IN_MEMORY` (a far field a single contact never
+        reads: the bench page gives its size at 20,000 vertices).
+
+        near_field: when a compressed artifact's exact near field (what K_i and the couplings read) is read:
+        "open" (here, every block checked by its SHA-256 before this returns), "demand" (a block at a time when
+        first needed, each checked by its SHA-256 as it is read, :class:`pmask.runtime.artifact.BlocksOnDemand`:
+        a corrupt block is refused then, by the first :meth:`stiffness` at the latest), or "auto": on demand
+        when larger than :data:`NEAR_FIELD_AT_OPEN`.  What is read stays in memory either way."""
         if far_field not in ("auto", "memory", "file"):
             raise InputError(f"far_field must be 'auto', 'memory' or 'file', got {far_field!r}")
+        if near_field not in ("auto", "open", "demand"):
+            raise InputError(f"near_field must be 'auto', 'open' or 'demand', got {near_field!r}")
         t0 = time.perf_counter()
         in_file = ()
         if far_field != "memory":
             in_file = cls._far_field_in_file(path, far_field)
-        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify, in_file=in_file), str(path))
+        on_demand = ()
+        if near_field != "open":
+            size = stored_bytes(path, NEAR)
+            if size is not None and (near_field == "demand" or size > cls.NEAR_FIELD_AT_OPEN):
+                on_demand = NEAR
+        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify, in_file=in_file, on_demand=on_demand),
+                str(path))
         m.verify = verify
         m.load_seconds = time.perf_counter() - t0
         return m

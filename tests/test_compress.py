@@ -765,6 +765,102 @@ def test_a_far_field_left_in_the_file_is_checked_chunk_by_chunk(pair, tmp_path):
         lazy.Xi.U[0:64]
 
 
+def _near_field_signed_in_blocks(src, dst, n_blocks: int, change=None):
+    """A copy of a compressed artifact whose near field carries per-block SHA-256 digests (format 1.5 gives them
+    to datasets above 64 MiB; this one's is smaller) over ``n_blocks`` blocks, the metadata digest re-signed;
+    ``change(values, rows)`` alters the stored values afterwards (unsigned) or before (signed) as it returns
+    "after" or "before".  Returns the rows per block."""
+    import json
+    import shutil
+
+    import h5py
+
+    from pmask.runtime.artifact import array_digest, metadata_digest
+
+    shutil.copy(src, dst)
+    name = "greens/hmatrix/dense"
+    with h5py.File(dst, "r+") as f:
+        values = f[name][()]
+        rows = -(-len(values) // n_blocks)
+        changed = values.copy()
+        when = change(changed, rows) if change else None
+        if when == "before":
+            f[name][...] = values = changed
+        covers = json.loads(f.attrs["sha256_covers"])
+        covers.setdefault("blocks", {})[name] = {"rows": rows, "sha256": [array_digest(values[k:k + rows])
+                                                           for k in range(0, len(values), rows)]}
+        covers["datasets"][name] = array_digest(values)
+        f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        f.attrs["metadata_sha256"] = metadata_digest(attrs, covers)
+        if when == "after":
+            f[name][...] = changed
+    return rows
+
+
+def test_the_near_field_is_read_when_first_needed(pair, tmp_path):
+    """#27 item 4 (a compressed artifact opens in 1 s at 20,000 vertices and reads blocks when needed): with
+    near_field="demand" (the default above 256 MiB) the open reads none of the near field; the 3x3 block of
+    one pair of vertices reads only the blocks around it; every K_i then reads the rest, and they, a
+    deformation and coupled forces equal those of the artifact read at open exactly (the same values, read
+    later, each block checked by its SHA-256).  Below the threshold "auto" reads it at open."""
+    from pmask.runtime.artifact import BlocksOnDemand
+
+    _, comp, _ = pair
+    path = tmp_path / "blocks.h5"
+    _near_field_signed_in_blocks(comp.path, path, 16)
+    lazy = Model.load(path, near_field="demand")
+    near = lazy.Xi.dense
+    assert isinstance(near, BlocksOnDemand) and near.fraction_read == 0.0
+    assert not isinstance(Model.load(path).Xi.dense, BlocksOnDemand)  # "auto": this one is small
+    i = np.array([len(lazy.contact) // 2])
+    assert np.array_equal(lazy.Xi.blocks(i, i), comp.Xi.blocks(i, i))
+    assert 0 < near.fraction_read <= 2 / 16  # one 3x3 block lies in one or two of the 16
+    sl, sm = lazy.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
+    assert np.array_equal(sl.K_full, sm.K_full)
+    assert near.fraction_read == 1.0 and near.complete
+    rng = np.random.default_rng(6)
+    tris = rng.choice(np.flatnonzero(sm.touchable), 3, replace=False)
+    loads = [(t, np.array([0.2, 0.3, 0.5]), rng.normal(size=3)) for t in tris]
+    assert np.array_equal(sl.deformation_of(loads), sm.deformation_of(loads))
+    pts = [(t, np.array([0.2, 0.3, 0.5])) for t in tris]
+    u = rng.normal(size=(3, 3)) * 1e-3
+    assert np.array_equal(sl.coupled_forces(pts, u), sm.coupled_forces(pts, u))
+    with pytest.raises(InputError, match="near_field"):
+        Model.load(path, near_field="lazy")
+
+
+@pytest.mark.parametrize("what", ["altered", "nan"])
+def test_a_near_field_read_on_demand_is_checked_block_by_block(pair, tmp_path, what):
+    """A near field read when first needed is checked as each block is read: one value changed on disk after
+    signing (its block's SHA-256 then differs), or a NaN signed with every digest, opens (nothing read yet),
+    lets a block elsewhere be read, and is refused by the first stiffness, naming the rows of the block that
+    holds it (or the NaN); read at open the same file is refused there."""
+    import re
+
+    from pmask.runtime.artifact import ArtifactError
+
+    _, comp, _ = pair
+    path = tmp_path / "bad.h5"
+    where = {}
+
+    def change(values, rows):
+        where["at"], where["rows"] = 13 * rows // 2, rows  # inside the 7th of 16 blocks
+        values[where["at"]] = np.nan if what == "nan" else 2 * values[where["at"]] + 1e-30
+        return "before" if what == "nan" else "after"
+
+    _near_field_signed_in_blocks(comp.path, path, 16, change)
+    lazy = Model.load(path, near_field="demand")
+    lazy.Xi.dense[0:10]  # the first block is intact
+    message = "NaN or inf" if what == "nan" else "greens/hmatrix/dense \\(rows"
+    with pytest.raises(ArtifactError, match=message) as err:
+        lazy.stiffness("linear", R_MAX)
+    first, last = map(int, re.search(r"rows (\d+) to (\d+)", str(err.value)).groups())
+    assert first <= where["at"] <= last and last - first + 1 == where["rows"]
+    with pytest.raises(ArtifactError, match="NaN or inf" if what == "nan" else "greens/hmatrix/dense"):
+        Model.load(path, near_field="open")
+
+
 def test_merged_pieces_keep_the_block_within_tolerance_at_its_own_rank():
     """merge_pieces against the SVD: a planted rank-7 block (3n x 3m, smooth columns plus noise 1e-9 of
     its norm) split into 11 column pieces, each compressed within tol/2 as a tile does, then merged: the
