@@ -156,11 +156,13 @@ def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, candidate
     (position in the run), the vertex indices ascending within each row, and the squared distances
     ‖p_c − p_j‖² (a centre is paired with itself at 0 exactly).  (The whole-matrix scan it replaces, 7.3 s for
     the 20,000-vertex organ's 10 mm masks against 5 s, by hand, wrote them sq_c + sq_j − 2 p_c·p_j, which
-    cancels: the masks' values moved by ~1e-13 relative.)"""
+    cancels: the masks' values moved by ~1e-13 relative.  Distances a coordinate at a time and a stable sort in
+    place of a lexsort then took those 12 million pairs from 5.8 s to 2.9 s, by hand.)"""
     P = np.asarray(points, float)
     centres = np.asarray(centres, np.int64)
     if len(P) == 0 or len(centres) == 0:
         return
+    PT = np.ascontiguousarray(P.T)
     lo, hi = P.min(axis=0), P.max(axis=0)
     cell = max(float(r), float((hi - lo).max()) / 2**20)  # a cell never smaller than r; keys stay within int64
     ijk = np.floor((P - lo) / cell).astype(np.int64) + 1  # a margin of one cell on each side: neighbour keys
@@ -180,11 +182,15 @@ def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, candidate
         a, lens = first_all[start:stop].ravel(), (last_all[start:stop] - first_all[start:stop]).ravel()
         total = int(lens.sum())
         cols = order[np.repeat(a - (np.cumsum(lens) - lens), lens) + np.arange(total)]
-        rows = np.repeat(np.repeat(np.arange(len(c)), 27), lens)
-        d = P[c][rows] - P[cols]
-        d2 = np.einsum("ij,ij->i", d, d)
-        keep = d2 < r * r
-        rows, cols, d2 = rows[keep], cols[keep], d2[keep]
-        s = np.lexsort((cols, rows))
+        d2 = np.zeros(total)
+        for k in range(3):  # a coordinate at a time: the centre's repeated in place, the vertex's gathered
+            dk = np.repeat(np.repeat(P[c, k], 27), lens) - PT[k][cols]
+            d2 += dk * dk
+        keep = np.flatnonzero(d2 < r * r)
+        rows = np.repeat(np.repeat(np.arange(len(c)), 27), lens)[keep]
+        cols, d2 = cols[keep], d2[keep]
+        # rows come ascending, each row's columns in 27 ascending runs (one per cell): a stable sort of
+        # row·n + column merges the runs (3x faster than a lexsort of the two)
+        s = np.argsort(rows * len(P) + cols, kind="stable")
         yield c, rows[s], cols[s], d2[s]
         start = stop
