@@ -70,21 +70,26 @@ def masked_flexibility(Xi: np.ndarray, masks: Masks) -> np.ndarray:
     mask's pairs lie within r ≤ r_max, in the compressed form's exact near field).  The pairs are gathered
     in passes of whole masks, at most about :data:`PAIRS_PER_PASS` pairs each, so that the memory does not
     grow with the model (a 20,000-vertex organ with 10 mm masks has 12 million pairs: 3 GB of temporaries
-    at once)."""
+    at once).  The masks are taken in the order of Ξ's stored rows (a compressed Ξ's cluster order), so
+    that a pass reads nearby values: at 20,000 vertices with 10 mm masks, 3.9-4.4 s against 7.0 s in the masks'
+    own order (by hand), bitwise the same (each mask's pairs are summed in the same order)."""
     rows = masks.centres
     counts = np.diff(masks.indptr)
     out = np.zeros((len(rows), 3, 3))
     ptr = masks.indptr
+    order = np.argsort(Xi.position[rows], kind="stable") if isinstance(Xi, CompressedXi) else np.arange(len(rows))
+    ends = np.cumsum(counts[order])  # pairs up to and including each mask, in that order
     start = 0
     while start < len(rows):
-        stop = int(np.searchsorted(ptr, ptr[start] + PAIRS_PER_PASS, side="right")) - 1
-        stop = min(len(rows), max(stop, start + 1))  # whole masks, at least one
-        a, b = int(ptr[start]), int(ptr[stop])
-        i = np.repeat(rows[start:stop], counts[start:stop])
-        blocks = xi_blocks(Xi, i, masks.indices[a:b]) * masks.values[a:b, None, None]  # (pairs, 3, 3)
-        nz = np.flatnonzero(counts[start:stop] > 0)
+        done = int(ends[start - 1]) if start else 0
+        stop = min(len(rows), max(start + 1, int(np.searchsorted(ends, done + PAIRS_PER_PASS, side="right"))))
+        m = order[start:stop]  # whole masks, at least one
+        lens = counts[m]
+        at = np.repeat(ptr[m] - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))  # their pairs
+        blocks = xi_blocks(Xi, np.repeat(rows[m], lens), masks.indices[at]) * masks.values[at, None, None]
+        nz = np.flatnonzero(lens > 0)
         if len(nz):
-            out[start + nz] = np.add.reduceat(blocks, ptr[start:stop][nz] - a, axis=0)
+            out[m[nz]] = np.add.reduceat(blocks, (np.cumsum(lens) - lens)[nz], axis=0)
         start = stop
     return out
 
