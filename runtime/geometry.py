@@ -105,31 +105,15 @@ def one_rings(n_vertices: int, triangles: np.ndarray) -> list[np.ndarray]:
 
 
 def pairs_within(points: np.ndarray, radius: float):
-    """All pairs (i, j) of points closer than ``radius`` (both orders, and i == j), by binning the points
-    into cells of the radius and comparing neighbouring cells: O(n) for a surface mesh."""
-    P = np.asarray(points, float)
-    if len(P) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    cell = np.floor((P - P.min(axis=0)) / radius).astype(np.int64)
-    dims = cell.max(axis=0) + 1
-    key = (cell[:, 2] * dims[1] + cell[:, 1]) * dims[0] + cell[:, 0]
-    order = np.argsort(key, kind="stable")
-    skey = key[order]
-    rows, cols = [], []
-    for dz in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                nb = cell + (dx, dy, dz)
-                ok = np.all((nb >= 0) & (nb < dims), axis=1)
-                nkey = (nb[:, 2] * dims[1] + nb[:, 1]) * dims[0] + nb[:, 0]
-                lo = np.searchsorted(skey, nkey, side="left")
-                hi = np.searchsorted(skey, nkey, side="right")
-                cnt = np.where(ok, hi - lo, 0)
-                i = np.repeat(np.arange(len(P)), cnt)
-                j = order[np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))]
-                close = np.sum((P[i] - P[j]) ** 2, axis=1) < radius * radius
-                rows.append(i[close])
-                cols.append(j[close])
+    """All pairs (i, j) of points closer than ``radius`` (both orders, and i == j), ascending by i then j: the
+    masks' grid search (:func:`pmask.runtime.spatial.pairs_within`) with every point a centre, O(n) for a
+    surface mesh."""
+    from pmask.runtime.spatial import pairs_within as grid_pairs  # (spatial imports this module)
+
+    rows, cols = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for c, r, j, _ in grid_pairs(points, np.arange(len(points)), radius):
+        rows.append(c[r])
+        cols.append(j)
     return np.concatenate(rows), np.concatenate(cols)
 
 
