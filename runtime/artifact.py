@@ -222,9 +222,9 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
     returned as None.  ``in_file``: names among them returned as :class:`FileArray` (read when sliced,
     checked by HDF5's Fletcher-32 rather than by their SHA-256).  ``on_demand``: names among them returned as
     :class:`BlocksOnDemand` (read when first indexed, a block at a time, each checked by its SHA-256: format
-    1.5's per-block digests, or the dataset's own as one block; read at once from a file older than 1.5).  Raises :class:`ArtifactError` for a
-    missing, truncated, corrupt, altered or foreign file, or one whose major format version this reader
-    does not know.
+    1.5's per-block digests, or the dataset's own as one block; read at once from a format 1.0 file).  Raises
+    :class:`ArtifactError` for a missing, truncated, corrupt, altered or foreign file, or one whose major
+    format version this reader does not know.
     """
     import h5py
 
@@ -374,9 +374,10 @@ class BlocksOnDemand:
     first K_i or coupling reads the blocks it touches; what is read stays in memory).
 
     ``rows`` and ``sha256``: the blocks and their digests (format 1.5's per-block list, or the whole dataset's
-    digest as one block; None reads them unchecked, as ``verify=False`` does).  Indexing with a slice or an integer array reads every block between the lowest and
-    the highest index it names; a block whose digest or values are wrong raises :class:`ArtifactError` naming
-    its rows, and is read (and refused) again if asked for again.  Safe to index from several threads."""
+    digest as one block; None reads them unchecked, as ``verify=False`` does).  Indexing with a slice or an
+    integer array reads every block between the lowest and the highest index it names; a block whose digest
+    or values are wrong raises :class:`ArtifactError` naming its rows, and is read (and refused) again if
+    asked for again.  Safe to index from several threads."""
 
     def __init__(self, path, name: str, rows: int, sha256: list):
         import threading
@@ -394,7 +395,8 @@ class BlocksOnDemand:
         self._sha256 = None if sha256 is None else list(sha256)  # None: read unverified (verify=False)
         if self._sha256 is not None and len(self._sha256) != n_blocks:
             self.close()
-            raise ArtifactError(f"{path}: the block digests of {name} do not cover its rows; recompute it with --force")
+            raise ArtifactError(f"{path}: the block digests of {name} do not cover its rows; "
+                                "recompute it with --force")
         self._arr = np.empty(self.shape, self.dtype)  # pages are taken as blocks are read into it
         self._read = np.zeros(n_blocks, bool)
         self._lock = threading.Lock()
