@@ -714,6 +714,18 @@ def test_the_viewer_opens_a_compressed_artifact_and_shows_its_deformation(pair):
     assert abs(uc[v, 2] + 2e-3) <= 0.02 * 2e-3
 
 
+def _same_deformation_and_coupling(sl, sm, seed: int) -> None:
+    """A deformation under three loads and three contacts' coupled forces, on random touchable triangles, are
+    the same (exactly) from stiffness ``sl`` (Ξ read later, in part or in slices) as from ``sm`` (in memory)."""
+    rng = np.random.default_rng(seed)
+    tris = rng.choice(np.flatnonzero(sm.touchable), 3, replace=False)
+    loads = [(t, np.array([0.2, 0.3, 0.5]), rng.normal(size=3)) for t in tris]
+    assert np.array_equal(sl.deformation_of(loads), sm.deformation_of(loads))
+    pts = [(t, np.array([0.2, 0.3, 0.5])) for t in tris]
+    u = rng.normal(size=(3, 3)) * 1e-3
+    assert np.array_equal(sl.coupled_forces(pts, u), sm.coupled_forces(pts, u))
+
+
 def test_the_far_field_can_stay_in_the_file(pair):
     """The large-organ issue's item 4: a compressed artifact's far field (which a
     single contact never reads) stays in the file and is read in slices when a deformation or a coupling needs
@@ -727,13 +739,7 @@ def test_the_far_field_can_stay_in_the_file(pair):
     assert not isinstance(comp.Xi.U, FileArray)  # this small one loads it (below the threshold)
     sl, sm = lazy.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
     assert np.array_equal(sl.K_full, sm.K_full)
-    rng = np.random.default_rng(5)
-    tris = rng.choice(np.flatnonzero(sm.touchable), 3, replace=False)
-    loads = [(t, np.array([0.2, 0.3, 0.5]), rng.normal(size=3)) for t in tris]
-    assert np.array_equal(sl.deformation_of(loads), sm.deformation_of(loads))
-    pts = [(t, np.array([0.2, 0.3, 0.5])) for t in tris]
-    u = rng.normal(size=(3, 3)) * 1e-3
-    assert np.array_equal(sl.coupled_forces(pts, u), sm.coupled_forces(pts, u))
+    _same_deformation_and_coupling(sl, sm, seed=5)
     with pytest.raises(InputError, match="far_field"):
         Model.load(comp.path, far_field="disk")
 
@@ -819,13 +825,7 @@ def test_the_near_field_is_read_when_first_needed(pair, tmp_path):
     sl, sm = lazy.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
     assert np.array_equal(sl.K_full, sm.K_full)
     assert near.fraction_read == 1.0 and near.complete
-    rng = np.random.default_rng(6)
-    tris = rng.choice(np.flatnonzero(sm.touchable), 3, replace=False)
-    loads = [(t, np.array([0.2, 0.3, 0.5]), rng.normal(size=3)) for t in tris]
-    assert np.array_equal(sl.deformation_of(loads), sm.deformation_of(loads))
-    pts = [(t, np.array([0.2, 0.3, 0.5])) for t in tris]
-    u = rng.normal(size=(3, 3)) * 1e-3
-    assert np.array_equal(sl.coupled_forces(pts, u), sm.coupled_forces(pts, u))
+    _same_deformation_and_coupling(sl, sm, seed=6)
     with pytest.raises(InputError, match="near_field"):
         Model.load(path, near_field="lazy")
 
