@@ -148,6 +148,24 @@ def _pymax0(x: np.ndarray) -> np.ndarray:
     return np.where(0.0 > x, 0.0, x)
 
 
+def bounded_runs(sizes, budget: int):
+    """(start, stop) of consecutive runs of items whose sizes add up to at most ``budget`` (at least one item a
+    run): passes over a large problem whose temporaries stay bounded."""
+    ends = np.cumsum(sizes)
+    start = 0
+    while start < len(ends):
+        done = int(ends[start - 1]) if start else 0
+        stop = min(len(ends), max(start + 1, int(np.searchsorted(ends, done + budget, "right"))))
+        yield start, stop
+        start = stop
+
+
+def concatenated_ranges(starts, lens) -> np.ndarray:
+    """starts[k], starts[k] + 1, …, starts[k] + lens[k] − 1 for every k in order, as one index array."""
+    lens = np.asarray(lens)
+    return np.repeat(np.asarray(starts) - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
+
+
 def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, candidates: int = 1 << 22):
     """Every (centre, vertex) pair with squared distance below r², by a grid of cells of edge at least r (a
     vertex within r of a centre is in its cell or one of the 26 around it): O(pairs) work instead of a scan of
@@ -173,16 +191,11 @@ def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, candidate
     offsets = np.array([(a * dims[1] + b) * dims[2] + c for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
     nk = key[centres][:, None] + offsets[None, :]  # (centres, 27): the cells around each centre
     first_all, last_all = np.searchsorted(skey, nk, "left"), np.searchsorted(skey, nk, "right")
-    ends = np.cumsum((last_all - first_all).sum(axis=1))
-    start = 0
-    while start < len(centres):
-        done = int(ends[start - 1]) if start else 0
-        stop = min(len(centres), max(start + 1, int(np.searchsorted(ends, done + candidates, "right"))))
+    for start, stop in bounded_runs((last_all - first_all).sum(axis=1), candidates):
         c = centres[start:stop]
         a, lens = first_all[start:stop].ravel(), (last_all[start:stop] - first_all[start:stop]).ravel()
-        total = int(lens.sum())
-        cols = order[np.repeat(a - (np.cumsum(lens) - lens), lens) + np.arange(total)]
-        d2 = np.zeros(total)
+        cols = order[concatenated_ranges(a, lens)]
+        d2 = np.zeros(len(cols))
         for k in range(3):  # a coordinate at a time: the centre's repeated in place, the vertex's gathered
             dk = np.repeat(np.repeat(P[c, k], 27), lens) - PT[k][cols]
             d2 += dk * dk
@@ -193,4 +206,3 @@ def pairs_within(points: np.ndarray, centres: np.ndarray, r: float, *, candidate
         # row·n + column merges the runs (3x faster than a lexsort of the two)
         s = np.argsort(rows * len(P) + cols, kind="stable")
         yield c, rows[s], cols[s], d2[s]
-        start = stop

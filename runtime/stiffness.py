@@ -40,6 +40,7 @@ from pmask.errors import InputError, PmaskError
 from pmask.runtime.compressed import CompressedXi, xi_blocks
 from pmask.runtime.geometry import one_rings
 from pmask.runtime.masks import Masks
+from pmask.runtime.spatial import bounded_runs, concatenated_ranges
 
 #: tolerance on barycentric coordinates (negativity and sum) accepted by the query API: barycentrics
 #: computed in float32 are off by a few 1e-8 (float32's epsilon is 1.2e-7), so 1e-6 accepts them;
@@ -78,19 +79,14 @@ def masked_flexibility(Xi: np.ndarray, masks: Masks) -> np.ndarray:
     out = np.zeros((len(rows), 3, 3))
     ptr = masks.indptr
     order = np.argsort(Xi.position[rows], kind="stable") if isinstance(Xi, CompressedXi) else np.arange(len(rows))
-    ends = np.cumsum(counts[order])  # pairs up to and including each mask, in that order
-    start = 0
-    while start < len(rows):
-        done = int(ends[start - 1]) if start else 0
-        stop = min(len(rows), max(start + 1, int(np.searchsorted(ends, done + PAIRS_PER_PASS, side="right"))))
+    for start, stop in bounded_runs(counts[order], PAIRS_PER_PASS):
         m = order[start:stop]  # whole masks, at least one
         lens = counts[m]
-        at = np.repeat(ptr[m] - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))  # their pairs
+        at = concatenated_ranges(ptr[m], lens)  # their pairs
         blocks = xi_blocks(Xi, np.repeat(rows[m], lens), masks.indices[at]) * masks.values[at, None, None]
         nz = np.flatnonzero(lens > 0)
         if len(nz):
             out[m[nz]] = np.add.reduceat(blocks, (np.cumsum(lens) - lens)[nz], axis=0)
-        start = stop
     return out
 
 
