@@ -281,9 +281,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
         elif verify:  # below the per-block threshold: one block, the dataset's own digest
             data[d] = BlocksOnDemand(path, d, 1 << 62, [covered[d]])
         else:
-            with h5py.File(path, "r") as f:
-                shape, itemsize = f[d].shape, f[d].dtype.itemsize
-            data[d] = BlocksOnDemand(path, d, digest_block_rows(shape, itemsize), None)
+            data[d] = BlocksOnDemand(path, d, None, None)
     return {"attrs": attrs, **data}
 
 
@@ -374,12 +372,13 @@ class BlocksOnDemand:
     first K_i or coupling reads the blocks it touches; what is read stays in memory).
 
     ``rows`` and ``sha256``: the blocks and their digests (format 1.5's per-block list, or the whole dataset's
-    digest as one block; None reads them unchecked, as ``verify=False`` does).  Indexing with a slice or an
+    digest as one block; None reads them unchecked, as ``verify=False`` does, in blocks of about
+    :data:`READ_BLOCK_BYTES` unless ``rows`` is given).  Indexing with a slice or an
     integer array reads every block between the lowest and the highest index it names; a block whose digest
     or values are wrong raises :class:`ArtifactError` naming its rows, and is read (and refused) again if
     asked for again.  Safe to index from several threads."""
 
-    def __init__(self, path, name: str, rows: int, sha256: list):
+    def __init__(self, path, name: str, rows: int | None, sha256: list | None):
         import threading
 
         import h5py
@@ -390,7 +389,7 @@ class BlocksOnDemand:
         self.shape, self.dtype = self._data.shape, self._data.dtype
         self.ndim = len(self.shape)
         self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
-        self.rows = max(1, int(rows))
+        self.rows = max(1, int(rows if rows is not None else digest_block_rows(self.shape, self.dtype.itemsize)))
         n_blocks = -(-self.shape[0] // self.rows)
         self._sha256 = None if sha256 is None else list(sha256)  # None: read unverified (verify=False)
         if self._sha256 is not None and len(self._sha256) != n_blocks:
