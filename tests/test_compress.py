@@ -96,6 +96,15 @@ def test_near_field_is_exact_so_vertex_stiffness_matches_dense(which, request):
     i, j = np.nonzero(np.linalg.norm(pts[:, None] - pts[None], axis=2) <= R_MAX)
     owner = C.owner[C.leaf_of[C.position[i]], C.leaf_of[C.position[j]]]
     assert np.all(owner < len(C.dense_index))
+    # low-rank blocks are those with no pair within r_max, not only those whose boxes are r_max apart: some
+    # boxes within r_max of each other hold no such pair (a curved patch's box is mostly empty) and are low-rank
+    boxed_close = 0
+    for r0, r1, c0, c1 in C.lowrank_index[:, :4]:
+        a, b = pts[C.perm[r0:r1]], pts[C.perm[c0:c1]]
+        assert np.linalg.norm(a[:, None] - b[None], axis=2).min() > R_MAX
+        gap = np.maximum(0.0, np.maximum(a.min(0) - b.max(0), b.min(0) - a.max(0)))
+        boxed_close += np.linalg.norm(gap) <= R_MAX
+    assert boxed_close > 0
     # and read exactly, from above the diagonal or transposed from it (symmetric): the dense route's blocks
     got = C.blocks(i, j)
     Xd = dense.Xi.reshape(len(pts), 3, len(pts), 3)[i, :, j, :]
