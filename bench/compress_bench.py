@@ -151,7 +151,7 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
     out["all_K_peak_rss_gib"] = mk.peak / 2**30  # the loaded model included
     n = len(c.contact)
     out["contact"] = n
-    out["near_bytes"] = int(c.Xi.dense.nbytes)  # the exact near field (leaf pairs within r_max)
+    out["near_bytes"] = int(c.Xi.dense.nbytes)  # the exact near field (the pairs of leaves that hold a pair within r_max)
     out["far_bytes"] = int(c.Xi.U.nbytes + c.Xi.V.nbytes)
     out["dense_Xi_bytes"] = 8 * (3 * n) ** 2
     # the least any format that keeps every pair within r_max exact stores: those pairs' 3x3 blocks, once per
