@@ -109,6 +109,14 @@ class ClusterTree:
     def size(self, k: int) -> int:
         return int(self.stop[k] - self.start[k])
 
+    def __getstate__(self) -> dict:
+        """Pickled for every tile's task without what only the partition reads (the points and
+        :meth:`close`'s memo: 7 MiB at 47,467 vertices against 0.6 MiB for the rest)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("points", "_close")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, points=None, _close={})
+
     def gap(self, i: int, j: int) -> float:
         """The distance between the boxes of clusters i and j (0 where they overlap)."""
         return float(np.linalg.norm(np.maximum(0.0, np.maximum(self.lo[i] - self.hi[j], self.lo[j] - self.hi[i]))))
