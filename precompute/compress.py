@@ -126,8 +126,8 @@ class ClusterTree:
         which the near field must hold exactly.  The boxes' gap says no where it exceeds r_max; else leaves
         compare their ≤ LEAF² distances and larger clusters ask their children (memoised).  Boxes within r_max
         often hold no such pair (a curved patch's box is mostly empty): at 47,467 vertices and r_max = 10 mm
-        their blocks were 6 % of the near field's bytes (by hand), now low-rank.  Counts a pair up to r_max (1 + 1e-9) as
-        close: the masks' own distances may round the other way."""
+        their blocks were 6 % of the near field's bytes (by hand), now low-rank.  Counts a pair up to
+        r_max (1 + 1e-9) as close: the masks' own distances may round the other way."""
         key = (min(i, j), max(i, j), float(r_max))
         hit = self._close.get(key)
         if hit is None:

@@ -12,8 +12,8 @@ The contact vertices are ordered by a cluster tree (recursive bisection of their
 maps a position in that order to the contact index).  Ξ in that order is partitioned into rectangular
 blocks over pairs of tree clusters (I, J) (a hierarchical matrix): a pair with no vertex of I within
 ``r_max`` of a vertex of J, whose bounding boxes are farther apart than the larger box's diagonal / η, is
-*admissible* and stored as :math:`U V^T` with :math:`\|\Xi_{IJ} - U V^T\|_F \le \varepsilon \|\Xi_{IJ}\|_F` (ε: the artifact's
-``tolerance``, default 1e-4); every other block (all of the near field among them) is stored densely,
+*admissible* and stored as :math:`U V^T` with :math:`\|\Xi_{IJ} - U V^T\|_F \le \varepsilon \|\Xi_{IJ}\|_F`
+(ε: the artifact's ``tolerance``, default 1e-4); every other block (all of the near field among them) is stored densely,
 exactly as the dense route computes it.  Every block's rows and columns are whole leaf clusters, so a
 block is found from two leaf indices (``owner``).  Built by :mod:`pmask.precompute.compress`.
 
