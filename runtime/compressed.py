@@ -13,9 +13,9 @@ maps a position in that order to the contact index).  Ξ in that order is partit
 blocks over pairs of tree clusters (I, J) (a hierarchical matrix): a pair with no vertex of I within
 ``r_max`` of a vertex of J, whose bounding boxes are farther apart than the larger box's diagonal / η, is
 *admissible* and stored as :math:`U V^T` with :math:`\|\Xi_{IJ} - U V^T\|_F \le \varepsilon \|\Xi_{IJ}\|_F`
-(ε: the artifact's ``tolerance``, default 1e-4); every other block (all of the near field among them) is stored densely,
-exactly as the dense route computes it.  Every block's rows and columns are whole leaf clusters, so a
-block is found from two leaf indices (``owner``).  Built by :mod:`pmask.precompute.compress`.
+(ε: the artifact's ``tolerance``, default 1e-4); every other block (all of the near field among them) is stored
+densely, exactly as the dense route computes it.  Every block's rows and columns are whole leaf clusters, so a
+block is found from two leaf indices (:meth:`CompressedXi.owner`).  Built by :mod:`pmask.precompute.compress`.
 
 Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in vertices)::
 
@@ -67,33 +67,54 @@ class CompressedXi:
                              "artifact (pmask precompute --force)")
         self.scale = np.asarray(scale, float) if self.symmetric else None  # a, contact order
         self._dof_scale = np.repeat(self.scale[self.perm], 3) if self.symmetric else None  # a per dof, cluster order
-        # the leaf cluster of each position, and the block that owns each pair of leaf clusters
+        # the leaf cluster of each position, and the blocks over each leaf row (the block that owns a pair)
         self.leaf_of = np.repeat(np.arange(len(self.leaves) - 1), np.diff(self.leaves))
+        self._nd = len(self.dense_index)
+        self._key, self._block, self._flip = self._leaf_rows()
+
+    def _leaf_rows(self):
+        """The stored blocks over each leaf row, as sorted keys ``row * L + first leaf column`` (L leaves), the
+        block, and whether the row reads it transposed (symmetric: the pair is below the diagonal).  Each row's
+        blocks must tile its columns exactly once.  An H-matrix's blocks cover a row a bounded number of times
+        per tree level, so this holds O(n log n) entries, where a leaf x leaf table held L² (350 MB at 200,000
+        vertices)."""
         nl = len(self.leaves) - 1
-        owner = np.full((nl, nl), -1, np.int64)
-        flip = np.zeros((nl, nl), bool)  # (symmetric) the pair is read from the stored block above, transposed
-        nd = len(self.dense_index)
         box = np.vstack([self.dense_index[:, :4], self.lowrank_index[:, :4]])
-        if n and len(box):
-            lr0, lr1 = self.leaf_of[box[:, 0]], self.leaf_of[box[:, 1] - 1] + 1  # leaf ranges of each block
-            lc0, lc1 = self.leaf_of[box[:, 2]], self.leaf_of[box[:, 3] - 1] + 1
-            one = (lr1 - lr0 == 1) & (lc1 - lc0 == 1)  # a pair of leaves (every dense block): set at once
-            b = np.flatnonzero(one)
-            owner[lr0[b], lc0[b]] = b
-            if self.symmetric:
-                b = b[box[b, 0] != box[b, 2]]
-                owner[lc0[b], lr0[b]] = b
-                flip[lc0[b], lr0[b]] = True
-            for b in np.flatnonzero(~one):  # larger (low-rank) blocks: a rectangle of leaf pairs each
-                rows, cols = slice(lr0[b], lr1[b]), slice(lc0[b], lc1[b])
-                owner[rows, cols] = b
-                if self.symmetric and box[b, 0] != box[b, 2]:
-                    owner[cols, rows] = b
-                    flip[cols, rows] = True
-        if n and (owner < 0).any():
-            raise InputError("the compressed Green's functions do not cover every pair of vertices; recompute the "
+        if not self.n or not len(box):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool)
+        if box.min() < 0 or box[:, [1, 3]].max() > self.n or np.any(box[:, [1, 3]] <= box[:, [0, 2]]):
+            raise InputError("the compressed Green's functions' blocks lie outside their vertices; recompute the "
                              "artifact (pmask precompute --force)")
-        self.owner, self.flip, self._nd = owner, flip, nd
+        lr0, lr1 = self.leaf_of[box[:, 0]], self.leaf_of[box[:, 1] - 1] + 1  # leaf ranges of each block
+        lc0, lc1 = self.leaf_of[box[:, 2]], self.leaf_of[box[:, 3] - 1] + 1
+        b = np.arange(len(box))
+        flip = np.zeros(len(box), bool)
+        if self.symmetric:  # the block below the diagonal, read from the stored one above it
+            m = box[:, 0] != box[:, 2]
+            lr0, lr1, lc0, lc1 = (np.concatenate([x, y[m]])
+                                  for x, y in ((lr0, lc0), (lr1, lc1), (lc0, lr0), (lc1, lr1)))
+            b, flip = np.concatenate([b, b[m]]), np.concatenate([flip, np.ones(m.sum(), bool)])
+        span = lr1 - lr0
+        row = np.repeat(lr0 - np.cumsum(span) + span, span) + np.arange(span.sum())  # each block's leaf rows
+        each = np.repeat(np.arange(len(b)), span)
+        key = row * nl + lc0[each]
+        order = np.argsort(key, kind="stable")
+        key, each, row = key[order], each[order], row[order]
+        first = np.r_[True, row[1:] != row[:-1]]
+        last = np.r_[first[1:], True]
+        tiled = (len(np.unique(row)) == nl and np.all(lc0[each][first] == 0) and np.all(lc1[each][last] == nl)
+                 and np.array_equal(lc0[each][~first], lc1[each][~last]))
+        if not tiled:
+            raise InputError("the compressed Green's functions do not cover every pair of vertices once; recompute "
+                             "the artifact (pmask precompute --force)")
+        return key, b[each], flip[each]
+
+    def owner(self, p, q) -> tuple[np.ndarray, np.ndarray]:
+        """The stored block holding each pair of positions (p, q) (cluster order), and whether it holds the pair
+        transposed (symmetric: below the diagonal)."""
+        nl = len(self.leaves) - 1
+        k = np.searchsorted(self._key, self.leaf_of[p] * nl + self.leaf_of[q], side="right") - 1
+        return self._block[k], self._flip[k]
 
     @property
     def nbytes(self) -> int:
@@ -116,8 +137,7 @@ class CompressedXi:
         a pair below a symmetric form's diagonal from the stored one, :math:`\Xi_{ij} = (a_j/a_i)\,\Xi_{ji}^T`."""
         i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
         p, q = self.position[i], self.position[j]
-        b = self.owner[self.leaf_of[p], self.leaf_of[q]]
-        t = self.flip[self.leaf_of[p], self.leaf_of[q]]
+        b, t = self.owner(p, q)
         if t.any():
             out = self._stored(np.where(t, q, p), np.where(t, p, q), b)
             out[t] = out[t].transpose(0, 2, 1) * (self.scale[j[t]] / self.scale[i[t]])[:, None, None]
