@@ -187,6 +187,26 @@ class FullSystem:
         return u[:3 * self.N].reshape(self.N, 3, k), react
 
 
+def traced_peak(f, *args, **kwargs):
+    """f(*args, **kwargs) and the peak bytes tracemalloc counts above what was held when it started, with the
+    cyclic collector off so that no earlier test's garbage is finalised inside (tracemalloc counts every thread's
+    allocations: where another thread may allocate, measure in an interpreter of its own, as test_compress
+    does)."""
+    import gc
+    import tracemalloc
+
+    gc.collect()
+    gc.disable()
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        out = f(*args, **kwargs)
+        return out, tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+        gc.enable()
+
+
 def relerr(a, b) -> float:
     return float(np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(b))
 

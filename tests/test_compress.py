@@ -324,22 +324,15 @@ def test_the_sweep_in_batches_holds_its_budget_and_writes_the_same_store(tmp_pat
     objects are outside the model), and the store holds what a single sweep writes (each column is solved by
     the same arithmetic, rows split among calls: 1e-14 relative, BLAS may block another row count
     differently)."""
-    import tracemalloc
-
     factor, _ = _small_factor()
     one = compress.sweep(factor, tmp_path / "W-one.bin", key="k")
     whole = compress.sweep_bytes(factor)
     budget = whole / 3
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        base = tracemalloc.get_traced_memory()[0]
-        split = compress.sweep(factor, tmp_path / "W-split.bin", key="k", budget=budget)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
+    split = compress.sweep(factor, tmp_path / "W-split.bin", key="k", budget=budget)
+    measured = phase_peaks(tmp_path, factor, budget)  # tracemalloc's peak, in an interpreter of its own
     assert int(split.index["batches"]) >= 4 and int(one.index["batches"]) == 1
-    assert peak <= 1.05 * budget < whole, (peak, budget, whole)
+    assert measured["batches"] == int(split.index["batches"])  # the sweep measured is the one compared below
+    assert measured["sweep"] <= 1.05 * budget < whole, (measured, budget, whole)
     a = np.fromfile(one.path)
     b = np.fromfile(split.path)
     assert a.shape == b.shape and np.abs(a - b).max() <= 1e-14 * np.abs(a).max()
@@ -437,27 +430,47 @@ def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path):
 
 
 #: tracemalloc's peaks (bytes) over :func:`compress.sweep` and :func:`compress.assemble`, each alone, in an
-#: interpreter of its own with no other thread and the collector off, and the sweep's model (its index's
-#: ``peak_bytes``), as JSON: argv = the pickled factor, a path for W, the finished tile store, the points (.npy)
+#: interpreter of its own with no other thread and the collector off (tracemalloc counts every thread's
+#: allocations: the test runner's and a closed Dask cluster's threads allocated inside the assembly on one CI
+#: machine, 585 kB measured there against 387 kB here, the same tiles), and the sweep's own model (its index's
+#: ``peak_bytes``), as JSON.  argv: a JSON object {"factor": pickled factor, "W": path for W, "budget": the
+#: sweep's budget or null (its default), and optionally "tiles": a finished tile store, "points": the contact
+#: points (.npy)}
 PHASE_PEAKS = """
 import gc, json, pickle, sys, tracemalloc
 import h5py, numpy as np
 from pmask.precompute import compress
-factor = pickle.load(open(sys.argv[1], "rb"))
-tree = compress.cluster_tree(np.load(sys.argv[4]))
-with h5py.File(sys.argv[3], "r") as f:
-    key = f.attrs["key"]
-store = compress.TileStore(sys.argv[3], key)
+job = json.loads(sys.argv[1])
+factor = pickle.load(open(job["factor"], "rb"))
+out = {}
 gc.disable()
 tracemalloc.start()
-W = compress.sweep(factor, sys.argv[2], "k")
-sweep = tracemalloc.get_traced_memory()[1]
+W = compress.sweep(factor, job["W"], "k", **({} if job["budget"] is None else {"budget": job["budget"]}))
+out.update(sweep=tracemalloc.get_traced_memory()[1], sweep_model=int(W.index["peak_bytes"]),
+           batches=int(W.index["batches"]))
 tracemalloc.stop()
-tracemalloc.start()
-compress.assemble(tree, store, compress.TOLERANCE, np.float64, compress.far_dtype(compress.TOLERANCE))
-print(json.dumps({"sweep": sweep, "sweep_model": int(W.index["peak_bytes"]),
-                  "assembly": tracemalloc.get_traced_memory()[1]}))
+if "tiles" in job:
+    tree = compress.cluster_tree(np.load(job["points"]))
+    with h5py.File(job["tiles"], "r") as f:
+        key = f.attrs["key"]
+    store = compress.TileStore(job["tiles"], key)
+    tracemalloc.start()
+    compress.assemble(tree, store, compress.TOLERANCE, np.float64, compress.far_dtype(compress.TOLERANCE))
+    out["assembly"] = tracemalloc.get_traced_memory()[1]
+print(json.dumps(out))
 """
+
+
+def phase_peaks(tmp_path, factor, budget=None, **job) -> dict:
+    """:data:`PHASE_PEAKS` run on ``factor`` (W written to a fresh file in ``tmp_path``)."""
+    import json
+    import pickle
+
+    (tmp_path / "factor.pickle").write_bytes(pickle.dumps(factor))
+    job = {"factor": str(tmp_path / "factor.pickle"), "W": str(tmp_path / f"W-peaks-{budget}.bin"),
+           "budget": budget, **{k: str(v) for k, v in job.items()}}
+    return json.loads(subprocess.run([sys.executable, "-c", PHASE_PEAKS, json.dumps(job)], capture_output=True,
+                                     text=True, check=True).stdout)
 
 
 def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatch):
@@ -467,21 +480,12 @@ def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatc
     and within 1.5x (an upper bound: a merged block is counted as all its pieces, its merge as four times them;
     the near field stays in the tile store, so what it holds is the merged blocks); short of either, the run
     stops before that phase with one line naming it, and a rerun with the memory reuses what was done."""
-    import json
-    import pickle
-
     from pmask.precompute import greens
 
     factor, pts = _small_factor()
     _, stats = compress.compressed_greens(factor, pts, R_MAX, store=tmp_path / "a.h5", key="k", panel=48, workers=1)
-    # measured in an interpreter of its own: tracemalloc counts every thread's allocations, and the test runner's
-    # and the closed cluster's threads (or an earlier test's finalizers) allocated inside the assembly on one CI
-    # machine (585 kB measured there against 387 kB here, the same tiles)
-    (tmp_path / "factor.pickle").write_bytes(pickle.dumps(factor))
     np.save(tmp_path / "points.npy", pts)
-    measured = json.loads(subprocess.run(
-        [sys.executable, "-c", PHASE_PEAKS, str(tmp_path / "factor.pickle"), str(tmp_path / "W.bin"),
-         str(tmp_path / "a.h5"), str(tmp_path / "points.npy")], capture_output=True, text=True, check=True).stdout)
+    measured = phase_peaks(tmp_path, factor, tiles=tmp_path / "a.h5", points=tmp_path / "points.npy")
     assert measured["sweep_model"] == stats["sweep_peak_bytes"]  # the run's model is the one measured here
     assert abs(measured["sweep"] - stats["sweep_peak_bytes"]) <= 0.05 * measured["sweep"], (measured, stats)
     assert measured["assembly"] <= stats["assembly_bytes"] <= 1.5 * measured["assembly"], (measured, stats)

@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import dense_factor, element_spd, laplacian_3d, lower, patch_loads, random_spd
+from conftest import dense_factor, element_spd, laplacian_3d, lower, patch_loads, random_spd, traced_peak
 from pmask.precompute import native, selinv
 from pmask.precompute.greens import sparse_cholesky
 
@@ -136,8 +136,6 @@ def test_the_sweeps_memory_is_what_the_sweep_holds(k, which):
     tracemalloc measures while forward_sweep runs (numpy's buffers are traced; BLAS's own workspace and
     Python's small objects are not in the model: 5 %, where 2 % was measured).  The cases: a cube's surface dofs (the
     contact vertices' shape), its top face only, and every dof."""
-    import tracemalloc
-
     A = laplacian_3d(k, 1)
     idx = np.arange(k ** 3).reshape(k, k, k)
     want = {"surface": np.unique(np.concatenate([idx[[0, -1]].ravel(), idx[:, [0, -1]].ravel(),
@@ -146,14 +144,7 @@ def test_the_sweeps_memory_is_what_the_sweep_holds(k, which):
     L = native.factor(lower(A))[0] if native.available() else cvxopt_factor(A)
     tree = selinv._Tree(L)
     model = selinv.sweep_memory(tree, want)
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        base = tracemalloc.get_traced_memory()[0]
-        selinv.forward_sweep(tree, want, lambda s, lo, X: None)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
+    _, peak = traced_peak(selinv.forward_sweep, tree, want, lambda s, lo, X: None)
     assert model["peak"] > 1e6  # a case where the blocks, not Python's bookkeeping, make the peak
     assert abs(peak - model["peak"]) <= 0.05 * model["peak"], (peak, model)
 
@@ -166,8 +157,6 @@ def test_selected_columns_hold_the_answer_twice_and_little_else():
     the gather by pivot order needs both) plus under 5 % for the live blocks and temporaries (measured
     1.0 %); allocating all of W_E and W_B up front, and the root's product and gathered copy, held 3.8
     answers' bytes here."""
-    import tracemalloc
-
     import scipy.sparse as sp
 
     k = 22
@@ -176,13 +165,7 @@ def test_selected_columns_hold_the_answer_twice_and_little_else():
     want = np.unique(np.concatenate([idx[[0, -1]].ravel(), idx[:, [0, -1]].ravel(), idx[:, :, [0, -1]].ravel()]))
     L = native.factor(lower(A))[0] if native.available() else cvxopt_factor(A)
     B = sp.identity(k ** 3, format="csc")[:, want]
-    tracemalloc.start()
-    try:
-        base = tracemalloc.get_traced_memory()[0]
-        X, _ = selinv.selected_columns(L, want, B)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
+    (X, _), peak = traced_peak(selinv.selected_columns, L, want, B)
     answer = X.nbytes
     assert answer > 5e7  # the blocks, not Python's bookkeeping, make the peak
     assert peak <= 2.05 * answer, (peak / answer)
