@@ -149,6 +149,9 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
         c.stiffness("linear", r_max).K_full  # every K_i: the near field only (read now, when read on demand)
         out["all_K_s"] = time.perf_counter() - t0
     out["all_K_peak_rss_gib"] = mk.peak / 2**30  # the loaded model included
+    if out["near_field"] == "BlocksOnDemand":  # held up to Model.NEAR_FIELD_HELD, the rest read again as needed
+        d = c.Xi.dense
+        out.update(near_blocks=len(d._read), near_block_reads=int(d.reads), near_held_limit=d.budget)
     n = len(c.contact)
     out["contact"] = n
     out["near_bytes"] = int(c.Xi.dense.nbytes)  # the exact near field (the pairs of leaves that hold a pair within r_max)
@@ -433,6 +436,8 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
                  + f", every K_i in {g['all_K_s']:.1f} s"
                  + (", reading and checking the near field as it goes" if g.get("near_field") == "BlocksOnDemand"
                     else "")
+                 + (f" ({g['near_block_reads']:,} reads of its {g['near_blocks']:,} blocks, at most "
+                    f"{g['near_held_limit'] / 2**30:.1f} GiB of them held)" if g.get("near_held_limit") else "")
                  + (f" (peak RSS {g['all_K_peak_rss_gib']:.2f} GiB with the model)" if "all_K_peak_rss_gib" in g
                     else "") if "open_s" in g else "") + ". Dense: " + (f"does not fit (needs ~{g['dense_need_gib']:.0f} GiB; without --compress `pmask precompute` "
                                               "takes the compressed route for it, with a warning)"

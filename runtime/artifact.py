@@ -214,7 +214,7 @@ class FileArray:
 
 
 def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, verify: bool = True,
-                  in_file=(), on_demand=()) -> dict:
+                  in_file=(), on_demand=(), on_demand_budget: int | None = None) -> dict:
     """Read and check an artifact; return the requested datasets and the decoded attributes.
 
     ``datasets``: the names to read (default: everything this reader knows; the runtime asks for
@@ -222,7 +222,8 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
     returned as None.  ``in_file``: names among them returned as :class:`FileArray` (read when sliced,
     checked by HDF5's Fletcher-32 rather than by their SHA-256).  ``on_demand``: names among them returned as
     :class:`BlocksOnDemand` (read when first indexed, a block at a time, each checked by its SHA-256: format
-    1.5's per-block digests, or the dataset's own as one block; read at once from a format 1.0 file).  Raises
+    1.5's per-block digests, or the dataset's own as one block; read at once from a format 1.0 file), each
+    holding at most ``on_demand_budget`` bytes of read blocks (None: all it reads).  Raises
     :class:`ArtifactError` for a missing, truncated, corrupt, altered or foreign file, or one whose major
     format version this reader does not know.
     """
@@ -277,11 +278,11 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
         if verify and d not in covered:
             raise ArtifactError(f"{path}: dataset {d} is not covered by the file's checksums; recompute it")
         if d in blocks:
-            data[d] = BlocksOnDemand(path, d, int(blocks[d]["rows"]), blocks[d]["sha256"])
+            data[d] = BlocksOnDemand(path, d, int(blocks[d]["rows"]), blocks[d]["sha256"], on_demand_budget)
         elif verify:  # below the per-block threshold: one block, the dataset's own digest
-            data[d] = BlocksOnDemand(path, d, 1 << 62, [covered[d]])
+            data[d] = BlocksOnDemand(path, d, 1 << 62, [covered[d]], on_demand_budget)
         else:
-            data[d] = BlocksOnDemand(path, d, None, None)
+            data[d] = BlocksOnDemand(path, d, None, None, on_demand_budget)
     return {"attrs": attrs, **data}
 
 
@@ -369,16 +370,23 @@ def _read_and_hash(ds, arr: np.ndarray, rows: int, blocks) -> list:
 class BlocksOnDemand:
     """A dataset read a block of rows at a time when first indexed, each block checked by its SHA-256 and for
     NaN and inf as it is read (a large organ's exact near field: the artifact opens without reading it, and the
-    first K_i or coupling reads the blocks it touches; what is read stays in memory).
+    first K_i or coupling reads the blocks it touches).
 
     ``rows`` and ``sha256``: the blocks and their digests (format 1.5's per-block list, or the whole dataset's
     digest as one block; None reads them unchecked, as ``verify=False`` does, in blocks of about
-    :data:`READ_BLOCK_BYTES` unless ``rows`` is given).  Indexing with a slice or an
-    integer array reads every block between the lowest and the highest index it names; a block whose digest
-    or values are wrong raises :class:`ArtifactError` naming its rows, and is read (and refused) again if
-    asked for again.  Safe to index from several threads."""
+    :data:`READ_BLOCK_BYTES` unless ``rows`` is given).  Indexing with a slice reads the blocks it spans, with
+    an integer array the blocks its indices fall in; a block whose digest or values are wrong raises
+    :class:`ArtifactError` naming its rows, and is read (and refused) again if asked for again.
 
-    def __init__(self, path, name: str, rows: int | None, sha256: list | None):
+    ``budget``: the bytes of read blocks held (None: all of them, kept once read).  Beyond it the least recently
+    used blocks are let go (their pages returned to the system) and read, and checked, again when next needed,
+    so that every K_i of an organ whose near field is larger than the memory to spare runs within it; one
+    indexing's own blocks are held whatever the budget.  With a budget, a slice is returned as a copy (a view
+    could outlive its block).  Safe to index from several threads."""
+
+    def __init__(self, path, name: str, rows: int | None, sha256: list | None, budget: int | None = None):
+        import collections
+        import mmap
         import threading
 
         import h5py
@@ -390,14 +398,21 @@ class BlocksOnDemand:
         self.ndim = len(self.shape)
         self.nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
         self.rows = max(1, int(rows if rows is not None else digest_block_rows(self.shape, self.dtype.itemsize)))
+        self.row_bytes = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
         n_blocks = -(-self.shape[0] // self.rows)
         self._sha256 = None if sha256 is None else list(sha256)  # None: read unverified (verify=False)
         if self._sha256 is not None and len(self._sha256) != n_blocks:
             self.close()
             raise ArtifactError(f"{path}: the block digests of {name} do not cover its rows; "
                                 "recompute it with --force")
-        self._arr = np.empty(self.shape, self.dtype)  # pages are taken as blocks are read into it
+        self.budget = None if budget is None or budget >= self.nbytes else max(0, int(budget))
+        # anonymous memory the blocks are read into: pages are taken as blocks are read, and given back
+        # (madvise) when a block is let go
+        self._map = mmap.mmap(-1, max(self.nbytes, 1), flags=mmap.MAP_PRIVATE)  # private: madvise frees it
+        self._arr = np.frombuffer(self._map, self.dtype, int(np.prod(self.shape))).reshape(self.shape)
         self._read = np.zeros(n_blocks, bool)
+        self._used = collections.OrderedDict()  # read blocks, least recently used first
+        self.reads = 0  # blocks read (again, after being let go, too)
         self._lock = threading.Lock()
         self.complete = n_blocks == 0
 
@@ -406,45 +421,78 @@ class BlocksOnDemand:
 
     @property
     def fraction_read(self) -> float:
-        """Share of the blocks read so far."""
+        """Share of the blocks held now."""
         return float(self._read.mean()) if len(self._read) else 1.0
 
-    def __getitem__(self, key):
-        if not self.complete:
-            if isinstance(key, slice):
-                lo, hi, _ = key.indices(self.shape[0])
-                self.ensure(lo, hi)
-            else:
-                idx = np.asarray(key)
-                if not np.issubdtype(idx.dtype, np.integer) or idx.size and idx.min() < 0:
-                    self.ensure(0, self.shape[0])  # a mask, a tuple, negative indices: all of it
-                elif idx.size:
-                    self.ensure(int(idx.min()), int(idx.max()) + 1)
-        return self._arr[key]
+    @property
+    def held_bytes(self) -> int:
+        """Bytes of the blocks held now."""
+        return int(self._read.sum()) * self.rows * self.row_bytes
 
-    def ensure(self, lo: int, hi: int) -> None:
-        """Read (and check) the blocks holding rows lo..hi-1 that are not read yet."""
-        want = np.arange(max(lo, 0) // self.rows, -(-min(hi, self.shape[0]) // self.rows))
-        with self._lock:
-            todo = want[~self._read[want]]
-            if not len(todo):
-                return
-            try:
-                done = _read_and_hash(self._data, self._arr, self.rows, todo)
-            except OSError as exc:
-                raise ArtifactError(f"{self.path}: cannot read {self.name} ({exc}); it is corrupt or truncated, "
-                                    "recompute it with --force") from exc
-            for k, (digest, finite) in zip(todo, done):
-                where = f"{self.name} (rows {k * self.rows} to {min((k + 1) * self.rows, self.shape[0]) - 1})"
-                if self._sha256 is not None and digest != self._sha256[k]:
-                    raise ArtifactError(f"{self.path}: checksum mismatch: dataset {where} was altered after "
-                                        "writing; recompute it with --force")
-                if not finite:
-                    raise ArtifactError(f"{self.path}: inconsistent artifact: {where} holds NaN or inf")
-                self._read[k] = True
-            if self._read.all():
-                self.complete = True
-                self.close()
+    def __getitem__(self, key):
+        if self.complete:
+            return self._arr[key]
+        if isinstance(key, slice):
+            lo, hi, _ = key.indices(self.shape[0])
+            want = np.arange(max(lo, 0) // self.rows, -(-min(hi, self.shape[0]) // self.rows))
+        else:
+            idx = np.asarray(key)
+            if not np.issubdtype(idx.dtype, np.integer) or idx.size and idx.min() < 0:
+                want = np.arange(len(self._read))  # a mask, a tuple, negative indices: all of it
+            elif idx.size:
+                want = np.flatnonzero(np.bincount((idx // self.rows).ravel(), minlength=len(self._read)))
+            else:
+                want = np.zeros(0, np.int64)
+        with self._lock:  # held while the values are taken: another thread may let a block go
+            self._ensure(want)
+            out = self._arr[key]
+            return out.copy() if self.budget is not None and isinstance(key, slice) else out
+
+    def _ensure(self, want: np.ndarray) -> None:
+        """Read (and check) the blocks ``want`` that are not held, then let go of the least recently used
+        others beyond the budget.  Called with the lock held."""
+        for k in want:
+            if self._read[k]:
+                self._used.move_to_end(int(k))
+        todo = want[~self._read[want]]
+        try:
+            done = _read_and_hash(self._data, self._arr, self.rows, todo) if len(todo) else []
+        except OSError as exc:
+            raise ArtifactError(f"{self.path}: cannot read {self.name} ({exc}); it is corrupt or truncated, "
+                                "recompute it with --force") from exc
+        for k, (digest, finite) in zip(todo, done):
+            where = f"{self.name} (rows {k * self.rows} to {min((k + 1) * self.rows, self.shape[0]) - 1})"
+            if self._sha256 is not None and digest != self._sha256[k]:
+                raise ArtifactError(f"{self.path}: checksum mismatch: dataset {where} was altered after "
+                                    "writing; recompute it with --force")
+            if not finite:
+                raise ArtifactError(f"{self.path}: inconsistent artifact: {where} holds NaN or inf")
+            self._read[k] = True
+            self._used[int(k)] = None
+            self.reads += 1
+        if self.budget is not None and self.held_bytes > self.budget:
+            keep = set(want.tolist())
+            for k in list(self._used):
+                if self.held_bytes <= self.budget:
+                    break
+                if k not in keep:
+                    self._let_go(k)
+        elif self.budget is None and len(todo) and self._read.all():
+            self.complete = True
+            self.close()
+
+    def _let_go(self, k: int) -> None:
+        """Forget block k and give its whole pages back (they read as zeros until it is read again)."""
+        import mmap
+
+        del self._used[k]
+        self._read[k] = False
+        page = mmap.PAGESIZE
+        start = k * self.rows * self.row_bytes
+        stop = min((k + 1) * self.rows, self.shape[0]) * self.row_bytes
+        a, b = -(-start // page) * page, stop // page * page
+        if b > a:
+            self._map.madvise(mmap.MADV_DONTNEED, a, b - a)
 
     def close(self) -> None:
         try:

@@ -55,9 +55,13 @@ class Model:
     FAR_FIELD_IN_MEMORY = 512 * 2**20
     #: near fields larger than this are read when first needed (near_field="auto")
     NEAR_FIELD_AT_OPEN = 256 * 2**20
+    #: the bytes of a near field read on demand held at once (near_field_bytes="auto"): beyond it the blocks
+    #: least recently used are let go and read again when needed
+    NEAR_FIELD_HELD = 2**30
 
     @classmethod
-    def load(cls, path, *, verify: bool = True, far_field: str = "auto", near_field: str = "auto") -> "Model":
+    def load(cls, path, *, verify: bool = True, far_field: str = "auto", near_field: str = "auto",
+             near_field_bytes="auto") -> "Model":
         """Read what the runtime uses (the surface and Ξ) and check it; refuses foreign, corrupt,
         altered or newer-major files (``ArtifactError``).
 
@@ -70,11 +74,22 @@ class Model:
         "open" (here, every block checked by its SHA-256 before this returns), "demand" (a block at a time when
         first needed, each checked by its SHA-256 as it is read, :class:`pmask.runtime.artifact.BlocksOnDemand`:
         a corrupt block is refused then, by the first :meth:`stiffness` at the latest), or "auto": on demand
-        when larger than :data:`NEAR_FIELD_AT_OPEN`.  What is read stays in memory either way."""
+        when larger than :data:`NEAR_FIELD_AT_OPEN`.  Read at open, it stays in memory.
+
+        near_field_bytes: read on demand, the bytes of it held at once: beyond them the blocks least recently
+        used are let go and read (and checked) again when next needed, so that every K_i of an organ whose
+        near field exceeds the memory to spare runs within it.  "auto": :data:`NEAR_FIELD_HELD`; None: all of
+        it, kept once read."""
         if far_field not in ("auto", "memory", "file"):
             raise InputError(f"far_field must be 'auto', 'memory' or 'file', got {far_field!r}")
         if near_field not in ("auto", "open", "demand"):
             raise InputError(f"near_field must be 'auto', 'open' or 'demand', got {near_field!r}")
+        if near_field_bytes == "auto":
+            near_field_bytes = cls.NEAR_FIELD_HELD
+        elif near_field_bytes is not None and (isinstance(near_field_bytes, bool) or not isinstance(
+                near_field_bytes, (int, np.integer)) or near_field_bytes < 0):
+            raise InputError(f"near_field_bytes must be 'auto', None or a number of bytes >= 0, got "
+                             f"{near_field_bytes!r}")
         t0 = time.perf_counter()
         in_file = ()
         if far_field != "memory":
@@ -84,8 +99,8 @@ class Model:
             size = stored_bytes(path, NEAR)
             if size is not None and (near_field == "demand" or size > cls.NEAR_FIELD_AT_OPEN):
                 on_demand = NEAR
-        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify, in_file=in_file, on_demand=on_demand),
-                str(path))
+        m = cls(read_artifact(path, datasets=RUNTIME, verify=verify, in_file=in_file, on_demand=on_demand,
+                              on_demand_budget=near_field_bytes), str(path))
         m.verify = verify
         m.load_seconds = time.perf_counter() - t0
         return m

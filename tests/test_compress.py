@@ -858,6 +858,63 @@ def test_the_near_field_is_read_when_first_needed(pair, tmp_path):
         Model.load(path, near_field="lazy")
 
 
+def _resident_bytes(address: int) -> int:
+    """Resident bytes (/proc/self/smaps) of this process's mapping that holds ``address``."""
+    with open("/proc/self/smaps") as f:
+        inside = False
+        for line in f:
+            head = line.split()[0]
+            if "-" in head and not head.endswith(":"):
+                lo, hi = (int(x, 16) for x in head.split("-"))
+                inside = lo <= address < hi
+            elif inside and head == "Rss:":
+                return 1024 * int(line.split()[1])
+    raise AssertionError("no mapping holds the address")
+
+
+def test_a_near_field_larger_than_its_budget_is_read_again_not_held(pair, tmp_path, monkeypatch):
+    """#27 item 4 (all K_i with bounded memory): a near field read on demand holds at most near_field_bytes of
+    its blocks (here 3 of 16), letting the least recently used go and reading them again when needed: every
+    K_i (in passes of about 2,000 mask pairs, so that a pass reads a few blocks) equals the K_i of the artifact
+    read at open bitwise, as do a deformation and coupled forces; blocks were read again (more reads than
+    blocks), and what stays resident of the blocks' memory, measured by the kernel (/proc/self/smaps), is within
+    the budget (plus the partial pages at the blocks' ends, which are not given back).  A budget that is not a
+    number of bytes is one line."""
+    from pmask.runtime import stiffness as st
+    from pmask.runtime.artifact import BlocksOnDemand
+
+    _, comp, _ = pair
+    path = tmp_path / "blocks.h5"
+    _near_field_signed_in_blocks(comp.path, path, 16)
+    block = 0
+    probe = Model.load(path, near_field="demand", near_field_bytes=None).Xi.dense
+    block = probe.rows * probe.row_bytes
+    budget = 3 * block
+    lazy = Model.load(path, near_field="demand", near_field_bytes=budget)
+    near = lazy.Xi.dense
+    assert isinstance(near, BlocksOnDemand) and near.budget == budget
+    monkeypatch.setattr(st, "PAIRS_PER_PASS", 2000)
+    held = []
+    real = near._ensure
+
+    def watched(want):
+        real(want)
+        held.append((near.held_bytes, len(want)))
+
+    monkeypatch.setattr(near, "_ensure", watched)
+    sl, sm = lazy.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
+    assert np.array_equal(sl.K_full, sm.K_full)
+    assert near.reads > 16 and not near.complete
+    assert all(h <= max(budget, w * block) for h, w in held)  # within the budget, or one indexing's own blocks
+    assert near.held_bytes <= budget
+    assert _resident_bytes(near._arr.ctypes.data) <= budget + 2 * 16 * 4096
+    _same_deformation_and_coupling(sl, sm, seed=7)
+    for bad in (-1, "1 GiB", 2.5, True):
+        with pytest.raises(InputError, match="near_field_bytes must be") as err:
+            Model.load(path, near_field="demand", near_field_bytes=bad)
+        assert "\n" not in str(err.value)
+
+
 @pytest.mark.parametrize("what", ["altered", "nan"])
 def test_a_near_field_read_on_demand_is_checked_block_by_block(pair, tmp_path, what):
     """A near field read when first needed is checked as each block is read: one value changed on disk after
