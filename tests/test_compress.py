@@ -886,7 +886,6 @@ def test_a_near_field_larger_than_its_budget_is_read_again_not_held(pair, tmp_pa
     _, comp, _ = pair
     path = tmp_path / "blocks.h5"
     _near_field_signed_in_blocks(comp.path, path, 16)
-    block = 0
     probe = Model.load(path, near_field="demand", near_field_bytes=None).Xi.dense
     block = probe.rows * probe.row_bytes
     budget = 3 * block
