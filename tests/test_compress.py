@@ -16,6 +16,7 @@ import sys
 import numpy as np
 import pytest
 
+from conftest import traced_peak
 from pmask.errors import InputError, ResourceError
 from pmask.pipeline.stages import Spec, run
 from pmask.precompute import compress
@@ -1057,20 +1058,11 @@ def test_the_block_lookup_grows_like_n_log_n_and_finds_every_pair(symmetric):
     vertices with leaves of 32), and every sampled pair reads the value of the block that holds it (found by
     brute force over the blocks; below a symmetric form's diagonal, (a_j / a_i) Ξ_jiᵀ).  A partition that leaves
     a pair out, or holds one twice, is one line."""
-    import tracemalloc
-
     rng = np.random.default_rng(7)
     n = 4096
-    tracemalloc.start()
-    try:
-        C, blocks = _hodlr(n, symmetric, rng)
-        tracemalloc.reset_peak()
-        base = tracemalloc.get_traced_memory()[0]
-        C = CompressedXi(C.perm, C.leaves, C.dense_index, C.dense, C.lowrank_index, C.U, C.V, tolerance=TOL,
-                         scale=C.scale)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
+    C, blocks = _hodlr(n, symmetric, rng)
+    C, peak = traced_peak(CompressedXi, C.perm, C.leaves, C.dense_index, C.dense, C.lowrank_index, C.U, C.V,
+                          tolerance=TOL, scale=C.scale)
     assert peak < n ** 2, peak
     i, j = rng.integers(0, n, 400), rng.integers(0, n, 400)
     i[:50] = j[:50]  # the diagonal blocks too
