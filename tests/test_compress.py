@@ -705,7 +705,8 @@ def test_a_dense_xi_that_does_not_fit_is_stored_compressed(tmp_path, monkeypatch
 
 
 def _viewer_press(model):
-    """A probe dragged from 2 mm above the top to 2 mm inside, in a viewer session; its last reply."""
+    """A probe dragged from 2 mm above the top to 2 mm inside and held until its force settles, in a viewer
+    session; its last reply."""
     import base64
     import time
 
@@ -718,9 +719,14 @@ def _viewer_press(model):
         for z in np.linspace(2e-3, -2e-3, 41):  # from above into the top, as a drag brings the probe in
             reply = s.probe([(P[v] + [0.0, 0.0, z]).tolist()] + [None] * (N_PROBES - 1), deform=True)
             time.sleep(0.005)
-        for _ in range(20):  # the servo thread catches up with the last position
-            time.sleep(0.01)
+        forces = []
+        for k in range(300):  # held there until the servo thread has settled: 5 replies with the same force
+            time.sleep(0.01)  # (at least 200 ms; a loaded machine's servo thread may lag the drag for longer)
             reply = s.probe([(P[v] - [0.0, 0.0, 2e-3]).tolist()] + [None] * (N_PROBES - 1), deform=True)
+            forces.append(np.asarray(reply["contacts"][0]["force"], float))
+            last = np.array(forces[-5:])
+            if k >= 19 and np.abs(last - last[-1]).max() <= 1e-9 * np.linalg.norm(last[-1]):
+                break
         engine = s.contacts.engine
     finally:
         s.close()
