@@ -1,4 +1,4 @@
-"""Compressed Ξ against dense (issue #17): ratio, time, errors, workers, memory per worker, AMG vs factor.
+"""Compressed Ξ against dense (issue #17): ratio, time, errors, workers, memory per worker.
 
 Run by ``make bench`` (bench/run.py) or alone: ``python bench/compress_bench.py [OUT.json]``.  Every
 figure comes from this run; the README quotes the latest.
@@ -239,41 +239,6 @@ def eight_workers(size, work: Path) -> dict:
             "tile_estimate_mib": st["tile_bytes"] / 2**20}
 
 
-def amg_vs_factor(sizes) -> list:
-    """One 64-column panel by the factor's selected inversion and by AMG + block PCG; memory of each."""
-    from pmask.pipeline import stages
-    from pmask.precompute import amg, compress, elements
-
-    rows = []
-    for size in sizes:
-        spec, mesh, surf, factor = setup(size)
-        pts = mesh.points[surf.vertices[surf.regions.contact]]
-        tree = compress.cluster_tree(pts)
-        t0 = time.perf_counter()
-        Xf = compress.panel_columns(factor, tree.perm, 0, 64)
-        t_factor = time.perf_counter() - t0
-        element = elements.get_element("P1")
-        d = element.discretise(mesh.points, mesh.tets)
-        contact = surf.vertices[surf.regions.contact]
-        B, scale = element.load(d, surf.vertices[surf.triangles], contact, surf.areas[surf.regions.contact])
-        K = element.stiffness(d, *stages.material(spec, mesh))
-        dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed], surf.held_facets()))
-        system = amg.amg_system(K, dirichlet, elements.observed_dofs(contact), d.points, B, scale=scale)
-        t0 = time.perf_counter()
-        system.hierarchy()
-        t_setup = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        Xa = compress.panel_columns(system, tree.perm, 0, 64)
-        t_amg = time.perf_counter() - t0
-        rows.append({"size": size, "dofs": factor.stats["dofs"], "contact": len(pts),
-                     "factor_s": factor.stats["factor_s"], "factor_mib": compress.factor_bytes(factor) / 2**20,
-                     "panel_factor_s": t_factor, "amg_setup_s": t_setup, "panel_amg_s": t_amg,
-                     "amg_mib": system.nbytes() / 2**20, "pcg_steps": system.stats["iterations"][-1],
-                     "amg_rel_err": float(np.linalg.norm(Xa - Xf) / np.linalg.norm(Xf))})
-        print(json.dumps(rows[-1]), flush=True)
-    return rows
-
-
 def main(out: Path) -> dict:
     import tempfile
 
@@ -297,8 +262,6 @@ def main(out: Path) -> dict:
         print("8 memory-limited workers ...", flush=True)
         res["eight_workers"] = eight_workers(0.005, tmp)
         print(json.dumps(res["eight_workers"]), flush=True)
-    print("AMG vs factor ...", flush=True)
-    res["amg_vs_factor"] = amg_vs_factor((0.0085, 0.005, 0.003))
     kept = json.loads(out.read_text()) if out.exists() else {}
     for key in (k for k in kept if k.startswith("organ")):  # `ONLY=organ`'s runs, kept
         res[key] = kept[key]
@@ -494,11 +457,5 @@ def markdown(res: dict) -> str:
     L += ["", f"8 simulated workers (LocalCluster, 1 GiB each, on 2 cores), {e['tiles']} tiles of the default kidney "
               f"in {e['seconds']:.1f} s: peak RSS per worker {min(e['peak_rss_per_worker_mib']):.0f}–"
               f"{max(e['peak_rss_per_worker_mib']):.0f} MiB (a tile estimated "
-              f"{e['tile_estimate_mib']:.0f} MiB).", "",
-          "| kidney | dofs | factor: time, memory | 64-column panel: factor | AMG: setup, panel, memory, PCG steps | AMG error |",
-          "|---|---|---|---|---|---|"]
-    for r in res["amg_vs_factor"]:
-        L.append(f"| {r['contact']:,} vertices | {r['dofs']:,} | {r['factor_s']:.2f} s, {r['factor_mib']:.0f} MiB | "
-                 f"{r['panel_factor_s']:.2f} s | {r['amg_setup_s']:.2f} s, {r['panel_amg_s']:.1f} s, "
-                 f"{r['amg_mib']:.0f} MiB, {r['pcg_steps']} | {r['amg_rel_err']:.1e} |")
+              f"{e['tile_estimate_mib']:.0f} MiB)."]
     return "\n".join(L)

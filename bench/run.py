@@ -192,7 +192,7 @@ def main() -> None:
     import repair_compare
 
     res["repair_routes"] = repair_compare.run()
-    print("compressed Ξ against dense, workers, AMG ...", flush=True)
+    print("compressed Ξ against dense, workers ...", flush=True)
     import compress_bench
 
     res["compressed"] = compress_bench.main(HERE / "compress_results.json")

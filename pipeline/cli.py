@@ -104,9 +104,6 @@ def add_precompute(sub) -> None:
                         "blocks within TOL relative per block (default 1e-4), computed in tiles on Dask without the "
                         "dense Ξ (for organs whose Ξ does not fit one machine; taken without being asked, with a "
                         "warning, where the dense Ξ does not fit)")
-    p.add_argument("--solver", choices=("factor", "amg"), default="factor",
-                   help="with --compress: solve the tiles with the sparse factor (default) or, where it does not fit, "
-                        "with AMG-preconditioned CG (pyamg; 90-250x slower, to ~1e-11 instead of round-off)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="with --compress: run the tiles on this Dask scheduler "
                                                           "(default: a LocalCluster on this machine)")
     p.add_argument("--workers", type=int, help="with --compress: local worker processes (default: one per core)")
@@ -172,7 +169,7 @@ def cmd_precompute(args) -> int:
                 segmentation=args.segmentation, label=args.label, repair=args.repair, shell=args.shell,
                 inclusions=tuple(args.inclusion), display=args.display,
                 compress=args.compress,
-                solver=args.solver, scheduler=args.scheduler, workers=args.workers, worker_memory=args.worker_memory)
+                scheduler=args.scheduler, workers=args.workers, worker_memory=args.worker_memory)
     out = Path(args.out) if args.out else Path("artifacts") / f"{label}.h5"
     summary = run(spec, out, force=args.force, progress=not args.quiet and sys.stderr.isatty())
     if summary["up_to_date"]:

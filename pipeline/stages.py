@@ -79,8 +79,7 @@ class Spec:
         store Ξ compressed, far-field blocks within this relative tolerance (None: dense;
         :mod:`pmask.precompute.compress`); scheduler : a Dask scheduler's address for its tiles (None: a
         LocalCluster); workers : local worker processes (None: one per core); worker_memory : each local
-        worker's memory limit ('4G'; None: dask's share of the machine).  solver : 'factor' (the sparse
-        Cholesky factor) or 'amg' (with --compress: no factor, :mod:`pmask.precompute.amg`).
+        worker's memory limit ('4G'; None: dask's share of the machine).
     """
 
     model: str
@@ -107,7 +106,6 @@ class Spec:
     inclusions: tuple = ()
     display: bool = True
     compress: float | None = None
-    solver: str = "factor"
     scheduler: str | None = None
     workers: int | None = None
     worker_memory: str | None = None
@@ -216,7 +214,6 @@ def stage_keys(spec: Spec) -> dict:
     mesh = _digest({k: d[k] for k in geometry}
                    | {"code": code, "libraries": {k: versions[k] for k in ("gmsh", "scikit-fem")}})
     factor = _digest({"mesh": mesh} | {k: d[k] for k in ("fixed", "contact", "E", "nu", "r_max", "element", "reactions")}
-                     | ({"solver": d["solver"]} if d["solver"] != "factor" else {})
                      | ({"materials": d["materials"]} if d.get("materials") else {}))
     return {"mesh": mesh, "factor": factor, "artifact": artifact_key(spec, factor)}
 
@@ -292,10 +289,8 @@ def validate(spec: Spec, out: Path) -> None:
             raise InputError(f"--workers must be a whole number >= 1, got {spec.workers!r}")
         if spec.scheduler:  # reachable now, not after an hour of meshing and factorising
             compress.connect(spec.scheduler, None, None).close()
-    elif spec.scheduler or spec.workers or spec.worker_memory or spec.solver != "factor":
-        raise InputError("--scheduler, --workers, --worker-memory and --solver apply to --compress (the tiled route)")
-    if spec.solver not in ("factor", "amg"):
-        raise InputError(f"--solver {spec.solver}: use factor or amg")
+    elif spec.scheduler or spec.workers or spec.worker_memory:
+        raise InputError("--scheduler, --workers and --worker-memory apply to --compress (the tiled route)")
     if spec.segmentation and spec.edge_length is None:
         raise InputError("--segmentation needs --edge-length (target edge length in the image's units)")
     if not (spec.surface or spec.volume or spec.segmentation):
@@ -578,7 +573,7 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
     route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker one
-    tile (:func:`pmask.precompute.compress.tile_bytes`) with a chunk of W or (P2, AMG) a copy of the
+    tile (:func:`pmask.precompute.compress.tile_bytes`) with a chunk of W or (P2) a copy of the
     factor (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast);
     its later phases are checked where their sizes are known (the W sweep's from the factor's tree, the
     assembly's from the finished tiles: :func:`pmask.precompute.compress.check_phase_memory`)."""
@@ -590,14 +585,7 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
 
         local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
         panel = compress.panel_size(n_contact)
-        held = need["factor"]
-        if spec.solver == "amg":  # K_FF (~81 stored entries per dof row, 12 bytes each), its hierarchy, and
-            from pmask.precompute import amg  # each worker's block CG on a panel's columns
-
-            dofs = 3 * n_volume_vertices * element.dofs_per_vertex
-            need["factor"] = amg.hierarchy_bytes(12.0 * 81 * dofs)
-            held = need["factor"] + amg.solve_bytes(dofs, 3 * n_contact, 3 * panel)
-        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(held, n_contact, panel)
+        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact, panel)
         avail = greens.available_memory()
         if avail is not None and need["total"] > avail:
             raise ResourceError(
@@ -635,13 +623,6 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface):
     dirichlet = elements.dofs(element.dirichlet_nodes(d, surf.vertices[surf.regions.fixed], surf.held_facets()))
     t_assemble = time.perf_counter() - t0
     t0 = time.perf_counter()
-    if spec.solver == "amg":  # no factor: the tiles solve with AMG-preconditioned CG (pmask.precompute.amg)
-        from pmask.precompute import amg
-
-        nodes = d.points if d.edges is None else np.vstack([d.points, d.points[d.edges].mean(axis=1)])
-        system = amg.amg_system(K, dirichlet, elements.observed_dofs(contact), nodes, B, scale=scale)
-        system.stats["element"] = element.name
-        return system, {"assemble": t_assemble, "factor": time.perf_counter() - t0}
     factor = greens.factorise(K, dirichlet, elements.observed_dofs(contact), B, scale=scale,
                               graph_elements=d.connectivity, reactions=spec.reactions)
     factor.stats["element"] = element.name
@@ -906,10 +887,9 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         if factor is None:
             factor, t = factor_stage(spec, mesh, surf)
             st.timings.update(t)
-            if spec.solver == "factor":  # (AMG: nothing worth keeping; the tile store is the checkpoint)
-                saving = _Background(atomic_write, ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)),
-                                     suffix=".npz")  # written while the Green's functions are computed
-                solve.callback(saving.wait)  # a run that fails meanwhile still lets the write finish
+            saving = _Background(atomic_write, ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)),
+                                 suffix=".npz")  # written while the Green's functions are computed
+            solve.callback(saving.wait)  # a run that fails meanwhile still lets the write finish
         with st.timed("greens", f"{spec.model}: write"):
             Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])
         if saving is not None:

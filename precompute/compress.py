@@ -35,9 +35,8 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
    :math:`W^TW` products (each once: a tile computes only the rows above the diagonal, P1 being
    symmetric) and nothing else, and a worker needs no factor.
-   P2 (a consistent load B ≠ E diag(a)) and the AMG route solve each panel instead
-   (:func:`pmask.precompute.greens.inverse_columns`, :mod:`pmask.precompute.amg`), with the factor
-   or the AMG system sent to every worker.
+   P2 (a consistent load B ≠ E diag(a)) solves each panel instead
+   (:func:`pmask.precompute.greens.inverse_columns`), with the factor sent to every worker.
 4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
    this machine, or a real cluster (``--scheduler ADDRESS``; the work folder must then be on a
    filesystem every worker sees, for W's store: checked before the tiles).  The client writes each
@@ -461,7 +460,7 @@ def is_symmetric(factor) -> bool:
     r"""Whether Ξ = G diag(a) with G symmetric, so that :math:`\Xi_{JI} = \mathrm{diag}(a_J)^{-1}\,\Xi_{IJ}^T
     \mathrm{diag}(a_I)` and only the blocks on and above the diagonal need storing: a P1 factor (its load is the
     unit columns times the vertex areas, the same area for a vertex's three dofs).  P2's consistent load
-    (Ξ = Eᵀ K⁻¹ B, B ≠ E diag(a)) is not, nor are the AMG route's iterates to the last digit."""
+    (Ξ = Eᵀ K⁻¹ B, B ≠ E diag(a)) is not."""
     scale = getattr(factor, "scale", None)
     if not hasattr(factor, "L") or getattr(factor, "load", True) is not None or scale is None:
         return False
@@ -471,16 +470,12 @@ def is_symmetric(factor) -> bool:
 
 def panel_columns(factor, perm: np.ndarray, c0: int, c1: int, upto: int | None = None) -> np.ndarray:
     """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order: from W's store
-    (:class:`SweepStore`), or solved from the factor or the AMG system.  ``upto``: W's store computes only
+    (:class:`SweepStore`), or solved from the factor.  ``upto``: W's store computes only
     the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the blocks above the diagonal)."""
-    from pmask.precompute.amg import AmgSystem
-
     rows = (3 * perm[:, None] + np.arange(3)).ravel()  # contact dofs in cluster order
     dcols = rows[3 * c0:3 * c1]  # the panel's traction columns
     if isinstance(factor, SweepStore):
         return factor.columns(rows if upto is None else rows[:3 * upto], dcols)
-    if isinstance(factor, AmgSystem):  # no factor: block PCG with smoothed aggregation (--solver amg)
-        return factor.columns(dcols)[rows]
     return solved_columns(factor, dcols)[rows]
 
 
@@ -783,16 +778,12 @@ def tile_bytes(held: float, n_contact: int, panel: int = PANEL) -> float:
     return 2 * 8.0 * (3 * n_contact) * (3 * panel) + held
 
 
-def source_bytes(source, panel: int = PANEL) -> float:
+def source_bytes(source) -> float:
     """A worker's memory for the columns' source: one chunk of W's blocks (:class:`SweepStore`); or a
     copy of the factor and the selected inversion's W (bounded by the factor's size: measured 0.3-0.4x
-    it); or the AMG system with its hierarchy and block CG's work for a panel's 3·panel columns."""
-    from pmask.precompute.amg import AmgSystem
-
+    it)."""
     if isinstance(source, SweepStore):
         return float(min(8 * source.largest, READ_BYTES))
-    if isinstance(source, AmgSystem):
-        return factor_bytes(source) + source.solve_bytes(3 * panel)
     return 2.0 * factor_bytes(source)
 
 
@@ -855,14 +846,8 @@ WRITE_BYTES = 3 * READ_BLOCK_BYTES
 
 
 def factor_bytes(factor) -> int:
-    """Bytes a worker holds for the solves: the factor's arrays, or (AMG) K_FF and its hierarchy
-    (:func:`pmask.precompute.amg.hierarchy_bytes`)."""
-    if hasattr(factor, "L"):
-        return int(sum(np.asarray(v).nbytes for v in factor.L.values()))
-    from pmask.precompute.amg import hierarchy_bytes
-
-    K = factor.K
-    return int(hierarchy_bytes(K.data.nbytes + K.indices.nbytes + K.indptr.nbytes))
+    """Bytes a worker holds for the solves: the factor's arrays."""
+    return int(sum(np.asarray(v).nbytes for v in factor.L.values()))
 
 
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
@@ -896,8 +881,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     try:
         try:
             if todo:
-                if getattr(factor, "load", True) is None and hasattr(factor, "L"):  # a P1 factor: W once, tiles
-                    # read it (module docstring); the AMG system (--solver amg, no factor) solves per panel
+                if getattr(factor, "load", True) is None:  # a P1 factor: W once, tiles read it (module docstring)
                     t1 = time.perf_counter()
                     reused = sweep_reusable(w_path, key)
                     source = sweep(factor, w_path, key)  # refused before it starts if it would not fit
@@ -912,7 +896,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client = client or connect(scheduler, workers, memory_limit)
                 info = list(client.scheduler_info()["workers"].values())
                 limits = [w.get("memory_limit") for w in info]
-                stats["tile_bytes"] = tile_bytes(source_bytes(source, panel), len(points), panel)
+                stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel)
                 check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
                 stats["workers"] = len(limits)
                 if isinstance(source, SweepStore):

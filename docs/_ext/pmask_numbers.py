@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SOURCES = {
     "bench": ROOT / "bench" / "results.json",
     "compress": ROOT / "bench" / "compress_results.json",
+    "amg": ROOT / "bench" / "amg_verdict.json",  # a record: the AMG route's last runs, before it was removed
     "figures": ROOT / "docs" / "figures.json",   # the figures' own numbers, written by `make figures`
 }
 _cache: dict = {}
