@@ -461,10 +461,9 @@ def is_symmetric(factor) -> bool:
     \mathrm{diag}(a_I)` and only the blocks on and above the diagonal need storing: a P1 factor (its load is the
     unit columns times the vertex areas, the same area for a vertex's three dofs).  P2's consistent load
     (Ξ = Eᵀ K⁻¹ B, B ≠ E diag(a)) is not."""
-    scale = getattr(factor, "scale", None)
-    if not hasattr(factor, "L") or getattr(factor, "load", True) is not None or scale is None:
+    if factor.load is not None or factor.scale is None:
         return False
-    per_dof = np.asarray(scale, float).reshape(-1, 3)
+    per_dof = np.asarray(factor.scale, float).reshape(-1, 3)
     return bool(np.all(per_dof == per_dof[:, :1]))
 
 
@@ -881,7 +880,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     try:
         try:
             if todo:
-                if getattr(factor, "load", True) is None:  # a P1 factor: W once, tiles read it (module docstring)
+                if factor.load is None:  # a P1 factor: W once, tiles read it (module docstring)
                     t1 = time.perf_counter()
                     reused = sweep_reusable(w_path, key)
                     source = sweep(factor, w_path, key)  # refused before it starts if it would not fit
