@@ -168,12 +168,32 @@ class FullSystem:
                 f[c::3] = self.B @ pv[:, c, :]
         return f
 
-    def solve(self, tractions):
-        """(u at the volume vertices (N, 3, k), support reactions per fixed vertex (n_fixed, 3, k)) for the
-        tractions (n_surface, 3, k); P2's edge-node reactions go half to each end of their edge."""
+    def field(self, tractions) -> tuple[np.ndarray, np.ndarray]:
+        """(every dof's displacement (n_dofs, k): P2's edge nodes too, the nodal forces) for the tractions."""
         f = self.loads(tractions)
         u = np.zeros_like(f)
         u[self.free] = self.lu.solve(f[self.free])
+        return u, f
+
+    def value_at(self, u, triangle, bary) -> np.ndarray:
+        """The finite-element displacement (3, k) at barycentrics ``bary`` of a surface triangle (its volume
+        vertices) from :meth:`field`'s ``u``: P1's linear interpolant, P2's quadratic one through the edge nodes
+        (vertex shape functions b_i (2 b_i - 1), edge ones 4 b_i b_j)."""
+        v, b = [int(x) for x in triangle], np.asarray(bary, float)
+        if self.B is None:
+            return sum(b[i] * u[3 * v[i]:3 * v[i] + 3] for i in range(3))
+        if not hasattr(self, "_edge_of"):
+            self._edge_of = {(int(a), int(c)): e for e, (a, c) in enumerate(self.edges)}
+        out = sum(b[i] * (2 * b[i] - 1) * u[3 * v[i]:3 * v[i] + 3] for i in range(3))
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            e = 3 * (self.N + self._edge_of[min(v[i], v[j]), max(v[i], v[j])])
+            out = out + 4 * b[i] * b[j] * u[e:e + 3]
+        return out
+
+    def solve(self, tractions):
+        """(u at the volume vertices (N, 3, k), support reactions per fixed vertex (n_fixed, 3, k)) for the
+        tractions (n_surface, 3, k); P2's edge-node reactions go half to each end of their edge."""
+        u, f = self.field(tractions)
         r = np.zeros_like(f)
         r[self.held] = (self.K @ u)[self.held] - f[self.held]
         k = f.shape[1]

@@ -275,15 +275,67 @@ def test_a_grasp_with_friction_lies_between_the_sliding_and_the_stuck_solve(mode
         assert np.all(phi <= 1.01 * np.maximum(phi_free, -np.einsum("la,la->l", f_stuck, np.array(N))))
 
 
+def test_between_vertices_the_gap_is_eq15s_not_the_reference(model, stiff):
+    """Where the coupled test below leaves its 5 % (between vertices), which side is off: the law or the full
+    solve it is held to?  At 24 random points inside triangles (and 12 at vertices) of the coarse kidney (P2,
+    masks of 2 mean edge lengths), full finite-element solves (conftest.FullSystem) load the surface twice:
+    (A) as eq. 16 does, the vertices' masks spread by the barycentrics and read by the same linear
+    interpolation (the coupled test's reference), and (D) the same cone centred at the contact point itself
+    (normalised, aᵀρ = 1) and read from the quadratic P2 field there: the physical contact.  Their normal
+    compliances NᵀCN (N the law's contact normal) agree within the issue's 5 % (measured 3.8 %: the cone's
+    centre moves within a triangle, and A's read-out is linear): the reference is sound.  The law's normal
+    stiffness k(x) = Σ φ_j k_j (eq. 15's interpolation of the vertices' own Schur complements) meets the full
+    solve at vertices (within 0.5 %: K_j is symmetrised; measured 0.05 %), but inside triangles it is softer, up
+    to 16 % (measured 0.84-0.99 of A, never stiffer; the issue asks 5 %: open): the solid's compliance at x
+    has the cross terms ζ_m(i), i ≠ m, of the vertices' masks loaded together, which make it stiffer there.
+    A law equal to the full solve would render k = 1/(Nᵀ C(x) N) with C(x) = Σ_i Σ_m φ_i φ_m ζ_m(i) (nine
+    3x3 blocks per triangle, from the near field), a change of eq. 15 in both engines."""
+    from pmask.runtime.contact.surface import at
+    from pmask.runtime.contact.tracking import normal
+
+    P, T, contact = model.points, model.triangles, model.contact
+    system = FullSystem(model.path)
+    assert system.element == "P2"  # the quadratic read-out
+    a, r = system.areas, stiff.masks.radius
+    row_of = {int(v): k for k, v in enumerate(contact[stiff.masks.centres])}
+    inside = [p for seed in range(8) for p in contact_points(model, stiff, 3, seed=100 + seed)]
+    points = inside + [(t, np.eye(3)[i % 3]) for i, (t, _) in enumerate(inside[:12])]
+    s = len(points)
+    tractions = np.zeros((len(P), 3, 6 * s))
+    for l, (t, b) in enumerate(points):
+        d = np.linalg.norm(P[contact] - b @ P[T[t]], axis=1) / r
+        cone = np.maximum(0.0, 1.0 - d)  # the 'linear' profile the masks use
+        for ax in range(3):
+            tractions[contact, ax, 3 * l + ax] = cone / np.sum(a[contact] * cone)
+            for m_vertex, phi in zip(T[t], b):
+                cols, rho = stiff.masks.row(row_of[int(m_vertex)])
+                np.add.at(tractions[:, ax, 3 * (s + l) + ax], contact[cols], phi * rho)
+    u, _ = system.field(tractions)
+    srf = Contacts(stiff, 1, engine="python").surface
+    ratios = []
+    for l, (t, b) in enumerate(points):
+        N = np.array(normal(srf, t, *b))
+        C_D = system.value_at(u[:, 3 * l:3 * l + 3], system.vi[T[t]], b)
+        C_A = np.einsum("i,iak->ak", b, u[:3 * system.N].reshape(system.N, 3, -1)[system.vi[T[t]], :,
+                                                                                   3 * (s + l):3 * (s + l) + 3])
+        k = at(srf, t, *b)[2]
+        ratios.append((k * (N @ C_A @ N), k * (N @ C_D @ N)))
+    law_A, law_D = np.array(ratios).T
+    mid = np.arange(s) < len(inside)
+    np.testing.assert_allclose(law_D / law_A, 1.0, atol=0.05)
+    np.testing.assert_allclose(law_A[~mid], 1.0, atol=0.005)
+    assert 0.82 <= law_A[mid].min() and law_A[mid].max() <= 1.0, (law_A[mid].min(), law_A[mid].max())
+
+
 @pytest.mark.parametrize("count", [2, 3])
 def test_frictionless_pairs_and_triples_meet_the_full_solve(model, stiff, count):
     """The hands issue's item 4: two and three instruments pressed 1.5 mm along their normals, frictionless and
     coupled, at vertices: each normal force meets the coupled normal problem with the full finite-element
     compliance between the contact points (Nᵀ C N φ = δ̄ with no contact pulling, solved by active sets) within
     5 % (the issue's bound; measured 0.08 % for the pair, 0.7 % for the triple; the third force of a triple was
-    25 % off before).  Inside a triangle the law's own normal stiffness is eq. 15's interpolation of the vertices' (K(x) = Σ φ_j K_j) where the full solve
-    interpolates the compliance: 12 % apart at a mid-triangle point of this coarse kidney, and a triple there
-    was 9 % off (the contacts' mutual compliances, from ζ, are the full solve's exactly)."""
+    25 % off before).  Inside a triangle each contact's own normal stiffness is eq. 15's interpolation of the
+    vertices' (up to 16 % softer than the full solve there, the test above), and a triple there was 9 % off (the
+    contacts' mutual compliances, from ζ, are the full solve's exactly)."""
     from pmask.runtime.contact.tracking import normal, point
 
     pts = [(t, np.eye(3)[np.argmax(b)]) for t, b in contact_points(model, stiff, count, seed=20 + count)]
