@@ -275,21 +275,74 @@ def test_a_grasp_with_friction_lies_between_the_sliding_and_the_stuck_solve(mode
         assert np.all(phi <= 1.01 * np.maximum(phi_free, -np.einsum("la,la->l", f_stuck, np.array(N))))
 
 
-def test_between_vertices_the_gap_is_eq15s_not_the_reference(model, stiff):
-    """Where the coupled test below leaves its 5 % (between vertices), which side is off: the law or the full
-    solve it is held to?  At 24 random points inside triangles (and 12 at vertices) of the coarse kidney (P2,
-    masks of 2 mean edge lengths), full finite-element solves (conftest.FullSystem) load the surface twice:
-    (A) as eq. 16 does, the vertices' masks spread by the barycentrics and read by the same linear
-    interpolation (the coupled test's reference), and (D) the same cone centred at the contact point itself
-    (normalised, aᵀρ = 1) and read from the quadratic P2 field there: the physical contact.  Their normal
-    compliances NᵀCN (N the law's contact normal) agree within the issue's 5 % (measured 3.8 %: the cone's
-    centre moves within a triangle, and A's read-out is linear): the reference is sound.  The law's normal
-    stiffness k(x) = Σ φ_j k_j (eq. 15's interpolation of the vertices' own Schur complements) meets the full
-    solve at vertices (within 0.5 %: K_j is symmetrised; measured 0.05 %), but inside triangles it is softer, up
-    to 16 % (measured 0.84-0.99 of A, never stiffer; the issue asks 5 %: open): the solid's compliance at x
-    has the cross terms ζ_m(i), i ≠ m, of the vertices' masks loaded together, which make it stiffer there.
-    A law equal to the full solve would render k = 1/(Nᵀ C(x) N) with C(x) = Σ_i Σ_m φ_i φ_m ζ_m(i) (nine
-    3x3 blocks per triangle, from the near field), a change of eq. 15 in both engines."""
+@pytest.fixture(scope="module")
+def halfspace_touchable(tmp_path_factory):
+    """The P2 half-space (edges of 2.5 mm within 2 load radii, 10 load radii deep) with contact vertices
+    within 5 mm of the load point: enough triangles for a cone of 5 mm (2 edge lengths) to sit anywhere."""
+    from pmask.pipeline.stages import Spec, run
+
+    out = tmp_path_factory.mktemp("hs_touch") / "halfspace.h5"
+    run(Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, element="P2", contact="sphere:0,0,0,0.005"),
+        out)
+    return out
+
+
+def test_between_vertices_the_full_solve_ripples_with_the_mesh_and_the_law_does_not(halfspace_touchable):
+    """On a half-space the stiffness of a cone of pressure does not depend on where its centre sits (the
+    analytic k_n = π E r / (3 (1 − ν²)), FIELD-NOTES).  Full finite-element solves (conftest.FullSystem, P2) of
+    the cone (r = 2 edge lengths) centred at vertices, edge midpoints and centroids of the triangles near the load
+    point, its pressure sampled at the vertices as every mask is (aᵀρ = 1) and the displacement read from the
+    quadratic field at the centre: at vertices they give the law's own k_j (within 0.5 %, K_j being symmetrised;
+    measured 1e-5), between vertices they are stiffer, by 3.2-8.4 % (the sampled cone loses its peak between
+    vertices: a mesh artefact; asserted ≥ 2 % everywhere and ≥ 5 % somewhere).  The law's k(x) (eq. 15) stays
+    within 1.5 % of its vertex values (measured 0.9 %) and within 8 % of the analytic value (P2 at h = r/2 and
+    a body 10 r deep; measured 3.3-6.5 %).  So between vertices it is the full solve, not the law, that departs
+    from the continuum: the coupled tests below hold the law to it at vertices."""
+    from pmask.runtime.contact.surface import at
+    from pmask.runtime.contact.tracking import normal
+
+    model = Model.load(halfspace_touchable)
+    E, nu = model.attrs["material"]["E"], model.attrs["material"]["nu"]
+    stiff = model.stiffness("linear", 2 * 0.0025)
+    r = stiff.masks.radius
+    P, T, contact = model.points, model.triangles, model.contact
+    system = FullSystem(model.path)
+    assert system.element == "P2"  # the quadratic read-out
+    near = np.flatnonzero(np.all(np.isin(T, contact[model.core]), axis=1))
+    near = near[np.argsort(np.linalg.norm(P[T[near]].mean(axis=1), axis=1))][:8]
+    where = {"vertex": [1.0, 0.0, 0.0], "edge": [0.5, 0.5, 0.0], "centroid": [1 / 3, 1 / 3, 1 / 3]}
+    points = [(int(t), np.array(b)) for b in where.values() for t in near]
+    tractions = np.zeros((len(P), 3, 3 * len(points)))
+    a = system.areas[contact]
+    for l, (t, b) in enumerate(points):
+        cone = np.maximum(0.0, 1.0 - np.linalg.norm(P[contact] - b @ P[T[t]], axis=1) / r)
+        for ax in range(3):
+            tractions[contact, ax, 3 * l + ax] = cone / np.sum(a * cone)
+    u, _ = system.field(tractions)
+    srf = Contacts(stiff, 1, engine="python").surface
+    fe, law = [], []
+    for l, (t, b) in enumerate(points):
+        N = np.array(normal(srf, t, *b))
+        C = system.value_at(u[:, 3 * l:3 * l + 3], system.vi[T[t]], b)
+        fe.append(1.0 / (N @ (0.5 * (C + C.T)) @ N))
+        law.append(at(srf, t, *b)[2])
+    k_n = np.pi * E * r / (3 * (1 - nu ** 2))
+    fe, law = np.reshape(fe, (3, -1)) / k_n, np.reshape(law, (3, -1)) / k_n  # rows: vertex, edge, centroid
+    np.testing.assert_allclose(law[0], fe[0], rtol=0.005)
+    assert np.all(fe[1:] / fe[0] >= 1.02) and np.max(fe[1:] / fe[0]) >= 1.05, fe[1:] / fe[0]
+    np.testing.assert_allclose(law[1:] / law[0], 1.0, atol=0.015)
+    np.testing.assert_allclose(law, 1.0, atol=0.08)
+
+
+def test_between_vertices_the_full_solve_is_stiffer_than_the_law_on_the_kidney(model, stiff):
+    """The test above on the coarse kidney (P2, masks of 2 mean edge lengths), at 24 random points inside
+    triangles and 12 at vertices, with two full finite-element loads (conftest.FullSystem): (A) as eq. 16 does,
+    the vertices' masks spread by the barycentrics and read by the same linear interpolation (the coupled tests'
+    reference), and (D) the cone centred at the point, read from the quadratic P2 field there.  Their normal
+    compliances NᵀCN (N the law's contact normal) agree within 5 % (measured 3.8 %).  The law's k(x) meets them
+    at vertices (within 0.5 %; measured 0.05 %), and between vertices they are stiffer than it by up to 16 %
+    (measured 0.84-0.99 of A, never softer): more than on the half-space, this mesh being coarser and less
+    regular, the same artefact of a cone sampled between vertices."""
     from pmask.runtime.contact.surface import at
     from pmask.runtime.contact.tracking import normal
 
@@ -333,9 +386,10 @@ def test_frictionless_pairs_and_triples_meet_the_full_solve(model, stiff, count)
     coupled, at vertices: each normal force meets the coupled normal problem with the full finite-element
     compliance between the contact points (Nᵀ C N φ = δ̄ with no contact pulling, solved by active sets) within
     5 % (the issue's bound; measured 0.08 % for the pair, 0.7 % for the triple; the third force of a triple was
-    25 % off before).  Inside a triangle each contact's own normal stiffness is eq. 15's interpolation of the
-    vertices' (up to 16 % softer than the full solve there, the test above), and a triple there was 9 % off (the
-    contacts' mutual compliances, from ζ, are the full solve's exactly)."""
+    25 % off before).  Inside triangles the full solve is stiffer than each contact's own eq. 15 stiffness, by
+    up to 16 % on this mesh (the two tests above: a cone sampled between vertices, an artefact of the mesh the
+    law does not have), and a triple there was 9 % off (the contacts' mutual compliances, from ζ, are the full
+    solve's exactly)."""
     from pmask.runtime.contact.tracking import normal, point
 
     pts = [(t, np.eye(3)[np.argmax(b)]) for t, b in contact_points(model, stiff, count, seed=20 + count)]
