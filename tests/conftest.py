@@ -97,6 +97,7 @@ class FullSystem:
         P, T = d["volume/points"], d["volume/tets"]
         vi, fixed, tris = d["surface/volume_index"], d["surface/fixed"], d["surface/triangles"]
         self.vi, self.areas, self.fixed_volume = vi, d["surface/vertex_areas"], vi[fixed]
+        self.points = P
         material = d["attrs"]["material"]
         E, nu = material["E"], material["nu"]
         if material.get("regions"):  # materials by region: each tetrahedron's from the artifact's own record
