@@ -55,7 +55,8 @@ def kidney_small_p1(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def halfspace_small(tmp_path_factory) -> Path:
     """A coarse half-space with a contact region (Ξ over a subset of the free surface)."""
-    return build(tmp_path_factory, "halfspace_small", Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, reactions=True))
+    return build(tmp_path_factory, "halfspace_small",
+                 Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, reactions=True))
 
 
 def full_solve(points, tets, E, nu, fixed_vertices, loads):
@@ -138,7 +139,8 @@ class FullSystem:
                 return u * v
 
             K = (asm(dev, full, mu=per_element(mu, full)) + asm(vol, centroid, lam=per_element(lam, centroid))).tocsr()
-            self.B = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4), FacetBasis(mesh, ElementTetP2(), intorder=4))
+            self.B = asm(mass, FacetBasis(mesh, ElementTetP1(), intorder=4),
+                         FacetBasis(mesh, ElementTetP2(), intorder=4))
             fixed_mask = np.zeros(len(d["surface/points"]), bool)
             fixed_mask[fixed] = True
             facets = vi[tris[np.all(fixed_mask[tris], axis=1)]]
