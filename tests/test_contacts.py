@@ -309,9 +309,8 @@ def test_between_vertices_the_full_solve_ripples_with_the_mesh_and_the_law_does_
     system = FullSystem(model.path)
     assert system.element == "P2"  # the quadratic read-out, exact for a linear field (u = x at every node)
     x = np.vstack([system.points, system.points[system.edges].mean(axis=1)]).reshape(-1, 1)
-    t0 = 0
-    np.testing.assert_allclose(system.value_at(x, system.vi[T[t0]], [0.2, 0.3, 0.5]).ravel(),
-                               np.array([0.2, 0.3, 0.5]) @ P[T[t0]], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(system.value_at(x, system.vi[T[0]], [0.2, 0.3, 0.5]).ravel(),
+                               np.array([0.2, 0.3, 0.5]) @ P[T[0]], rtol=0, atol=1e-15)
     near = np.flatnonzero(np.all(np.isin(T, contact[model.core]), axis=1))
     near = near[np.argsort(np.linalg.norm(P[T[near]].mean(axis=1), axis=1))][:8]
     where = {"vertex": [1.0, 0.0, 0.0], "edge": [0.5, 0.5, 0.0], "centroid": [1 / 3, 1 / 3, 1 / 3]}
