@@ -585,7 +585,8 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
 
         local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
         panel = compress.panel_size(n_contact)
-        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact, panel)
+        copies = 1 if element.name == "P1" else 2  # P1's tiles sum W's products, P2's solve and reorder
+        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact, panel, copies)
         avail = greens.available_memory()
         if avail is not None and need["total"] > avail:
             raise ResourceError(

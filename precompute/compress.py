@@ -13,12 +13,13 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    tolerance, so η trades block count for rank, not accuracy).
    Otherwise both are split; pairs of leaves are stored densely.
 3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices, fewer for large
-   n so that a panel stays near :data:`PANEL_BYTES`).  One task per panel computes the columns of Ξ it
-   holds and compresses its share of each block: a randomized range finder grown until
-   :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of :math:`Q^TB` truncated to the
-   smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is computed, not estimated: B is
-   at hand).  A block whose factors would not be smaller stays dense.  Only one panel, 3n x 3 #J
-   numbers, exists at a time on a worker.  The blocks are the tree's, not the panels': a far block
+   n so that a panel stays near :data:`PANEL_BYTES`: wider panels read W fewer times).  One task per
+   panel computes the columns of Ξ it holds and compresses its share of each block: a randomized range
+   finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of :math:`Q^TB`
+   truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is computed, not
+   estimated: B is at hand).  A block whose factors would not be smaller stays dense.  Only one panel, at
+   most 3n x 3 #J numbers (the rows its blocks need), exists at a time on a worker.  The blocks are the
+   tree's, not the panels': a far block
    whose column cluster holds several panels comes back from each as a *piece* (compressed within ε/2)
    and :func:`assemble` merges the pieces (:func:`merge_pieces`, within the other ε/2).  So the stored
    blocks are the hierarchical matrix's whatever the panel width (blocks cut at the panels stored ~3n·k
@@ -288,11 +289,20 @@ class SweepStore:
         return Path(path).with_suffix(".index.npz")
 
     def columns(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        r"""Ξ[rows, cols] for contact dofs ``rows`` (all of them, in any order) and ``cols``:
-        :math:`\sum_s X_s X_{s,J}^T` over the supernodes on the tree paths up from the columns' first
-        supernodes, scaled by the columns' areas (Ξ = G diag(a)).  A block larger than :data:`READ_BYTES`
-        is read in row chunks (its rows are contiguous in the file), so a tile holds its panel and one
-        chunk, not the root's whole block (3n rows by the top separator's columns)."""
+        """Ξ[rows, cols] for contact dofs ``rows`` (any of them, in any order) and ``cols``
+        (:meth:`sorted_columns`, its rows put in the order asked: a copy)."""
+        D, at = self.sorted_columns(rows, cols)
+        return D[at]
+
+    def sorted_columns(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r"""Ξ's rows ``rows`` (contact dofs, any of them) at the columns ``cols``, in W's order, and where each
+        asked row is in it: ``D[at[i]] = Ξ[rows[i], cols]``.  :math:`\sum_s X_s X_{s,J}^T` over the supernodes
+        on the tree paths up from the columns' first supernodes, scaled by the columns' areas (Ξ = G diag(a)).
+        Only the rows asked for are multiplied and held (a symmetric Ξ's tile: those above it), in W's order so
+        that each chunk of X_s adds to a run of D's rows.  A block larger than :data:`READ_BYTES` is read in row
+        chunks (its rows are contiguous in the file), and each product X Xᴶᵀ is formed in slices of at most
+        :data:`READ_BYTES`, so a tile holds D, one chunk and one slice, not the root's whole block (3n rows by
+        the top separator's columns) nor a reordered copy."""
         ix = self.index
         pos, lo, hi, parent, ncol, offset = ix["pos"], ix["lo"], ix["hi"], ix["parent"], ix["ncol"], ix["offset"]
         pj = pos[cols]
@@ -301,20 +311,27 @@ class SweepStore:
             while s >= 0 and not reached[s]:
                 reached[s] = True
                 s = parent[s]
-        need = np.zeros(len(pos), bool)
-        need[pos[rows]] = True  # only the rows asked for are multiplied (a symmetric Ξ's tile: those above it)
-        D = np.zeros((len(pos), len(cols)), order="F")
+        order = np.argsort(pos[rows])
+        ps = pos[rows][order]  # the asked rows' positions, sorted: D's rows
+        at = np.empty(len(rows), np.int64)
+        at[order] = np.arange(len(rows))
+        D = np.zeros((len(rows), len(cols)))
 
-        def add(at, X, XJ):  # D[at .. at + len(X)] += X XJᵀ on the needed rows
-            want = need[at:at + len(X)]
-            if want.all():
-                D[at:at + len(X), sel] += X @ XJ.T
-            elif want.any():
-                k = np.flatnonzero(want)
-                D[at + k[:, None], sel] += X[k] @ XJ.T
+        def add(first, X, XJ):  # D's rows at positions first .. first + len(X) += X XJᵀ, in slices
+            a, b = np.searchsorted(ps, first), np.searchsorted(ps, first + len(X))
+            Xk = X if b - a == len(X) else X[ps[a:b] - first]
+            step = max(1, READ_BYTES // (8 * max(len(sel), 1)))
+            for q in range(0, b - a, step):
+                P = Xk[q:q + step] @ XJ.T
+                if len(sel) == len(cols):
+                    D[a + q:a + q + len(P)] += P
+                else:
+                    D[a + q:a + q + len(P), sel] += P
 
         with open(self.path, "rb") as f:
             for s in np.flatnonzero(reached):
+                if np.searchsorted(ps, lo[s]) == np.searchsorted(ps, hi[s]):
+                    continue  # none of its rows asked for
                 sel = np.flatnonzero((pj >= lo[s]) & (pj < hi[s]))
                 m, nc, off = int(hi[s] - lo[s]), int(ncol[s]), int(offset[s])
                 step = max(1, READ_BYTES // (8 * nc))
@@ -329,15 +346,11 @@ class SweepStore:
                     XJ[q] = np.fromfile(f, np.float64, nc)
                 for r0 in range(0, m, step):
                     r1 = min(m, r0 + step)
-                    if not need[lo[s] + r0:lo[s] + r1].any():
-                        continue
-                    f.seek(8 * (off + r0 * nc))
-                    X = np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc)
-                    add(int(lo[s]) + r0, X, XJ)
-        out = D[pos[rows]]
-        del D
-        out *= ix["scale"][cols][None, :]
-        return out
+                    if np.searchsorted(ps, lo[s] + r0) < np.searchsorted(ps, lo[s] + r1):
+                        f.seek(8 * (off + r0 * nc))
+                        add(int(lo[s]) + r0, np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc), XJ)
+        D *= ix["scale"][cols][None, :]
+        return D, at
 
 
 def sweep_reusable(path: Path, key: str) -> bool:
@@ -467,15 +480,17 @@ def is_symmetric(factor) -> bool:
     return bool(np.all(per_dof == per_dof[:, :1]))
 
 
-def panel_columns(factor, perm: np.ndarray, c0: int, c1: int, upto: int | None = None) -> np.ndarray:
-    """Ξ's columns of positions c0..c1 (3n x 3(c1-c0)), rows in cluster order: from W's store
-    (:class:`SweepStore`), or solved from the factor.  ``upto``: W's store computes only
-    the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the blocks above the diagonal)."""
+def panel_columns(factor, perm: np.ndarray, c0: int, c1: int, upto: int | None = None):
+    """Ξ's columns of positions c0..c1 (3(c1-c0) of them), and where each row in cluster order is in them:
+    ``X[at[3p + d]]`` is the row of dof d of the vertex at position p.  From W's store (:class:`SweepStore`,
+    rows in W's order: no reordered copy), or solved from the factor (rows in cluster order).  ``upto``: W's
+    store computes only the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the blocks
+    above the diagonal)."""
     rows = (3 * perm[:, None] + np.arange(3)).ravel()  # contact dofs in cluster order
     dcols = rows[3 * c0:3 * c1]  # the panel's traction columns
     if isinstance(factor, SweepStore):
-        return factor.columns(rows if upto is None else rows[:3 * upto], dcols)
-    return solved_columns(factor, dcols)[rows]
+        return factor.sorted_columns(rows if upto is None else rows[:3 * upto], dcols)
+    return solved_columns(factor, dcols)[rows], np.arange(len(rows))
 
 
 def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
@@ -487,7 +502,7 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # one past the last row any block needs
-    X = panel_columns(factor, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
+    X, at = panel_columns(factor, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
     t_solve = time.perf_counter() - t0
     rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
@@ -496,7 +511,7 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
         r0, r1 = int(tree.start[i]), int(tree.stop[i])
         b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
         piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
-        B = X[3 * r0:3 * r1, 3 * (b0 - c0):3 * (b1 - c0)]
+        B = X[at[3 * r0:3 * r1], 3 * (b0 - c0):3 * (b1 - c0)]
         uv = low_rank(B, tol / 2 if piece else tol, rng) if far else None
         if uv is None and piece:  # a piece is merged in low-rank form: its exact columns, V = I
             uv = (np.array(B), np.eye(B.shape[1]))
@@ -771,10 +786,23 @@ def check_scheduler(client, scheduler: str | None, done: int, total: int, store:
                             "again to resume (with --scheduler of a running scheduler, or without it on this machine)")
 
 
-def tile_bytes(held: float, n_contact: int, panel: int = PANEL) -> float:
-    """A worker's memory for one tile: the panel (3n x 3·panel doubles) with its reordered copy, and
-    ``held`` bytes (:func:`source_bytes`: what the panel's columns are computed from)."""
-    return 2 * 8.0 * (3 * n_contact) * (3 * panel) + held
+def tile_bytes(held: float, n_contact: int, panel: int = PANEL, copies: int = 1, made: float = 0.0) -> float:
+    """A worker's memory for one tile: the panel (3n x 3·panel doubles; ``copies`` = 2 where its columns are
+    solved and then put in cluster order, P2's route), one slice of a product (at most :data:`READ_BYTES`,
+    :meth:`SweepStore.sorted_columns`), ``held`` bytes (:func:`source_bytes`: what the panel's columns are
+    computed from) and ``made`` (:func:`output_bytes`, the largest over the tiles; not known before the
+    partition)."""
+    columns = 8.0 * (3 * n_contact) * (3 * panel)
+    return copies * columns + min(float(READ_BYTES), columns) + held + made
+
+
+def output_bytes(tree: ClusterTree, column: int, blocks) -> float:
+    """What a tile makes beside its panel (bytes): its dense blocks twice (each block, then the tile's array of
+    them) and its largest far block twice (the contiguous copy the range finder works on, and its products)."""
+    c0, c1 = int(tree.start[column]), int(tree.stop[column])
+    area = [(72.0 * tree.size(i) * (min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0)), far)
+            for i, j, far in blocks]
+    return 2 * sum(a for a, far in area if not far) + 2 * max((a for a, far in area if far), default=0.0)
 
 
 def source_bytes(source) -> float:
@@ -895,7 +923,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client = client or connect(scheduler, workers, memory_limit)
                 info = list(client.scheduler_info()["workers"].values())
                 limits = [w.get("memory_limit") for w in info]
-                stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel)
+                made = max((output_bytes(tree, c, plan[c]) for c in todo), default=0.0)
+                stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel,
+                                                 1 if isinstance(source, SweepStore) else 2, made)
                 check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
                 stats["workers"] = len(limits)
                 if isinstance(source, SweepStore):

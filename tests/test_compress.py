@@ -319,6 +319,25 @@ def test_w_store_columns_are_the_dense_routes_in_chunks_too(tmp_path, monkeypatc
     assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="other").key == "other"
 
 
+def test_a_tile_holds_no_more_than_the_memory_check_counts(tmp_path, monkeypatch):
+    """#27 item 3: a worker's memory for one tile as the check counts it (compress.tile_bytes: the panel's columns,
+    one product slice, a chunk of W, and what the tile makes) against what tracemalloc measures while each tile
+    runs: never above it, and the worst tile within 2x of it (an upper bound: each tile is counted with all 3n
+    rows, the widest panel and the largest outputs of any tile), with W read whole and a few rows at a time."""
+    factor, pts = _small_factor()
+    tree = compress.cluster_tree(pts)
+    for read_bytes in (compress.READ_BYTES, 8 * 3 * 60):
+        monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
+        store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
+        for panel in (48, 128, 512):
+            plans = {c: [b for b in compress.partition(tree, c, R_MAX) if tree.start[b[0]] <= tree.start[b[1]]]
+                     for c in compress.panels(tree, panel)}  # P1: the blocks on and above the diagonal
+            worst = max(traced_peak(compress.tile, store, tree, c, plan, TOL)[1] for c, plan in plans.items())
+            made = max(compress.output_bytes(tree, c, plan) for c, plan in plans.items())
+            model = compress.tile_bytes(compress.source_bytes(store), len(pts), panel, 1, made)
+            assert worst <= model <= 2 * worst, (read_bytes, panel, worst, model)
+
+
 def test_the_sweep_in_batches_holds_its_budget_and_writes_the_same_store(tmp_path):
     """#27 item 2 (client memory bounded at any n): with a budget a third of one sweep's peak, W is swept in
     batches of its columns; tracemalloc's peak stays within the budget (5 %: the emitted chunks and small
