@@ -72,8 +72,10 @@ LEAF = 32
 ETA = 2.0
 #: vertices per panel (one task); 3n x 3·PANEL doubles on a worker at a time
 PANEL = 512
-#: fewer vertices per panel where 3n x 3·panel doubles would exceed this (panels of ~180 vertices at n = 20,000)
-PANEL_BYTES = 256 * 2**20
+#: fewer vertices per panel where 3n x 3·panel doubles would exceed this (panels of at most 314 vertices at
+#: n = 47,467).  Wider panels read W fewer times: measured at 47,467 vertices (by hand, a cluster of 742 vertices
+#: done as panels of at most 78, 156 and 312 vertices) the tiles took 23, 17 and 15 s; 256 MiB gave panels of 78
+PANEL_BYTES = 2**30
 #: W's blocks are read by a tile in row chunks of at most this many bytes
 READ_BYTES = 64 * 2**20
 #: the W store's file layout (a store of another layout is swept again)
