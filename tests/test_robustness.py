@@ -126,7 +126,18 @@ def test_a_remesh_that_does_not_finish_is_stopped_with_one_line(tmp_path, capsys
     assert not _workers_of(os.getpid())
 
 
-def test_ctrl_c_during_a_remesh_stops_at_once(tmp_path):
+@pytest.fixture
+def ctrl_c_as_at_a_terminal():
+    """SIGINT handled as in a foreground process.  A suite started as a background job (``nohup make test &``)
+    inherits SIGINT ignored, which the command line honours by design (a background job is not interrupted by the
+    terminal's Ctrl-C), and these tests would then test that instead; a child started from here gets the default
+    action back on exec."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def test_ctrl_c_during_a_remesh_stops_at_once(tmp_path, ctrl_c_as_at_a_terminal):
     """Ctrl-C while gmsh remeshes a fine surface: the command ends within seconds (gmsh used to defer it for
     45 s and more) with the resume hint, and leaves no gmsh process behind."""
     s = trimesh.creation.icosphere(subdivisions=6, radius=20.0)  # 82k triangles, remeshed finely
@@ -147,7 +158,8 @@ def test_ctrl_c_during_a_remesh_stops_at_once(tmp_path):
     assert not _workers_of(p.pid)
 
 
-def test_a_ctrl_c_a_library_swallows_still_stops_the_run(tmp_path, capsys, sphere, monkeypatch):
+def test_a_ctrl_c_a_library_swallows_still_stops_the_run(tmp_path, capsys, sphere, monkeypatch,
+                                                         ctrl_c_as_at_a_terminal):
     """trimesh wraps its optional imports in ``except BaseException``: a Ctrl-C that landed there was lost and
     the precompute ran on (over 30 s on a loaded machine).  Here the mesh stage swallows one; the run stops
     before the next stage with the usual line, and a later command in the same process is not affected."""
