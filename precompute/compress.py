@@ -800,11 +800,12 @@ def tile_bytes(held: float, n_contact: int, panel: int = PANEL, copies: int = 1,
 
 def output_bytes(tree: ClusterTree, column: int, blocks) -> float:
     """What a tile makes beside its panel (bytes): its dense blocks twice (each block, then the tile's array of
-    them) and its largest far block twice (the contiguous copy the range finder works on, and its products)."""
+    them) and its largest far block four times (the block's copy, then :func:`low_rank`'s products BΩ, Q and QᵀB,
+    each smaller than the block where it is compressed)."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     area = [(72.0 * tree.size(i) * (min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0)), far)
             for i, j, far in blocks]
-    return 2 * sum(a for a, far in area if not far) + 2 * max((a for a, far in area if far), default=0.0)
+    return 2 * sum(a for a, far in area if not far) + 4 * max((a for a, far in area if far), default=0.0)
 
 
 def source_bytes(source) -> float:
