@@ -1,0 +1,116 @@
+"""The contact surface's Loop subdivision (pmask.runtime.contact.subdivision): invariants of the scheme and of its
+map to the finite-element mesh, checked against geometry known independently (a plane, a sphere)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from pmask.runtime.contact import subdivision as sd
+from pmask.runtime.geometry import triangle_normals
+
+
+def param_points(s, P, T):
+    """(m_f, 3, 3): each subdivided triangle's corners placed on the mesh by the map (Σ_k corners_k x_{v_k})."""
+    return np.einsum("tkj,tjc->tkc", s.corners, P[T[s.parent]])
+
+
+def test_a_plane_stays_a_plane_and_the_map_is_the_identity_there():
+    """Loop's masks are affine combinations, so a flat patch (its open boundary kept as a crease, a straight
+    B-spline) stays flat, and every subdivided vertex lies where the map puts it on the mesh (to round-off):
+    on a plane the subdivision only re-spaces the vertices along it."""
+    x, y = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6))
+    P = np.c_[x.ravel(), y.ravel(), np.zeros(36)]
+    q = np.arange(36).reshape(6, 6)
+    a, b, c, d = q[:-1, :-1].ravel(), q[:-1, 1:].ravel(), q[1:, :-1].ravel(), q[1:, 1:].ravel()
+    T = np.concatenate([np.c_[a, b, d], np.c_[a, d, c]])
+    s = sd.subdivide(P, T, 2)
+    assert len(s.triangles) == 16 * len(T)
+    assert np.abs(s.points[:, 2]).max() == 0.0
+    assert s.points[:, :2].min() >= -1e-15 and s.points[:, :2].max() <= 1 + 1e-15  # the boundary does not move out
+    # the boundary's corners (three crease edges? no: two, at right angles, so they are crease vertices; a
+    # straight edge's vertices keep their place along it), and the map: a fine vertex's own mesh point is
+    # within the subdivision's re-spacing of it (a fraction of an edge), on the same plane
+    pp = param_points(s, P, T)
+    assert np.abs(pp[..., 2]).max() == 0.0
+    assert np.abs(pp - s.points[s.triangles]).max() <= 0.5 * 0.2
+
+
+@pytest.fixture(scope="module")
+def ball():
+    m = trimesh.creation.icosphere(subdivisions=2, radius=0.02)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+def test_each_level_halves_the_angle_between_facets_and_vertex_normals(ball):
+    """The property the contact law needs (the module docstring): the facets' normals approach the interpolated
+    vertex normals, halving with each level (measured on an icosphere: 0.5 ± 0.1 a level); the limit surface
+    passes through the mesh's vertices (on the ball) and between them stays closer to the ball than the flat
+    facets do (their chordal error, the sagitta; measured 0.35 of it: Loop's surface of the mesh itself lay 2.3
+    sagittas inside, hence the interpolating control points)."""
+    P, T = ball
+    angles = [sd.facet_angle(*(lambda s: (s.points, s.triangles))(sd.subdivide(P, T, L))) for L in range(4)]
+    ratios = np.array(angles[1:]) / np.array(angles[:-1])
+    assert np.all((ratios > 0.4) & (ratios < 0.6)), (angles, ratios)
+    s = sd.subdivide(P, T, 3)
+    r = np.linalg.norm(s.points, axis=1)
+    edge = np.linalg.norm(P[T[:, 1]] - P[T[:, 0]], axis=1).mean()
+    sagitta = edge ** 2 / (8 * 0.02)
+    assert np.abs(r[:len(P)] - 0.02).max() <= 1e-13 * 0.02  # the iteration stops at 1e-13 of the size
+    assert np.abs(r - 0.02).max() <= 0.5 * sagitta, (np.abs(r - 0.02).max(), sagitta)
+    fn = triangle_normals(s.points, s.triangles)
+    assert np.all(np.einsum("tc,tc->t", fn, s.points[s.triangles].mean(axis=1)) > 0)  # still outward
+
+
+def test_the_map_to_the_mesh_is_continuous_and_inside_each_parent(ball):
+    """A vertex shared by several subdivided triangles is put at the same mesh point by each (to round-off: the
+    corners are dyadic fractions), inside its parent (barycentrics in [0, 1] summing to 1); and interpolating a
+    per-vertex quantity of the mesh gives the value at that point."""
+    P, T = ball
+    s = sd.subdivide(P, T, 2)
+    assert s.corners.min() >= 0 and s.corners.max() <= 1
+    assert np.abs(s.corners.sum(axis=2) - 1).max() <= 1e-15
+    pp = param_points(s, P, T).reshape(-1, 3)
+    v = s.triangles.ravel()
+    first = np.full((len(s.points), 3), np.nan)
+    first[v] = pp  # the last writer wins; compare all against it
+    assert np.abs(pp - first[v]).max() <= 1e-17
+    q = s.interpolate(T, P)
+    assert np.abs(q - first).max() <= 1e-17
+
+
+def test_creases_are_kept_and_levels_follow_the_angle():
+    """A cube's edges are creases (90°): its faces stay flat and its corners stay put, whatever the levels; the
+    automatic choice adds no level to a mesh that is already flat away from its creases."""
+    m = trimesh.creation.box(extents=(0.02, 0.02, 0.02))
+    P, T = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+    s = sd.subdivide(P, T, 2)
+    assert np.abs(np.abs(s.points).max(axis=1) - 0.01).max() <= 1e-15  # every vertex on a face of the cube
+    for corner in P:
+        assert np.min(np.linalg.norm(s.points - corner, axis=1)) == 0.0
+    assert sd.choose_levels(P, T) == 0
+    assert sd.facet_angle(P, T) == 0.0
+
+
+def test_a_non_manifold_edge_is_refused():
+    P = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]], float)
+    T = np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])
+    with pytest.raises(ValueError, match="more than two"):
+        sd.subdivide(P, T, 1)
+
+
+def test_coarse_point_matches_the_map():
+    """The per-tick map (plain Python) equals the arrays' map for points inside subdivided triangles."""
+    m = trimesh.creation.icosphere(subdivisions=1, radius=1.0)
+    P, T = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+    s = sd.subdivide(P, T, 2)
+    rng = np.random.default_rng(0)
+    parent, corners = s.parent.tolist(), [tuple(r) for r in s.corners.reshape(-1, 9).tolist()]
+    for t in rng.integers(0, len(s.triangles), 50):
+        b = rng.dirichlet(np.ones(3))
+        tc, *beta = sd.coarse_point(parent, corners, int(t), *b)
+        assert tc == s.parent[t]
+        assert np.allclose(beta, b @ s.corners[t], rtol=0, atol=2e-16)  # the same sums in another order
+        assert math.isclose(sum(beta), 1.0, abs_tol=1e-15)
