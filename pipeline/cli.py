@@ -400,6 +400,10 @@ def add_export_table(sub) -> None:
     p.add_argument("--radius", type=float, help="mask radius in model units (default 2 mean edge lengths)")
     p.add_argument("--k-rigid", type=float, help="stiffness the support ramps to [N/m] (default: see Model.stiffness)")
     p.add_argument("--normal-radius", type=float, help="crease-blending radius of the contact normals (default 3 mask radii)")
+    p.add_argument("--levels", default="0", choices=["0", "1", "2", "3", "auto"],
+                   help="contact surface: 0 the mesh (default), n its Loop subdivision surface after n levels, auto "
+                        "the fewest levels whose facets meet the contact normals within 3.5 degrees (closed loops "
+                        "then give back less energy: see the haptics guide)")
     p.add_argument("--no-zeta", action="store_true",
                    help="leave out the zeta table (3n_c x 3n_c doubles): single contacts only, no deformation")
     p.set_defaults(func=cmd_export_table)
@@ -413,7 +417,8 @@ def cmd_export_table(args) -> int:
     model = Model.load(args.artifact)
     compressed = model.attrs.get("greens_form") == "hmatrix"
     out = export_table(model, Path(args.out), mask=args.mask, radius=args.radius, k_rigid=args.k_rigid,
-                       normal_radius=args.normal_radius, zeta=not args.no_zeta and not compressed)
+                       normal_radius=args.normal_radius, zeta=not args.no_zeta and not compressed,
+                       levels=args.levels if args.levels == "auto" else int(args.levels))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB)")
     if compressed and not args.no_zeta:
         n3 = 3 * len(model.contact)

@@ -224,13 +224,12 @@ def run_contact(contact, probes: np.ndarray) -> dict:
     n = len(probes)
     out = {"force": np.zeros((n, 3)), "status": np.zeros(n, int), "proxy": np.full((n, 3), np.nan),
            "depth": np.zeros(n), "stored": np.zeros(n)}
-    P = contact.surface.P
-    T = contact.surface.T
     for k, p in enumerate(probes):
         f, s = contact.step(p)
         out["force"][k], out["status"][k] = f, s
-        if contact.triangle >= 0:
-            out["proxy"][k] = np.asarray(contact.bary) @ P[T[contact.triangle]]
+        x = contact.proxy
+        if x is not None:
+            out["proxy"][k] = x
         out["depth"][k] = contact.depth
         if s in TOUCHING:
             out["stored"][k] = 0.5 * float(np.dot(-np.asarray(f), contact.u_bar))

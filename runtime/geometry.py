@@ -173,8 +173,20 @@ def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, cr
     the interpolated normal turns by the crease's angle within one ring of triangles, so a probe sliding
     over it deep turns the force by ~90° in ~3 mm; blended over ``radius`` it turns over ~2 x radius."""
     n = vertex_normals(points, triangles)
-    if not radius > 0 or len(triangles) == 0:
+    blend = crease_blend(points, triangles, radius, crease_deg)
+    if blend is None:
         return n
+    beta, smooth = blend
+    out = (1.0 - beta) * n + beta * smooth
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def crease_blend(points: np.ndarray, triangles: np.ndarray, radius: float, crease_deg: float = 30.0):
+    """:func:`contact_normals`' blend: (β (n, 1), the ball-averaged normals (n, 3)), β the smoothstep of the
+    distance to the nearest crease vertex over ``radius`` (1 on a crease, 0 from ``radius`` on); None without
+    creases.  The contact normal is (1 − β) n + β n_ball, normalised."""
+    if not radius > 0 or len(triangles) == 0:
+        return None
     fn = triangle_normals(points, triangles)
     nb = triangle_neighbours(triangles)
     t = np.repeat(np.arange(len(triangles)), 3)
@@ -189,7 +201,7 @@ def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, cr
     crease[triangles[tt, (kk + 1) % 3]] = True
     crease[triangles[tt, (kk + 2) % 3]] = True
     if not crease.any():
-        return n
+        return None
     pairs = surface_pairs_within(points, triangles, radius)
     i, j = pairs
     near = crease[j]
@@ -197,5 +209,4 @@ def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, cr
     np.minimum.at(d, i[near], np.sqrt(np.sum((points[i[near]] - points[j[near]]) ** 2, axis=1)))
     x = np.clip(1.0 - d / radius, 0.0, 1.0)
     beta = (x * x * (3.0 - 2.0 * x))[:, None]
-    out = (1.0 - beta) * n + beta * smoothed_normals(points, triangles, radius, pairs)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
+    return beta, smoothed_normals(points, triangles, radius, pairs)

@@ -6,8 +6,9 @@ linear --radius R -o FILE``, or :func:`export_table`); the native servo core
 the rendered per-vertex stiffness K_i (eq. 12 with the support blend and the region taper of
 :mod:`pmask.runtime.stiffness`), so an application needs neither Ξ nor the masks.
 
-Format 1.1, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
-contact law needs; a 1.0 table is refused with the advice to export it again)::
+Format 1.3, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
+contact law needs, and a 1.0 table is refused with the advice to export it again; 1.2 the display surface; 1.3
+the subdivided contact surface's map to the mesh, ``mesh_triangles``, ``parent`` and ``corners``)::
 
     header (64 bytes)   "PMASKTBL", u32 major, u32 minor, u64 file size, u64 directory offset (64),
                         u32 section count, u32 CRC-32 of the header (this field zero) and the directory,
@@ -16,7 +17,9 @@ contact law needs; a 1.0 table is refused with the advice to export it again)::
                         3 bytes), u32 CRC-32 of its data, u64 offset, u64 rows, u64 columns
     sections            each at an offset that is a multiple of 64
 
-Sections (n_s surface vertices, n_t triangles, n_c contact vertices):
+Sections (n_s vertices and n_t triangles of the contact surface, n_m vertices and n_mt triangles of the
+finite-element mesh's surface under it, n_c contact vertices; the contact surface is the mesh's Loop subdivision
+surface, :mod:`pmask.runtime.contact.subdivision`, or the mesh itself when ``parent`` is absent):
 
 ================= ============ ==========================================================================
 points            n_s x 3      vertex positions [model units]
@@ -34,7 +37,11 @@ bounds            2 x 3        bounding box (lower, upper corner)
 lengths           1 x 2        mean edge length, bounding-box diagonal
 zeta              3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
                                the deformation of eq. 16
-contact_row       n_s x 1      with zeta: each surface vertex's row block, -1 for none
+contact_row       n_m x 1      with zeta: each mesh vertex's row block, -1 for none
+mesh_triangles    n_mt x 3     optional (1.3): the mesh's surface triangles, where ζ and the display live
+parent            n_t x 1      with mesh_triangles: the mesh triangle each contact triangle lies in
+corners           n_t x 9      with mesh_triangles: the barycentrics there of its corners (row-major, corner k
+                               in columns 3k..3k+2): a point (t, b) is Σ_k b_k corners_k of triangle parent_t
 display_points    n_d x 3      optional (1.2): the display surface at the scan's resolution (:mod:`pmask.runtime.display`)
 display_triangles n_dt x 3     with display_points: its triangles
 display_vertices  n_d x 3      with display_points: each display vertex's simulation triangle's vertices
@@ -64,7 +71,7 @@ from pmask.errors import InputError
 from pmask.runtime.files import atomic_write
 
 MAGIC = b"PMASKTBL"
-TABLE_MAJOR, TABLE_MINOR = 1, 2
+TABLE_MAJOR, TABLE_MINOR = 1, 3
 HEADER, ENTRY, NAME = 64, 64, 32
 F64, I64, BYTES = 1, 2, 3
 
@@ -84,6 +91,8 @@ def surface_sections(surface, zeta: bool = True, display=None) -> dict:
         "linear_depth": s.linear_depth[:, None],
         "bounds": np.stack([s.lo, s.hi]), "lengths": np.array([[s.mean_edge, s.diag]]),
     }
+    if s.levels:
+        out.update({"mesh_triangles": s.mesh_T, "parent": s.parent[:, None], "corners": s.corners})
     coupling = s.coupling() if zeta else None
     if coupling is not None:
         Zt, row = coupling
@@ -212,7 +221,7 @@ def read_table(source) -> dict:
 _SHAPES = {"points": (None, 3), "triangles": (None, 3), "neighbours": ("t", 3), "frames": ("t", 12),
            "normals": ("v", 3), "stiffness": ("v", 9), "taper": ("v", 1), "normal_stiffness": ("v", 1),
            "gradient": ("v", 3), "shape": ("v", 9), "linear_depth": ("v", 1), "bounds": (2, 3), "lengths": (1, 2)}
-_INTS = {"triangles", "neighbours", "contact_row"}
+_INTS = {"triangles", "neighbours", "contact_row", "mesh_triangles", "parent"}
 
 
 def _check(t: dict, where: str) -> None:
@@ -247,6 +256,23 @@ def _check(t: dict, where: str) -> None:
     if len(bad):
         raise TableError(f"{where}: runtime table: the stiffness at surface vertex {int(bad[0])} is not positive "
                          "definite (a corrupt or hand-edited table; export it again from a checked artifact)")
+    nm = nv
+    if "parent" in t or "mesh_triangles" in t or "corners" in t:
+        mt, par, cor = (t.get(k) for k in ("mesh_triangles", "parent", "corners"))
+        if mt is None or par is None or cor is None:
+            raise TableError(f"{where}: not a complete runtime table: 'mesh_triangles', 'parent' and 'corners' go "
+                             "together (export it again)")
+        if (mt.dtype.kind != "i" or mt.ndim != 2 or mt.shape[1] != 3 or len(mt) < 1 or par.dtype.kind != "i"
+                or par.shape != (nt, 1) or cor.dtype.kind != "f" or cor.shape != (nt, 9)):
+            raise TableError(f"{where}: corrupt runtime table: the contact surface's map to the mesh has the wrong "
+                             "type or shape")
+        if mt.min() < 0 or par.min() < 0 or par.max() >= len(mt):
+            raise TableError(f"{where}: corrupt runtime table: a mesh triangle index is out of range")
+        if not (np.all(np.isfinite(cor)) and cor.min() >= 0 and cor.max() <= 1
+                and np.all(np.abs(cor.reshape(-1, 3, 3).sum(axis=2) - 1.0) <= 1e-8)):
+            raise TableError(f"{where}: corrupt runtime table: the corners' barycentrics are not in [0, 1] "
+                             "summing to 1")
+        nm = int(mt.max()) + 1
     if "zeta" in t:
         Z = t["zeta"]
         if Z.dtype.kind != "f" or Z.shape[0] != Z.shape[1] or Z.shape[0] % 3:
@@ -256,28 +282,29 @@ def _check(t: dict, where: str) -> None:
         row = t.get("contact_row")
         if row is None:
             raise TableError(f"{where}: not a complete runtime table: section 'contact_row' is missing (export it again)")
-        if row.dtype.kind != "i" or row.shape != (nv, 1):
+        if row.dtype.kind != "i" or row.shape != (nm, 1):
             raise TableError(f"{where}: corrupt runtime table: section 'contact_row' has the wrong type or shape {row.shape}")
         if row.min() < -1 or row.max() >= Z.shape[0] // 3:
             raise TableError(f"{where}: corrupt runtime table: a contact row is out of range")
 
 
 def export_table(artifact, out, *, mask: str = "linear", radius: float | None = None, k_rigid: float | None = None,
-                 normal_radius: float | None = None, zeta: bool = True, device=None) -> Path:
+                 normal_radius: float | None = None, zeta: bool = True, device=None, levels=0) -> Path:
     """Export a runtime table from an artifact: :meth:`pmask.runtime.Model.stiffness` for the mask and
     radius, the contact surface of :class:`pmask.runtime.contact.ContactSurface`, and (``zeta``) the ζ table
     for several coupled contacts and the deformation (3n_c x 3n_c doubles: 150 MB at the default
-    kidney's 1,446 contact vertices).  radius : default :attr:`pmask.runtime.Model.default_radius`."""
+    kidney's 1,446 contact vertices).  radius : default :attr:`pmask.runtime.Model.default_radius`.  levels : the
+    contact surface's subdivision (:class:`pmask.runtime.Contacts`; 0 the mesh, "auto" the automatic choice)."""
     from pmask.runtime.contact import ContactSurface
     from pmask.runtime.model import Model
 
     model = artifact if isinstance(artifact, Model) else Model.load(artifact)
     stiff = model.stiffness(mask, radius, k_rigid=k_rigid, device=device)
-    surface = ContactSurface(stiff, normal_radius)
+    surface = ContactSurface(stiff, normal_radius, None if levels == "auto" else int(levels))
     meta = {"format": f"{TABLE_MAJOR}.{TABLE_MINOR}", "mask": stiff.masks.kind, "radius": stiff.masks.radius,
             "k_rigid": stiff.k_rigid, "symmetric": stiff.symmetric, "support_blend": stiff.support_blend,
-            "normal_radius": surface.normal_radius, "units": {"length": "model units (as the artifact)",
-                                                              "stiffness": "N/m"},
+            "normal_radius": surface.normal_radius, "levels": surface.levels,
+            "units": {"length": "model units (as the artifact)", "stiffness": "N/m"},
             "source": str(getattr(model, "path", "")), "source_digest": str(model.attrs.get("metadata_sha256", "")),
             "pmask_version": _version()}
     return write_table(out, surface, meta, zeta, display=model.display())

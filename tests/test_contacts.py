@@ -191,6 +191,36 @@ def test_two_instruments_press_through_each_other(model, stiff):
     assert np.linalg.norm(fc[0]) < np.linalg.norm(fa[0]) and np.linalg.norm(fc[1]) < np.linalg.norm(fa[1])
 
 
+def test_both_engines_run_the_subdivided_surface_and_map_contacts_to_the_mesh(model, stiff):
+    """On the Loop subdivision surface (levels=2) two coupled contacts 12 mm apart press 3 mm and slide 3 mm: the native
+    core (table 1.3, which maps each contact to its mesh triangle for ζ) gives the Python engine's forces to
+    1e-12 N and its deformation to 1e-12 of its largest value; the proxies run on subdivided triangles (more of
+    them than the mesh has); and the displayed surface meets each contact where the map puts it: the mesh's
+    deformation interpolated at the contact's mesh point equals the contact's displacement ū' (to 1e-8 of it,
+    as on the mesh: a wrong map would miss by the displacement's change over the gap, ~10 %)."""
+    top = model.contact[model.core]
+    i = top[np.argmax(model.points[top, 2])]
+    n = vertex_normals(model.points, model.triangles)[i]
+    starts = [model.points[i], model.points[i] + np.array([0.012, 0.0, -0.001])]
+    path = [[s - min(d, 3e-3) * n + np.array([0.0, max(d - 3e-3, 0.0), 0.0]) for s in starts]
+            for d in np.linspace(-1e-3, 6e-3, 700)]
+    engines = {e: Contacts(stiff, 2, engine=e, levels=2) for e in ("python", "native")}
+    forces = {e: np.array([c.step(p)[0] for p in path]) for e, c in engines.items()}
+    np.testing.assert_allclose(forces["native"], forces["python"], rtol=0, atol=1e-12)
+    srf = engines["python"].surface
+    assert srf.levels == 2 and len(srf.T) == 16 * len(model.triangles)
+    assert np.linalg.norm(forces["python"][-1], axis=1).min() > 0.01  # both still pressing
+    v = {e: c.deformation() for e, c in engines.items()}
+    assert v["python"].shape == (len(model.points), 3)
+    np.testing.assert_allclose(v["native"], v["python"], rtol=0, atol=1e-12 * np.abs(v["python"]).max())
+    c = engines["python"]
+    for st in c.states:
+        assert st.status == Status.CONTACT
+        tm, *beta = srf.mesh_point(st.tri, *st.b)
+        moved = np.asarray(beta) @ v["python"][model.triangles[tm]]
+        assert np.linalg.norm(moved - st.u_bar) <= 1e-8 * np.linalg.norm(st.u_bar)
+
+
 def test_the_displayed_surface_meets_the_tool(model, stiff):
     """The display deformation (eq. 16 with the display forces) moves the surface point under each
     contact exactly by that contact's displacement ū': within 1 % of |ū'| (here to round-off)."""
@@ -205,8 +235,15 @@ def test_the_displayed_surface_meets_the_tool(model, stiff):
         v = c.deformation()
         for st in c.states:
             assert st.status == Status.CONTACT
-            moved = np.asarray(st.b) @ v[model.triangles[st.tri]]
+            tm, *beta = c.surface.mesh_point(st.tri, *st.b)  # the contact's point on the mesh, where v lives
+            moved = np.asarray(beta) @ v[model.triangles[tm]]
             assert np.linalg.norm(moved - st.u_bar) <= 1e-8 * np.linalg.norm(st.u_bar)
+
+
+def on_mesh(surface, where):
+    """[(mesh triangle, barycentrics)] of contact-surface points [(triangle, barycentrics)]: where the full
+    solve's loads and displacements sit (the contact surface is the mesh's subdivision surface)."""
+    return [(tm, np.array(beta)) for tm, *beta in (surface.mesh_point(t, *b) for t, b in where)]
 
 
 def fe_compliance(model, stiff, points):
@@ -260,7 +297,7 @@ def test_a_grasp_with_friction_lies_between_the_sliding_and_the_stuck_solve(mode
             N = [np.array(normal(srf, t, *b)) for t, b in where]
         else:
             assert not any(st.sliding for st in c._states)  # a squeeze without sideways motion holds
-    C = fe_compliance(model, stiff, where)
+    C = fe_compliance(model, stiff, on_mesh(c.surface, where))
     ubar = np.concatenate([path[-1][l] - x[l] for l in range(2)])
     NN = np.zeros((6, 2))
     NN[0:3, 0], NN[3:6, 1] = N[0], N[1]
@@ -409,7 +446,7 @@ def test_frictionless_pairs_and_triples_meet_the_full_solve(model, stiff, count)
     N = [np.array(normal(c.surface, t, *b)) for t, b in where]
     probes = [s - 1.5e-3 * d for s, d in zip(starts, dirs)]
     ubar = np.concatenate([p - xl for p, xl in zip(probes, x)])
-    C = fe_compliance(model, stiff, where)
+    C = fe_compliance(model, stiff, on_mesh(c.surface, where))
     NN = np.zeros((3 * count, count))
     for l in range(count):
         NN[3 * l:3 * l + 3, l] = N[l]
@@ -455,7 +492,7 @@ def test_a_contact_the_other_carries_away_is_released_exactly_in_both_engines(mo
     N = [np.array(normal(c.surface, t, *bb)) for t, bb in where]
     ubar = np.concatenate([np.asarray(p) - xl for p, xl in zip(path[-1], x)])
     assert all(np.dot(ubar[3 * l:3 * l + 3], N[l]) < 0 for l in range(2))  # both probes below the undeformed surface
-    C = fe_compliance(model, stiff, where)
+    C = fe_compliance(model, stiff, on_mesh(c.surface, where))
     NN = np.zeros((6, 2))
     NN[0:3, 0], NN[3:6, 1] = N[0], N[1]
     A, r = NN.T @ C @ NN, -NN.T @ ubar

@@ -31,9 +31,9 @@ def kidney(model, stiff):
              "lateral face": lateral[np.argmax(P[lateral, 1])], "support rim": free[np.argmin(to_support)],
              "hilum's lip": free[np.argmin(curv[free])]}
     normals = {}
-    for name, v in sites.items():
-        t = int(np.flatnonzero(np.any(T == v, axis=1))[0])
-        normals[name] = (P[v], np.array(tracking.normal(srf, t, *(T[t] == v).astype(float))))
+    for name, v in sites.items():  # the contact surface keeps the mesh's vertices, indices and positions
+        t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])
+        normals[name] = (P[v], np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float))))
     b = np.array([(i, j, 12 - i - j) for i in range(13) for j in range(13 - i)], float) / 12
     tree = cKDTree(np.einsum("sk,tkd->tsd", b, P[T]).reshape(-1, 3))
     return normals, tree

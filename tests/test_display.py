@@ -8,6 +8,7 @@ import pytest
 from pmask.pipeline.stages import Spec, run
 from pmask.precompute.meshing import surface_distance
 from pmask.runtime import HapticContact, Model
+from pmask.runtime.contact import tracking
 from test_viewer import browser  # noqa: F401  (the headless chromium fixture)
 
 
@@ -155,7 +156,7 @@ def test_the_viewer_shows_the_scan_and_deforms_it_as_the_runtime_does(browser, s
         st = c.states[0]
         assert int(st.status) == 1, browser.find_element("id", "status0").text
         u = c.deformation()
-        proxy = np.einsum("k,kc->c", np.asarray(st.b), model.points[model.triangles[st.tri]])
+        proxy = np.asarray(tracking.point(c.surface, st.tri, *st.b))  # as the server sends it
         want = ds.deform(u, [proxy], session.radius)
         near = np.argsort(np.linalg.norm(ds.points - proxy, axis=1))[:20]
         shown = np.array([browser.execute_script(f"return window.pmaskView.scanPosition({int(d)})") for d in near])

@@ -28,15 +28,17 @@ def loop_energy(stiff, probes, start, n, **options):
     return float(np.sum(F[seg][:-1] * np.diff(probes[seg], axis=0))), float(stored[seg].max())
 
 
-@pytest.fixture(scope="module")
-def grid(model, stiff):
-    """Every loop's (given with the controller off, given with it on, peak) as fractions of the peak."""
-    P, T = model.points, model.triangles
+@pytest.fixture(scope="module", params=[0, 2], ids=["mesh", "subdivided"])
+def grid(request, model, stiff):
+    """Every loop's (given with the controller off, given with it on, peak) as fractions of the peak, on the mesh
+    (levels=0, the default) and on its Loop subdivision surface after two levels (levels=2)."""
+    levels = request.param
+    P = model.points
     free = model.contact[model.core]
     v = free[np.argmax(P[free, 2] - 0.2 * np.abs(P[free, 0] - 0.01))]  # the upper face, 10 mm off the middle
-    srf = HapticContact(stiff, engine="python").surface
-    t = int(np.flatnonzero(np.any(T == v, axis=1))[0])
-    N = np.array(tracking.normal(srf, t, *(T[t] == v).astype(float)))
+    srf = HapticContact(stiff, engine="python", levels=levels).surface
+    t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])  # the contact surface keeps the mesh's vertices
+    N = np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float)))
     a = np.cross(N, [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(N, a)
@@ -51,31 +53,37 @@ def grid(model, stiff):
         approach = np.linspace(loop[0] + (depth + 0.003) * N, loop[0], int((depth + 0.003) / step))
         probes = np.vstack([approach, loop[1:], loop[1:], loop[1:]])
         start = len(approach) + 2 * n
-        off, peak = loop_energy(stiff, probes, start, n, passivity=False)
-        on, _ = loop_energy(stiff, probes, start, n)
+        off, peak = loop_energy(stiff, probes, start, n, passivity=False, levels=levels)
+        on, _ = loop_energy(stiff, probes, start, n, levels=levels)
         out[(depth, tilt, r, sense)] = (off / peak, on / peak)
-    return out
+    return levels, out
 
 
 def test_the_law_is_passive_round_closed_loops_without_the_controller(grid):
-    """With the passivity controller off, no loop gives the hand more than 2 % of its peak stored energy
-    (measured 1.75 %, the 2 mm circle of 5 mm tilted 30°; the issue asks 1 %: what remains is the flat
-    triangles under interpolated normals, the proxy moving on facets while the force follows N, k δ (N − n_f)·dx
-    over the part of a loop in contact, up to 4° between N and a facet's normal on this mesh; it was 5.2 % on a
-    45° circle and ~5 % at depth before).  Measured by hand: adding the exact gradient of the energy on the
-    facets, −φ (n_f / (n_f·N) − N), takes four loops (the worst two among them) within ±0.15 % (that term is
-    nearly all of it), but it jumps at every edge: a 2 mm deep slide over the top changes the force by 4.1 mN
-    in one tick against 0.07 mN without it, 60x; its per-vertex average is ~0 (a vertex normal is its facets'
-    average).  A passive law with a continuous force needs a surface whose normal is N (C¹), in both engines."""
-    worst = max(grid.items(), key=lambda kv: kv[1][0])
-    assert worst[1][0] <= 0.02, worst
-    assert len(grid) == 36
+    """With the passivity controller off, no loop gives the hand more than 1 % of its peak stored energy on the
+    subdivided contact surface (the issue's bound; measured 0.23 %) and 2 % on the mesh (measured 1.75 %, the
+    2 mm circle of 5 mm tilted 30°; it was 5.2 % on a 45° circle and ~5 % at depth before).
+
+    On the mesh what remains is the flat triangles under interpolated normals, the proxy moving on facets while
+    the force follows N, k δ (N − n_f)·dx over the part of a loop in contact (N and a facet's normal up to 9°
+    apart on this mesh).  Measured by hand: adding the exact gradient of the energy on the facets,
+    −φ (n_f / (n_f·N) − N), takes four loops (the worst two among them) within ±0.15 % (that term is nearly all of
+    it), but it jumps at every edge: a 2 mm deep slide over the top changes the force by 4.1 mN in one tick
+    against 0.07 mN without it, 60x.  Loop's subdivision surface halves the angle a level (2.95° after two), so
+    the interpolated normal is the facets' to within it and the force stays continuous (the tour's bounds,
+    tests/test_haptics.py, hold on it too)."""
+    levels, loops = grid
+    worst = max(loops.items(), key=lambda kv: kv[1][0])
+    assert worst[1][0] <= (0.01 if levels else 0.02), worst
+    assert len(loops) == 36
 
 
 def test_the_controller_takes_little_where_the_law_is_passive(grid):
-    """With the controller on it takes at most 2.5 % of a loop's peak energy beyond what the law itself
-    dissipates (measured 2.15 %; the issue asks 2 %; it dragged 476-614 µJ over a rim slide before, when a new
-    contact's first tick, the device holding no force yet, counted as energy the hand had not put in)."""
-    took = {k: off - on for k, (off, on) in grid.items()}
+    """With the controller on it takes at most 2 % of a loop's peak energy beyond what the law itself dissipates
+    on the subdivided surface (the issue's bound; measured 0.55 %) and 2.5 % on the mesh (measured 2.15 %; it
+    dragged 476-614 µJ over a rim slide before, when a new contact's first tick, the device holding no force yet,
+    counted as energy the hand had not put in)."""
+    levels, loops = grid
+    took = {k: off - on for k, (off, on) in loops.items()}
     worst = max(took.items(), key=lambda kv: kv[1])
-    assert worst[1] <= 0.025, worst
+    assert worst[1] <= (0.02 if levels else 0.025), worst

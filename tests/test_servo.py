@@ -221,10 +221,12 @@ def test_a_probe_far_outside_is_reported_once_by_the_native_engine(surface, capl
 def test_a_table_round_trips_and_both_loaders_read_the_same(table_path, surface):
     t = read_table(table_path)
     srf = ContactSurface.from_table(t)
-    for name in ("P", "T", "tri_geom", "neighbours", "vertex_normals", "K", "taper", "gradient"):
+    for name in ("P", "T", "tri_geom", "neighbours", "vertex_normals", "K", "taper", "gradient", "mesh_T", "parent",
+                 "corners"):
         assert np.array_equal(getattr(srf, name), getattr(surface, name)), name
+    assert srf.levels == surface.levels
     native = servo.load_table(table_path)
-    assert native.counts() == (len(surface.P), len(surface.T), 1)
+    assert native.counts() == (surface.n_mesh, len(surface.mesh_T), 1)  # the mesh's: the deformation's size
     assert servo.table_meta(native)["mask"] == "linear"
     # K(x) in a batch from C against eq. 15 in numpy
     rng = np.random.default_rng(3)
@@ -360,6 +362,29 @@ def test_a_table_over_arrays_holds_them_and_reads_as_the_file_does(surface, tabl
                           "points": surface.P.astype(np.float32)})
 
 
+def test_a_subdivided_table_round_trips_and_a_broken_map_is_refused(stiff, tmp_path):
+    """Table 1.3 with the subdivided contact surface: both loaders read the same surface and its map to the mesh
+    (the C loader's counts are the mesh's, the size of the deformation it returns); a map that points outside the
+    mesh or corners that are not barycentrics are refused by both with one line."""
+    surface = ContactSurface(stiff, levels=1)
+    surface.coupling()
+    path = write_table(tmp_path / "sub.tbl", surface, {"mask": "linear", "levels": 1})
+    t = read_table(path)
+    srf = ContactSurface.from_table(t)
+    assert srf.levels == 1 and len(srf.T) == 4 * len(srf.mesh_T)
+    for name in ("P", "T", "mesh_T", "parent", "corners", "K", "vertex_normals"):
+        assert np.array_equal(getattr(srf, name), getattr(surface, name)), name
+    assert servo.load_table(path).counts() == (surface.n_mesh, len(surface.mesh_T), 1)
+    sections = {k: v for k, v in t.items() if k != "meta"}
+    for name, value, message in (("parent", np.full_like(t["parent"], len(t["mesh_triangles"])), "out of range"),
+                                 ("corners", t["corners"] * 2.0, "barycentrics")):
+        data = bytes(table_bytes({**sections, name: value}, t["meta"]))
+        with pytest.raises(TableError, match=message):
+            read_table(data)
+        with pytest.raises(TableError, match=message):
+            servo.load_table(data)
+
+
 def test_a_newer_minor_table_with_an_unknown_section_is_read(table_path):
     data = bytearray(_rewrite(table_path.read_bytes(), extra={"future_section": np.ones((4, 2))}))
     data[12:16] = struct.pack("<I", 7)  # minor 7
@@ -379,6 +404,13 @@ def test_export_table_command(kidney_small, tmp_path):
     t = read_table(out)
     assert t["meta"]["mask"] == "linear" and t["meta"]["radius"] == pytest.approx(0.006)
     assert "zeta" in t and servo.load_table(out).counts()[2] == 1
+    assert "parent" not in t and t["meta"]["levels"] == 0  # the mesh by default
+    r = subprocess.run([sys.executable, "-m", "pmask.pipeline", "export-table", str(kidney_small), "--levels", "auto",
+                        "-o", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    t = read_table(out)  # the coarse test kidney: the automatic choice subdivides it
+    assert t["meta"]["levels"] >= 2 and len(t["triangles"]) == 4 ** t["meta"]["levels"] * len(t["mesh_triangles"])
+    assert servo.load_table(out).counts()[:2] == (int(t["mesh_triangles"].max()) + 1, len(t["mesh_triangles"]))
     bad = subprocess.run([sys.executable, "-m", "pmask.pipeline", "export-table", str(kidney_small), "--radius", "-1", "-o", str(out)],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "radius" in bad.stderr

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError, PmaskError
+from pmask.runtime.contact import tracking
 from pmask.runtime.haptics import Contacts, Status
 from pmask.runtime.model import Model
 
@@ -189,16 +190,15 @@ class ViewerSession:
             states = c.states
             stats = c.tick_stats()
             u = c.deformation() if deform else None
-        P, T = self.model.points, self.model.triangles
         out = []
         for k, (f, s, st) in enumerate(zip(forces, statuses, states)):
             f = [float(x) for x in f]
             entry = {"probe": shown[k], "force": f, "force_norm": math.sqrt(sum(x * x for x in f)),
                      "status": Status(int(s)).name, "depth": float(st.depth), "proxy": None, "k_norm": None}
             if st.tri >= 0 and shown[k] is not None:
-                b = np.asarray(st.b, float)
-                entry["proxy"] = (b @ P[T[st.tri]]).tolist()
-                K = (b @ stiffness.table[st.tri]).reshape(3, 3)
+                entry["proxy"] = list(tracking.point(c.surface, st.tri, *st.b))  # on the contact surface
+                tm, *beta = c.surface.mesh_point(st.tri, *st.b)  # K(x) (eq. 15) on the mesh, where K_i live
+                K = (np.asarray(beta) @ stiffness.table[tm]).reshape(3, 3)
                 entry["k_norm"] = float(np.linalg.norm(K, 2))
             out.append(entry)
         reply = {"contacts": out, "servo": {"engine": c.engine, "rate": self.rate, "ticks": int(stats["ticks"]),

@@ -180,8 +180,9 @@ PIVOTS = 4
 
 def coupling_blocks(c, states, active):
     """C_lk (symmetrised, 9 floats row-major) for every ordered pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy
-    over the pair's vertex-pair blocks (:meth:`pmask.runtime.contact.ContactSurface.pair_blocks`), which are
-    kept in ``c._pair_blocks`` while both contacts stay on the same triangles."""
+    over the pair's vertex-pair blocks (:meth:`pmask.runtime.contact.ContactSurface.pair_blocks` of their mesh
+    triangles, φ their barycentrics there), which are kept in ``c._pair_blocks`` while both contacts stay on the
+    same triangles."""
     srf = c.surface
     cache = c._pair_blocks
     out = {}
@@ -191,8 +192,10 @@ def coupling_blocks(c, states, active):
                 ta, tb = states[a].tri, states[b].tri
                 hit = cache.get((a, b))
                 if hit is None or hit[0] != ta or hit[1] != tb:
-                    hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(ta, tb))
-                P, (a0, a1, a2), (b0, b1, b2) = hit[2], states[a].b, states[b].b
+                    hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(srf._parent[ta], srf._parent[tb]))
+                P = hit[2]
+                _, a0, a1, a2 = srf.mesh_point(ta, *states[a].b)  # φ on the mesh triangles, where ζ lives
+                _, b0, b1, b2 = srf.mesh_point(tb, *states[b].b)
                 # S_k = Σ_xy w_xy P_xy,k as three row sums t_x = Σ_y w_xy P_xy,k (block xy at 9 (3x + y)), then
                 # (t_0 + t_1) + t_2, as the C's (whose tick waits on the chain of adds); a zero weight adds ±0,
                 # which leaves a sum as it was (P is finite)

@@ -24,11 +24,14 @@ force keeps growing and its direction stays near the normal there).
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 
-from pmask.runtime.geometry import contact_normals, triangle_areas, triangle_frames, triangle_neighbours
+from pmask.runtime.geometry import (contact_normals, crease_blend, triangle_areas, triangle_frames, triangle_neighbours,
+                                    vertex_normals)
+from pmask.runtime.contact.subdivision import choose_levels, coarse_point, subdivide
 from pmask.runtime.spatial import TriangleGrid
 from pmask.runtime.stiffness import table_block, zeta_compliance, zeta_deformation
 
@@ -37,6 +40,8 @@ from pmask.runtime.stiffness import table_block, zeta_compliance, zeta_deformati
 DEEP_ANGLE = math.radians(45.0)
 #: and past this many mask radii of depth the contact is no longer point-like: δ_lin ≤ DEEP_MASK_RADII r
 DEEP_MASK_RADII = 1.5
+
+log = logging.getLogger(__name__)
 
 
 class ContactSurface:
@@ -48,22 +53,34 @@ class ContactSurface:
 
     stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
     normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
+    levels : the contact surface, see :class:`Contacts`: 0 the mesh, n its Loop subdivision surface after n
+    levels (:mod:`pmask.runtime.contact.subdivision`), None the automatic choice.  The mesh's vertices keep
+    their indices and positions; ``mesh_T``, ``parent`` and ``corners`` map a contact point to the mesh
+    (:meth:`mesh_point`), where ζ, the deformation and the model's own arrays live.
     """
 
-    def __init__(self, stiffness, normal_radius: float | None = None):
-        P = np.asarray(stiffness.points, float)
-        T = np.asarray(stiffness.triangles, np.int64)
+    def __init__(self, stiffness, normal_radius: float | None = None, levels: int | None = 0):
+        P0 = np.asarray(stiffness.points, float)
+        T0 = np.asarray(stiffness.triangles, np.int64)
+        e = np.linalg.norm(P0[T0[:, 1]] - P0[T0[:, 0]], axis=1)
+        mean_edge = float(e.mean()) if len(e) else 1.0  # the mesh's: the contact's scales do not change with levels
+        if levels is None:
+            levels = choose_levels(P0, T0)
+        try:
+            sub = subdivide(P0, T0, int(levels))
+        except ValueError as err:  # not a manifold: the mesh's own triangles
+            log.warning("contact surface not subdivided (%s)", err)
+            sub = subdivide(P0, T0, 0)
+        P, T = sub.points, sub.triangles
         frames = triangle_frames(P, T)
-        e = np.linalg.norm(P[T[:, 1]] - P[T[:, 0]], axis=1)
-        mean_edge = float(e.mean()) if len(e) else 1.0
         masks = getattr(stiffness, "masks", None)
         r = getattr(masks, "radius", 0.0) if masks is not None else 0.0
         mask_radius = r if r > 0 else 2.0 * mean_edge  # a single-vertex mask or a bare surface: 2 mean edges
         if normal_radius is None:
             normal_radius = 3.0 * mask_radius
-        normals = contact_normals(P, T, float(normal_radius))
-        K = np.asarray(stiffness.K_vertex, float).reshape(len(P), 9)
-        taper = np.asarray(getattr(stiffness, "taper", np.ones(len(P))), float)
+        normals = self._normals(sub, P0, T0, float(normal_radius))
+        K = sub.interpolate(T0, np.asarray(stiffness.K_vertex, float).reshape(len(P0), 9))
+        taper = sub.interpolate(T0, np.asarray(getattr(stiffness, "taper", np.ones(len(P0))), float))
         k = normal_stiffness(K, normals, taper)
         gradient = normal_stiffness_gradient(P, T, k, frames[:, 3:6], frames[:, 6:9])
         shape = shape_operators(P, T, normals, frames)
@@ -71,9 +88,37 @@ class ContactSurface:
         lo, hi = P.min(axis=0), P.max(axis=0)
         self._setup(P, T, frames, triangle_neighbours(T), normals, K, taper, k, gradient, shape,
                     linear_depths(shape, mask_radius), grid, lo, hi, mean_edge, float(np.linalg.norm(hi - lo)),
-                    float(normal_radius))
+                    float(normal_radius), (T0, sub.parent, sub.corners.reshape(-1, 9)) if sub.levels else None)
+        self.levels = sub.levels
         self.stiffness = stiffness
         self.meta = {}
+
+    @classmethod
+    def of(cls, stiffness, normal_radius: float | None = None, levels: int | None = 0) -> "ContactSurface":
+        """The contact surface of a stiffness, built once per normal radius and levels and kept on it (a
+        stiffness's mesh and K do not change; a subdivided surface takes a second or so to build, and the native
+        core's table is kept per surface)."""
+        cache = stiffness.__dict__.setdefault("_contact_surfaces", {})
+        key = (None if normal_radius is None else float(normal_radius), levels)
+        if key not in cache:
+            cache[key] = cls(stiffness, normal_radius, levels)
+        return cache[key]
+
+    @staticmethod
+    def _normals(sub, P0, T0, normal_radius):
+        """Contact normals: :func:`pmask.runtime.geometry.contact_normals` on the mesh; on a subdivided surface its
+        own vertex normals (the facets meet at small angles, so these are the normals of the surface the proxy
+        moves on), blended near the mesh's creases as the mesh's are (the blend weight and the ball-averaged
+        normals of the mesh, interpolated)."""
+        if not sub.levels:
+            return contact_normals(P0, T0, normal_radius)
+        n = vertex_normals(sub.points, sub.triangles)
+        blend = crease_blend(P0, T0, normal_radius)
+        if blend is None:
+            return n
+        beta, smooth = (sub.interpolate(T0, x) for x in blend)
+        out = (1.0 - beta) * n + beta * smooth
+        return out / np.linalg.norm(out, axis=1, keepdims=True)
 
     @classmethod
     def from_table(cls, table) -> "ContactSurface":
@@ -87,7 +132,9 @@ class ContactSurface:
         srf = cls.__new__(cls)
         srf._setup(P, T, t["frames"], t["neighbours"], t["normals"], t["stiffness"], t["taper"][:, 0],
                    t["normal_stiffness"][:, 0], t["gradient"], t["shape"], t["linear_depth"][:, 0], grid,
-                   t["bounds"][0], t["bounds"][1], mean_edge, diag, float(t["meta"].get("normal_radius", 0.0)))
+                   t["bounds"][0], t["bounds"][1], mean_edge, diag, float(t["meta"].get("normal_radius", 0.0)),
+                   (t["mesh_triangles"], t["parent"][:, 0], t["corners"]) if "parent" in t else None)
+        srf.levels = int(t["meta"].get("levels", 1 if "parent" in t else 0))
         srf.stiffness = None
         srf.meta = t["meta"]
         if not isinstance(table, (dict, bytes, bytearray, memoryview)):  # the native core loads the same file
@@ -97,9 +144,18 @@ class ContactSurface:
         return srf
 
     def _setup(self, P, T, frames, neighbours, normals, K, taper, k, gradient, shape, linear_depth, grid, lo, hi,
-               mean_edge, diag, normal_radius):
+               mean_edge, diag, normal_radius, mesh=None):
         c = np.ascontiguousarray
         self.P, self.T = c(P, dtype=float), c(T, dtype=np.int64)
+        self._mapped = mesh is not None
+        if mesh is None:  # not subdivided: each triangle is its own mesh triangle
+            mesh = (self.T, np.arange(len(self.T)), np.tile(np.eye(3).ravel(), (len(self.T), 1)))
+        # the finite-element mesh under the contact surface (:mod:`pmask.runtime.contact.subdivision`): its
+        # triangles, and each contact triangle's mesh triangle and corners' barycentrics there
+        self.mesh_T = c(mesh[0], dtype=np.int64)
+        self.parent = c(mesh[1], dtype=np.int64)
+        self.corners = c(np.reshape(mesh[2], (len(self.T), 9)), dtype=float)
+        self.n_mesh = int(self.mesh_T.max()) + 1 if len(self.mesh_T) else 0
         self.tri_geom = c(frames, dtype=float)
         self.neighbours = c(neighbours, dtype=np.int64)
         self.vertex_normals = c(normals, dtype=float)
@@ -124,6 +180,9 @@ class ContactSurface:
         self._G = [tuple(r) for r in self.gradient.tolist()]
         self._S = [tuple(r) for r in self.shape.tolist()]
         self._dlin = self.linear_depth.tolist()
+        self._mesh_idx = [tuple(r) for r in self.mesh_T.tolist()]
+        self._parent = self.parent.tolist()
+        self._corners = [tuple(r) for r in self.corners.tolist()]
         self._coupling = None
         self._row = None
         self._block = None
@@ -152,7 +211,16 @@ class ContactSurface:
         """C_lk (9 floats): :func:`pmask.runtime.stiffness.zeta_compliance` on this surface's ζ table, or on
         a compressed Ξ's blocks (:meth:`pmask.runtime.stiffness.Stiffness.zeta_block`)."""
         block, row = self._blocks()
-        return zeta_compliance(block, row, self._idx, t_l, b_l, t_k, b_k)
+        t_l, *b_l = self.mesh_point(t_l, *b_l)
+        t_k, *b_k = self.mesh_point(t_k, *b_k)
+        return zeta_compliance(block, row, self._mesh_idx, t_l, b_l, t_k, b_k)
+
+    def mesh_point(self, t, b0, b1, b2):
+        """(mesh triangle, β0, β1, β2): where the contact point (t, b) lies on the finite-element mesh, whose
+        vertices carry ζ (:func:`pmask.runtime.contact.subdivision.coarse_point`)."""
+        if not self._mapped:
+            return t, b0, b1, b2
+        return coarse_point(self._parent, self._corners, t, b0, b1, b2)
 
     def _blocks(self):
         """(block function, row list) of :func:`pmask.runtime.stiffness.zeta_compliance`, made once."""
@@ -166,16 +234,16 @@ class ContactSurface:
         return self._block, self._row
 
     def pair_blocks(self, t_l, t_k) -> list:
-        """The nine vertex-pair blocks of two triangles' coupling, 81 floats: for vertex x of t_l and y of t_k
+        """The nine vertex-pair blocks of two mesh triangles' coupling, 81 floats: for vertex x of t_l and y of t_k
         (x outer), P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) row-major, zero where either vertex has no row.  The coupled
         solve keeps them while both contacts stay on their triangles and sums C_lk = Σ_x Σ_y φ_x φ_y P_xy
         each tick (:func:`pmask.runtime.contact.coupling.coupling_blocks`): 81 products from a small
         contiguous block instead of two gathers of nine blocks from the ζ table."""
         block, row = self._blocks()
         out = [0.0] * 81
-        for x, i in enumerate(self._idx[t_l]):
+        for x, i in enumerate(self._mesh_idx[t_l]):
             ri = row[i]
-            for y, m in enumerate(self._idx[t_k]):
+            for y, m in enumerate(self._mesh_idx[t_k]):
                 rm = row[m]
                 if ri < 0 or rm < 0:
                     continue
@@ -187,11 +255,14 @@ class ContactSurface:
         return out
 
     def deformation_of(self, loads) -> np.ndarray:
-        """The surface's displacement (n_s, 3) for point loads (eq. 16; :func:`zeta_deformation`)."""
+        """The mesh surface's displacement (n_s, 3) for point loads [(triangle, barycentrics, force), ...] on
+        the contact surface (eq. 16; :func:`zeta_deformation`)."""
+        loads = [(t, np.asarray(b), f) for t, *b, f in
+                 ((*self.mesh_point(t, *(float(x) for x in b)), f) for t, b, f in loads)]
         if self.compressed:  # no ζ table: Ξ's blocks of the loaded columns
             return self.stiffness.deformation_of(loads)
         Zt, row = self.coupling()
-        return zeta_deformation(Zt, row, self.T, loads)
+        return zeta_deformation(Zt, row, self.mesh_T, loads)
 
 
 

@@ -155,7 +155,7 @@ class NativeContacts:
         """eq. 16 with the display forces, computed by the C core (None without its ζ table)."""
         if not self.has_zeta:
             return None
-        out = np.empty((len(self.surface.P), 3))
+        out = np.empty((self.surface.n_mesh, 3))
         self.servo.deformation(out)
         return out
 

@@ -128,6 +128,8 @@ typedef struct {
 PM_API int pm_table_from_sections(const pm_section *sections, int32_t n, pm_table **out, char *err,
                                   size_t errlen);
 PM_API void pm_table_free(pm_table *table);
+/* The model's surface mesh (the finite-element one: the deformation's n_vertices); the contact itself runs on its
+ * Loop subdivision surface (table 1.3), which the table carries beside it. */
 PM_API int64_t pm_table_vertices(const pm_table *table);
 PM_API int64_t pm_table_triangles(const pm_table *table);
 PM_API int32_t pm_table_has_zeta(const pm_table *table);

@@ -5,11 +5,14 @@
  * from the exact solution of the coupled normal problem (the Delassus system), with a Jacobi first sweep. */
 #include "pm_internal.h"
 
-void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tbi, const double *bb, double *C)
+void pm__compliance(const pm_table *tb, int64_t ta, const double *ba_in, int64_t tbi, const double *bb_in, double *C)
 {
     const int64_t n3 = 3 * tb->nc;
     for (int k = 0; k < 9; k++) C[k] = 0.0;
-    const int64_t *ia = tb->T + 3 * ta, *ib = tb->T + 3 * tbi;
+    double ba[3], bb[3];   /* on the mesh's triangles, where ζ lives */
+    ta = pm__mesh_point(tb, ta, ba_in, ba);
+    tbi = pm__mesh_point(tb, tbi, bb_in, bb);
+    const int64_t *ia = tb->mT + 3 * ta, *ib = tb->mT + 3 * tbi;
     for (int x = 0; x < 3; x++) {
         double pi = ba[x];
         int64_t ri = tb->row[ia[x]];
@@ -26,12 +29,12 @@ void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tb
     }
 }
 
-/* the nine vertex-pair blocks of triangles ta, tb (81 doubles, x of ta outer): P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ),
+/* the nine vertex-pair blocks of mesh triangles ta, tb (81 doubles, x of ta outer): P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ),
  * zero where either vertex has no row (ContactSurface.pair_blocks) */
 static void pair_blocks(const pm_table *tb, int64_t ta, int64_t tbi, double *P)
 {
     const int64_t n3 = 3 * tb->nc;
-    const int64_t *ia = tb->T + 3 * ta, *ib = tb->T + 3 * tbi;
+    const int64_t *ia = tb->mT + 3 * ta, *ib = tb->mT + 3 * tbi;
     for (int k = 0; k < 81; k++) P[k] = 0.0;
     for (int x = 0; x < 3; x++) {
         int64_t ri = tb->row[ia[x]];
@@ -71,12 +74,13 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
             const size_t ab = (size_t)a * n + b;
             double *P = S->pair_P + 81 * ab;
             const int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
+            double ba[3], bb[3];   /* φ on the mesh triangles, where ζ lives */
+            const int64_t ma = pm__mesh_point(tb, ta, S->st[a].b, ba), mb = pm__mesh_point(tb, tbi, S->st[b].b, bb);
             if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
-                pair_blocks(tb, ta, tbi, P);
+                pair_blocks(tb, ma, mb, P);
                 S->pair_tri[2 * ab] = ta;
                 S->pair_tri[2 * ab + 1] = tbi;
             }
-            const double *ba = S->st[a].b, *bb = S->st[b].b;
             double *Sab = S->cpl + 9 * ab;
             /* Σ_ij w_ij P_ij, two entries a register: three independent row sums t_i = Σ_j w_ij P_ij, then
                (t_0 + t_1) + t_2 (a shorter chain of dependent adds than nine in a row: the pair's tick waits on

@@ -25,7 +25,7 @@ static int deformation(pm_servo *s, double *out)
             na++;
         }
     }
-    const int64_t nv = tb->nv;
+    const int64_t nv = tb->nm;   /* the mesh's vertices: ζ's */
     for (int64_t i = 0; i < 3 * nv; i++) out[i] = 0.0;
     if (na == 0) return 0;
     /* C_disp f = ū' (Gaussian elimination with partial pivoting), or the rendered forces if singular */
@@ -78,15 +78,18 @@ static int deformation(pm_servo *s, double *out)
             for (int r = 0; r < 3; r++) x[3 * i + r] = f[i][r];
     /* eq. 16: v(contact vertex) += Σ_loads Σ_k φ_k (f @ Zt[3 row_k : 3 row_k + 3]) */
     const int64_t n3 = 3 * tb->nc;
+    int64_t mt[64];
+    double mb[64][3];
+    for (int32_t i = 0; i < na; i++) mt[i] = pm__mesh_point(tb, tri[i], b[i], mb[i]);
     for (int64_t v = 0; v < nv; v++) {
         int64_t rv = tb->row[v];
         if (rv < 0) continue;
         double acc[3] = {0.0, 0.0, 0.0};
         for (int32_t i = 0; i < na; i++) {
-            const int64_t *tv = tb->T + 3 * tri[i];
+            const int64_t *tv = tb->mT + 3 * mt[i];
             for (int k = 0; k < 3; k++) {
                 int64_t rm = tb->row[tv[k]];
-                double phi = b[i][k];
+                double phi = mb[i][k];
                 if (phi == 0.0 || rm < 0) continue;
                 const double *Z = tb->zeta + 3 * rm * n3 + 3 * rv;
                 double fx = phi * x[3 * i], fy = phi * x[3 * i + 1], fz = phi * x[3 * i + 2];

@@ -77,7 +77,13 @@ struct pm_table {
     int64_t *order;               /* triangles, leaves' runs */
     int64_t nnodes;
     double lo[3], hi[3], mean_edge, diag;
-    const int64_t *row;           /* surface vertex -> contact row, -1 (NULL without ζ) */
+    /* the finite-element mesh's surface under the contact surface (its Loop subdivision surface,
+     * pmask.runtime.contact.subdivision): nm vertices, nmt triangles; each contact triangle's mesh triangle
+     * (parent) and its corners' barycentrics there (corners, 9 a triangle); parent NULL: the mesh itself */
+    int64_t nm, nmt;
+    const int64_t *mT, *parent;
+    const double *corners;
+    const int64_t *row;           /* mesh vertex -> contact row, -1 (NULL without ζ) */
     const double *zeta;           /* (3 nc, 3 nc): rows 3m..3m+2 = ζ_mᵀ (NULL without) */
     int64_t nd, ndt;              /* display surface: vertices, triangles (0 without) */
     const double *dP, *dbary, *dlift;  /* its points, embedding weights, lifts (nd x 3 each) */
@@ -86,6 +92,23 @@ struct pm_table {
     unsigned char *blob;
     size_t size;
 };
+
+/* the point (t, b) of the contact surface on the mesh: its mesh triangle, beta its barycentrics there
+ * (ContactSurface.mesh_point, operation for operation) */
+static inline int64_t pm__mesh_point(const pm_table *tb, int64_t t, const double *b, double *beta)
+{
+    if (!tb->parent) {
+        beta[0] = b[0];
+        beta[1] = b[1];
+        beta[2] = b[2];
+        return t;
+    }
+    const double *c = tb->corners + 9 * t;
+    beta[0] = b[0] * c[0] + b[1] * c[3] + b[2] * c[6];
+    beta[1] = b[0] * c[1] + b[1] * c[4] + b[2] * c[7];
+    beta[2] = b[0] * c[2] + b[1] * c[5] + b[2] * c[8];
+    return tb->parent[t];
+}
 
 PM_HIDDEN int pm__build_bvh(pm_table *t);
 PM_HIDDEN void pm__free_bvh(pm_table *t);

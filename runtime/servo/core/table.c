@@ -297,6 +297,45 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
             goto bad;
         }
     }
+    t->nm = t->nv;
+    t->nmt = t->nt;
+    t->mT = t->T;
+    if (want(secs, nsec, "mesh_triangles", DT_I64, -1, 3, 1, &s, err, errlen)) goto bad;
+    if (s.found) {  /* a subdivided contact surface: its map to the mesh, checked */
+        t->nmt = (int64_t)s.rows;
+        t->mT = (const int64_t *)s.data;
+        NEED("parent", DT_I64, t->nt, 1, 0);
+        t->parent = (const int64_t *)s.data;
+        NEED("corners", DT_F64, t->nt, 9, 0);
+        t->corners = (const double *)s.data;
+        if (t->nmt < 1 || !in_range(t->mT, 3 * (uint64_t)t->nmt, 0, INT64_MAX) ||
+            !in_range(t->parent, (uint64_t)t->nt, 0, t->nmt)) {
+            fmt(err, errlen, "corrupt runtime table: a mesh triangle index is out of range", NULL, 0, 0);
+            goto bad;
+        }
+        int64_t top = 0;
+        for (int64_t i = 0; i < 3 * t->nmt; i++)
+            if (t->mT[i] > top) top = t->mT[i];
+        t->nm = top + 1;
+        for (int64_t i = 0; i < t->nt; i++) {
+            const double *c = t->corners + 9 * i;
+            for (int k = 0; k < 3; k++) {
+                const double sum = c[3 * k] + c[3 * k + 1] + c[3 * k + 2];
+                int ok = fabs(sum - 1.0) <= 1e-8;
+                for (int j = 0; j < 3; j++) ok = ok && c[3 * k + j] >= 0.0 && c[3 * k + j] <= 1.0;
+                if (!ok) {
+                    fmt(err, errlen, "corrupt runtime table: the corners' barycentrics are not in [0, 1] summing "
+                        "to 1", NULL, 0, 0);
+                    goto bad;
+                }
+            }
+        }
+    } else if (want(secs, nsec, "parent", DT_I64, -1, -1, 1, &s, err, errlen) || s.found) {
+        if (s.found)
+            fmt(err, errlen, "not a complete runtime table: 'mesh_triangles', 'parent' and 'corners' go together "
+                "(export it again)", NULL, 0, 0);
+        goto bad;
+    }
     if (want(secs, nsec, "zeta", DT_F64, -1, -1, 1, &s, err, errlen)) goto bad;
     if (s.found) {
         if (s.rows != s.cols || s.rows % 3 != 0) {
@@ -309,9 +348,9 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
             fmt(err, errlen, "corrupt runtime table: a non-finite number in the zeta table", NULL, 0, 0);
             goto bad;
         }
-        NEED("contact_row", DT_I64, t->nv, 1, 0);
+        NEED("contact_row", DT_I64, t->nm, 1, 0);
         t->row = (const int64_t *)s.data;
-        if (!in_range(t->row, (uint64_t)t->nv, -1, t->nc)) {
+        if (!in_range(t->row, (uint64_t)t->nm, -1, t->nc)) {
             fmt(err, errlen, "corrupt runtime table: a contact row is out of range", NULL, 0, 0);
             goto bad;
         }
@@ -329,7 +368,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
         t->dbary = (const double *)s.data;
         NEED("display_lift", DT_F64, t->nd, 3, 0);
         t->dlift = (const double *)s.data;
-        if (!in_range(t->dT, 3 * (uint64_t)t->ndt, 0, t->nd) || !in_range(t->dV, 3 * (uint64_t)t->nd, 0, t->nv)) {
+        if (!in_range(t->dT, 3 * (uint64_t)t->ndt, 0, t->nd) || !in_range(t->dV, 3 * (uint64_t)t->nd, 0, t->nm)) {
             fmt(err, errlen, "corrupt runtime table: a display index is out of range", NULL, 0, 0);
             goto bad;
         }
@@ -474,8 +513,8 @@ void pm_table_free(pm_table *t)
     free(t);
 }
 
-int64_t pm_table_vertices(const pm_table *t) { return t->nv; }
-int64_t pm_table_triangles(const pm_table *t) { return t->nt; }
+int64_t pm_table_vertices(const pm_table *t) { return t->nm; }
+int64_t pm_table_triangles(const pm_table *t) { return t->nmt; }
 int32_t pm_table_has_zeta(const pm_table *t) { return t->zeta != NULL; }
 int64_t pm_display_vertices(const pm_table *t) { return t->nd; }
 int64_t pm_display_triangles(const pm_table *t) { return t->ndt; }
