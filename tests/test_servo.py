@@ -383,6 +383,11 @@ def test_a_subdivided_table_round_trips_and_a_broken_map_is_refused(stiff, tmp_p
             read_table(data)
         with pytest.raises(TableError, match=message):
             servo.load_table(data)
+    alone = {k: v for k, v in sections.items() if k not in ("mesh_triangles", "parent")}  # corners without the rest
+    data = bytes(table_bytes(alone, t["meta"]))
+    for load in (read_table, servo.load_table):
+        with pytest.raises(TableError, match="go together"):
+            load(data)
 
 
 def test_a_newer_minor_table_with_an_unknown_section_is_read(table_path):

@@ -101,7 +101,7 @@ def test_a_non_manifold_edge_is_refused():
         sd.subdivide(P, T, 1)
 
 
-def test_coarse_point_matches_the_map():
+def test_mesh_point_matches_the_map():
     """The per-tick map (plain Python) equals the arrays' map for points inside subdivided triangles."""
     m = trimesh.creation.icosphere(subdivisions=1, radius=1.0)
     P, T = np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
@@ -110,7 +110,7 @@ def test_coarse_point_matches_the_map():
     parent, corners = s.parent.tolist(), [tuple(r) for r in s.corners.reshape(-1, 9).tolist()]
     for t in rng.integers(0, len(s.triangles), 50):
         b = rng.dirichlet(np.ones(3))
-        tc, *beta = sd.coarse_point(parent, corners, int(t), *b)
+        tc, *beta = sd.mesh_point(parent, corners, int(t), *b)
         assert tc == s.parent[t]
         assert np.allclose(beta, b @ s.corners[t], rtol=0, atol=2e-16)  # the same sums in another order
         assert math.isclose(sum(beta), 1.0, abs_tol=1e-15)

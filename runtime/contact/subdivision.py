@@ -26,7 +26,7 @@ Everything the rendered stiffness attaches to vertices (K_i, the taper λ) lives
 finite-element ones, and each subdivided triangle knows the mesh triangle it lies in (``parent``) and the
 barycentric coordinates in it of its three corners (``corners``): a point (t, b) of the subdivided surface is
 the point :math:`\beta = \sum_k b_k\, \mathrm{corners}_{t,k}` of triangle ``parent[t]``, where eq. 15's
-interpolation and eq. 16's ζ are read (:func:`coarse_point`).  Linear interpolation over the mesh triangle is
+interpolation and eq. 16's ζ are read (:func:`mesh_point`).  Linear interpolation over the mesh triangle is
 therefore exactly linear interpolation over its subdivided triangles.
 
 Plain numpy (the runtime's rule): no sparse matrices.
@@ -167,7 +167,7 @@ def _interpolating_control(P0, T, crease, fixed, rtol: float = 1e-13, iterations
     raise ValueError("the interpolating control points did not converge")
 
 
-def coarse_point(parent, corners, t, b0, b1, b2):
+def mesh_point(parent, corners, t, b0, b1, b2):
     """(mesh triangle, β0, β1, β2): the point (t, b) of the subdivided surface on the mesh (plain Python, per
     tick; ``corners`` as flat rows of 9).  The native core's ``pm__coarse`` is the same operation for operation."""
     c = corners[t]

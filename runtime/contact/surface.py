@@ -31,7 +31,7 @@ import numpy as np
 
 from pmask.runtime.geometry import (contact_normals, crease_blend, triangle_areas, triangle_frames, triangle_neighbours,
                                     vertex_normals)
-from pmask.runtime.contact.subdivision import choose_levels, coarse_point, subdivide
+from pmask.runtime.contact.subdivision import choose_levels, mesh_point, subdivide
 from pmask.runtime.spatial import TriangleGrid
 from pmask.runtime.stiffness import table_block, zeta_compliance, zeta_deformation
 
@@ -217,10 +217,10 @@ class ContactSurface:
 
     def mesh_point(self, t, b0, b1, b2):
         """(mesh triangle, β0, β1, β2): where the contact point (t, b) lies on the finite-element mesh, whose
-        vertices carry ζ (:func:`pmask.runtime.contact.subdivision.coarse_point`)."""
+        vertices carry ζ (:func:`pmask.runtime.contact.subdivision.mesh_point`)."""
         if not self._mapped:
             return t, b0, b1, b2
-        return coarse_point(self._parent, self._corners, t, b0, b1, b2)
+        return mesh_point(self._parent, self._corners, t, b0, b1, b2)
 
     def _blocks(self):
         """(block function, row list) of :func:`pmask.runtime.stiffness.zeta_compliance`, made once."""

@@ -330,11 +330,16 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
                 }
             }
         }
-    } else if (want(secs, nsec, "parent", DT_I64, -1, -1, 1, &s, err, errlen) || s.found) {
-        if (s.found)
-            fmt(err, errlen, "not a complete runtime table: 'mesh_triangles', 'parent' and 'corners' go together "
-                "(export it again)", NULL, 0, 0);
-        goto bad;
+    } else {
+        for (int i = 0; i < 2; i++) {
+            const char *name = i ? "corners" : "parent";
+            if (want(secs, nsec, name, i ? DT_F64 : DT_I64, -1, -1, 1, &s, err, errlen)) goto bad;
+            if (s.found) {
+                fmt(err, errlen, "not a complete runtime table: 'mesh_triangles', 'parent' and 'corners' go "
+                    "together (export it again)", NULL, 0, 0);
+                goto bad;
+            }
+        }
     }
     if (want(secs, nsec, "zeta", DT_F64, -1, -1, 1, &s, err, errlen)) goto bad;
     if (s.found) {
