@@ -114,3 +114,20 @@ def test_mesh_point_matches_the_map():
         assert tc == s.parent[t]
         assert np.allclose(beta, b @ s.corners[t], rtol=0, atol=2e-16)  # the same sums in another order
         assert math.isclose(sum(beta), 1.0, abs_tol=1e-15)
+
+
+def test_fields_carried_by_the_masks_stay_positive_and_within_their_range(ball):
+    """K_i and λ ride on the same masks (attributes): convex combinations, so a constant stays that constant (to
+    round-off), values stay within the mesh's range (a taper stays in [0, 1]) and positive definite 3x3 blocks stay
+    positive definite, whatever their variation (here random SPD blocks, eigenvalues 0.1-10, and a 0/1 step)."""
+    P, T = ball
+    rng = np.random.default_rng(5)
+    Q = np.linalg.qr(rng.normal(size=(len(P), 3, 3)))[0]
+    K = np.einsum("vij,vj,vkj->vik", Q, rng.uniform(0.1, 10.0, (len(P), 3)), Q)
+    step = (P[:, 2] > 0).astype(float)
+    s = sd.subdivide(P, T, 2, attributes=np.hstack([K.reshape(-1, 9), step[:, None], np.full((len(P), 1), 7.0)]))
+    Kf = s.attributes[:, :9].reshape(-1, 3, 3)
+    assert np.linalg.eigvalsh(0.5 * (Kf + Kf.transpose(0, 2, 1)))[:, 0].min() >= 0.1 * (1 - 1e-12)
+    assert s.attributes[:, 9].min() >= 0.0 and s.attributes[:, 9].max() <= 1.0
+    assert np.abs(s.attributes[:, 10] - 7.0).max() <= 1e-13
+    assert 0.0 < s.attributes[:, 9].mean() < 1.0  # the step is smoothed, not kept

@@ -22,12 +22,16 @@ contact normals blend there as they did).  Rounding them off instead made a prob
 hilum lip drag far more (measured by hand: 3x and 9.5x the press's work over an out-and-back slide 2 and 4 mm
 deep, against 0.4x and 1.3x on the mesh).
 
-Everything the rendered stiffness attaches to vertices (K_i, the taper λ) lives on the mesh's own vertices, the
-finite-element ones, and each subdivided triangle knows the mesh triangle it lies in (``parent``) and the
-barycentric coordinates in it of its three corners (``corners``): a point (t, b) of the subdivided surface is
-the point :math:`\beta = \sum_k b_k\, \mathrm{corners}_{t,k}` of triangle ``parent[t]``, where eq. 15's
-interpolation and eq. 16's ζ are read (:func:`mesh_point`).  Linear interpolation over the mesh triangle is
-therefore exactly linear interpolation over its subdivided triangles.
+The rendered stiffness K_i and the taper λ are carried onto the subdivided surface by the same masks
+(``attributes``): a field as smooth over the surface as the surface itself, in place of eq. 15's linear
+interpolation over the mesh's triangles, whose gradient jumps at every mesh edge.  At the mesh's vertices it
+differs from K_i by Loop's smoothing (on the default kidney: median 0.6 %, 99th percentile 4.4 %, at most 9 %, by
+the support's ramp).  Measured on the hands issue's grid of closed loops (two levels): with K interpolated
+linearly the worst loop gave back 0.23 % and the deep presses lost up to 0.18 % of their force where the
+proxy crossed a mesh edge (∇k jumped 2x there); with K subdivided 0.064 %.  ζ and the deformation stay on the
+mesh's vertices: each subdivided triangle knows the mesh triangle it lies in (``parent``) and the barycentric
+coordinates in it of its three corners (``corners``), so a point (t, b) of the subdivided surface is the point
+:math:`\beta = \sum_k b_k\, \mathrm{corners}_{t,k}` of triangle ``parent[t]`` (:func:`mesh_point`).
 
 Plain numpy (the runtime's rule): no sparse matrices.
 """
@@ -55,8 +59,9 @@ class Subdivided:
     triangle each lies in, ``corners`` (m_f, 3, 3) the barycentrics in it of each corner (row k: corner k),
     ``levels`` the levels applied (0: the mesh itself)."""
 
-    def __init__(self, points, triangles, parent, corners, levels):
+    def __init__(self, points, triangles, parent, corners, levels, attributes=None):
         self.points, self.triangles, self.parent, self.corners, self.levels = points, triangles, parent, corners, levels
+        self.attributes = attributes
 
     def vertex_weights(self, mesh_triangles) -> tuple[np.ndarray, np.ndarray]:
         """(n_f, 3) mesh vertices and (n_f, 3) weights: each subdivided vertex's place on the mesh, so that a
@@ -105,8 +110,12 @@ def choose_levels(points, triangles, crease_deg: float = 30.0) -> int:
     return levels
 
 
-def subdivide(points, triangles, levels: int, crease_deg: float = 30.0) -> Subdivided:
+def subdivide(points, triangles, levels: int, crease_deg: float = 30.0, attributes=None) -> Subdivided:
     """Loop subdivision ``levels`` times, creases and boundaries kept, vertices on the limit surface.
+
+    ``attributes`` (n_s, m), optional: per-vertex quantities subdivided with the same masks (not interpolating:
+    Loop's masks are convex combinations, so a positive or positive definite quantity stays so), the result's
+    ``attributes``: a field as smooth over the surface as the surface itself.
 
     Raises ValueError on an edge shared by more than two triangles (not a manifold: the caller keeps the mesh)."""
     P = np.asarray(points, float)
@@ -114,15 +123,20 @@ def subdivide(points, triangles, levels: int, crease_deg: float = 30.0) -> Subdi
     m = len(T)
     parent = np.arange(m)
     corners = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    A = None if attributes is None else np.asarray(attributes, float).reshape(len(P), -1)
     if levels <= 0 or not m:
-        return Subdivided(P.copy(), T.copy(), parent, corners, 0)
+        return Subdivided(P.copy(), T.copy(), parent, corners, 0, None if A is None else A.copy())
     _, _, crease = _edges(T, P, crease_deg)
     fixed = _corners(P, crease, crease_deg)
-    P = _interpolating_control(P, T, crease, fixed)
+    X = _interpolating_control(P, T, crease, fixed)
+    if A is not None:
+        X = np.hstack([X, A])
     for _ in range(levels):
-        P, T, crease, parent, corners = _split(P, T, crease, parent, corners, fixed)
-        fixed = np.r_[fixed, np.zeros(len(P) - len(fixed), bool)]
-    return Subdivided(_limit(P, T, crease, fixed), T, parent, corners, int(levels))
+        X, T, crease, parent, corners = _split(X, T, crease, parent, corners, fixed)
+        fixed = np.r_[fixed, np.zeros(len(X) - len(fixed), bool)]
+    X = _limit(X, T, crease, fixed)
+    return Subdivided(np.ascontiguousarray(X[:, :3]), T, parent, corners, int(levels),
+                      None if A is None else np.ascontiguousarray(X[:, 3:]))
 
 
 def _corners(P, crease, crease_deg):
@@ -185,7 +199,7 @@ def _edges(T, P, crease_deg):
     inv = inv.ravel()
     if np.any(count > 2):
         raise ValueError("an edge is shared by more than two triangles")
-    fn = triangle_normals(P, T)
+    fn = triangle_normals(P[:, :3], T)
     tri = np.repeat(np.arange(len(T)), 3)
     first = np.full(len(E), -1)
     second = np.full(len(E), -1)
@@ -209,7 +223,7 @@ def _valence(n, E):
 
 
 def _neighbour_sum(n, E, P):
-    s = np.zeros((n, 3))
+    s = np.zeros((n, P.shape[1]))
     np.add.at(s, E[:, 0], P[E[:, 1]])
     np.add.at(s, E[:, 1], P[E[:, 0]])
     return s
@@ -234,7 +248,7 @@ def _split(P, T, crease, parent, corners, fixed):
     is_crease = _crease_flags(E, crease)
     # the vertex opposite each side, gathered per edge (two for an interior edge)
     opp = np.roll(T, -2, axis=1).ravel()
-    opp_sum = np.zeros((len(E), 3))
+    opp_sum = np.zeros((len(E), P.shape[1]))
     np.add.at(opp_sum, side.ravel(), P[opp])
     odd = np.where(is_crease[:, None], 0.5 * (P[E[:, 0]] + P[E[:, 1]]),
                    0.375 * (P[E[:, 0]] + P[E[:, 1]]) + 0.125 * opp_sum)

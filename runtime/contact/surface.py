@@ -66,11 +66,14 @@ class ContactSurface:
         mean_edge = float(e.mean()) if len(e) else 1.0  # the mesh's: the contact's scales do not change with levels
         if levels is None:
             levels = choose_levels(P0, T0)
+        K0 = np.asarray(stiffness.K_vertex, float).reshape(len(P0), 9)
+        taper0 = np.asarray(getattr(stiffness, "taper", np.ones(len(P0))), float)
+        fields = np.hstack([K0, taper0[:, None]])
         try:
-            sub = subdivide(P0, T0, int(levels))
+            sub = subdivide(P0, T0, int(levels), attributes=fields)
         except ValueError as err:  # not a manifold: the mesh's own triangles
             log.warning("contact surface not subdivided (%s)", err)
-            sub = subdivide(P0, T0, 0)
+            sub = subdivide(P0, T0, 0, attributes=fields)
         P, T = sub.points, sub.triangles
         frames = triangle_frames(P, T)
         masks = getattr(stiffness, "masks", None)
@@ -79,8 +82,7 @@ class ContactSurface:
         if normal_radius is None:
             normal_radius = 3.0 * mask_radius
         normals = self._normals(sub, P0, T0, float(normal_radius))
-        K = sub.interpolate(T0, np.asarray(stiffness.K_vertex, float).reshape(len(P0), 9))
-        taper = sub.interpolate(T0, np.asarray(getattr(stiffness, "taper", np.ones(len(P0))), float))
+        K, taper = sub.attributes[:, :9], sub.attributes[:, 9]  # K_i and λ as smooth over the surface as it is
         k = normal_stiffness(K, normals, taper)
         gradient = normal_stiffness_gradient(P, T, k, frames[:, 3:6], frames[:, 6:9])
         shape = shape_operators(P, T, normals, frames)
