@@ -410,6 +410,11 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
                                                                      for e in ("native", "python") if e == "python" or _native()]
         if default is None or abs(len(m.points) - 1543) < abs(len(default[0].points) - 1543):
             default = (m, stiff, srf)
+    m, stiff, _ = default  # the same kidney on its Loop subdivision surface (levels=2), beside the mesh's row
+    print(f"  haptics on kidney {len(m.points)}, subdivided ...", flush=True)
+    sub = ContactSurface(stiff, levels=2)
+    res["surfaces"][f"kidney_{len(m.points)}_levels2"] = dict(
+        surface_bench(f"kidney_{len(m.points)}_levels2", sub, tour_probes, exe, work), synthetic=False, levels=2)
     eq = equator_path()
     for n in (500, 5000, 50000, 164000):
         print(f"  haptics on synthetic {n} ...", flush=True)
@@ -453,7 +458,8 @@ def markdown(res: dict) -> str:
         c = r.get("c")
         b = r.get("binding")
         p = r["python"]
-        label = "synthetic" if r["synthetic"] else "kidney"
+        label = ("synthetic" if r["synthetic"] else
+                 f"kidney, subdivided (`levels={r['levels']}`)" if r.get("levels") else "kidney")
         if c:
             cc = (f"{c['tight']['median_us']:.2f} / {c['tight']['p999_us']:.2f} | {c['paced']['median_us']:.2f} / "
                   f"{c['paced']['p999_us']:.2f} | {c['blend_paced']['median_us']:.2f} / {c['empty_paced']['median_us']:.2f}")

@@ -131,3 +131,22 @@ def test_fields_carried_by_the_masks_stay_positive_and_within_their_range(ball):
     assert s.attributes[:, 9].min() >= 0.0 and s.attributes[:, 9].max() <= 1.0
     assert np.abs(s.attributes[:, 10] - 7.0).max() <= 1e-13
     assert 0.0 < s.attributes[:, 9].mean() < 1.0  # the step is smoothed, not kept
+
+
+def test_levels_a_user_asks_for_are_checked_in_one_line():
+    """Levels outside 0-3, or more triangles than the contact surface's budget (400,000: its per-tick arrays grow
+    4x a level), are refused with the numbers; 'auto' picks within the budget."""
+    from pmask.errors import InputError
+    from pmask.runtime import HapticContact
+    from pmask.runtime.contact import ContactSurface
+    from pmask.runtime.stiffness import SurfaceStiffness
+
+    m = trimesh.creation.icosphere(subdivisions=5, radius=0.02)  # 20,480 triangles
+    K = np.tile(np.eye(3) * 100.0, (len(m.vertices), 1, 1))
+    ss = SurfaceStiffness(np.asarray(m.vertices), np.asarray(m.faces), K)
+    with pytest.raises(InputError, match="at most 400,000 triangles"):
+        ContactSurface(ss, levels=3)
+    for bad in (-1, 4, 2.5, True, "two"):
+        with pytest.raises(InputError, match="levels"):
+            HapticContact(ss, levels=bad)
+    assert ContactSurface(ss, levels=None).levels == 0  # fine enough already: 1.4° between facets and normals

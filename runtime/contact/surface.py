@@ -31,7 +31,8 @@ import numpy as np
 
 from pmask.runtime.geometry import (contact_normals, crease_blend, triangle_areas, triangle_frames, triangle_neighbours,
                                     vertex_normals)
-from pmask.runtime.contact.subdivision import choose_levels, mesh_point, subdivide
+from pmask.errors import InputError
+from pmask.runtime.contact.subdivision import MAX_LEVELS, MAX_TRIANGLES, choose_levels, mesh_point, subdivide
 from pmask.runtime.spatial import TriangleGrid
 from pmask.runtime.stiffness import table_block, zeta_compliance, zeta_deformation
 
@@ -66,6 +67,11 @@ class ContactSurface:
         mean_edge = float(e.mean()) if len(e) else 1.0  # the mesh's: the contact's scales do not change with levels
         if levels is None:
             levels = choose_levels(P0, T0)
+        elif not (isinstance(levels, (int, np.integer)) and 0 <= levels <= MAX_LEVELS
+                  and (levels == 0 or 4 ** levels * len(T0) <= MAX_TRIANGLES)):
+            raise InputError(f"levels={levels!r}: the contact surface takes 0 to {MAX_LEVELS} levels of subdivision "
+                             f"and at most {MAX_TRIANGLES:,} triangles ({len(T0):,} on this mesh, x4 a level); "
+                             "use fewer levels or 'auto'")
         K0 = np.asarray(stiffness.K_vertex, float).reshape(len(P0), 9)
         taper0 = np.asarray(getattr(stiffness, "taper", np.ones(len(P0))), float)
         fields = np.hstack([K0, taper0[:, None]])
