@@ -74,8 +74,16 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
             const size_t ab = (size_t)a * n + b;
             double *P = S->pair_P + 81 * ab;
             const int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
-            double ba[3], bb[3];   /* φ on the mesh triangles, where ζ lives */
-            const int64_t ma = pm__mesh_point(tb, ta, S->st[a].b, ba), mb = pm__mesh_point(tb, tbi, S->st[b].b, bb);
+            /* φ on the mesh triangles, where ζ lives (a subdivided contact surface; on the mesh itself, as they are) */
+            const double *ba = S->st[a].b, *bb = S->st[b].b;
+            double mba[3], mbb[3];
+            int64_t ma = ta, mb = tbi;
+            if (tb->parent) {
+                ma = pm__mesh_point(tb, ta, ba, mba);
+                mb = pm__mesh_point(tb, tbi, bb, mbb);
+                ba = mba;
+                bb = mbb;
+            }
             if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
                 pair_blocks(tb, ma, mb, P);
                 S->pair_tri[2 * ab] = ta;
