@@ -46,7 +46,8 @@ from pmask.runtime.geometry import triangle_normals, vertex_normals
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
 #: hands issue's grid of closed loops, controller off) the mesh's 9.1° gave back up to 1.75 % of a loop's stored
-#: energy, one level (4.8°) 0.91 %, two levels (2.7°) 0.23 % (by hand, tests/test_passivity_grid.py's loops)
+#: energy, one level (5.1°) 0.44 %, two levels (2.95°) 0.064 % (tests/test_passivity_grid.py's loops; one level
+#: by hand)
 MAX_FACET_ANGLE = math.radians(3.5)
 #: at most this many levels, and at most this many subdivided triangles (the contact surface's arrays grow 4x a
 #: level)
@@ -183,7 +184,8 @@ def _interpolating_control(P0, T, crease, fixed, rtol: float = 1e-13, iterations
 
 def mesh_point(parent, corners, t, b0, b1, b2):
     """(mesh triangle, β0, β1, β2): the point (t, b) of the subdivided surface on the mesh (plain Python, per
-    tick; ``corners`` as flat rows of 9).  The native core's ``pm__coarse`` is the same operation for operation."""
+    tick; ``corners`` as flat rows of 9).  The native core's ``pm__mesh_point`` is the same operation for
+    operation."""
     c = corners[t]
     return (parent[t], b0 * c[0] + b1 * c[3] + b2 * c[6], b0 * c[1] + b1 * c[4] + b2 * c[7],
             b0 * c[2] + b1 * c[5] + b2 * c[8])
@@ -243,6 +245,8 @@ def _crease_flags(E, crease):
 
 
 def _split(P, T, crease, parent, corners, fixed):
+    """One level: every triangle into four (corners' barycentrics halved along its edges), new vertices on the
+    edges by Loop's odd mask (3/8, 3/8, 1/8, 1/8; a crease's midpoint), old ones by the even mask."""
     n = len(P)
     E, side, _ = _edges(T, P, 180.0)
     is_crease = _crease_flags(E, crease)
