@@ -181,25 +181,32 @@ def contact_normals(points: np.ndarray, triangles: np.ndarray, radius: float, cr
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
+def crease_edges(points: np.ndarray, triangles: np.ndarray, crease_deg: float = 30.0) -> np.ndarray:
+    """(c, 2) the edges, as sorted vertex pairs, whose two faces meet at more than ``crease_deg``: the creases
+    the contact normals blend over (:func:`crease_blend`) and the contact surface's subdivision keeps
+    (:mod:`pmask.runtime.contact.subdivision`).  Open edges are not among them."""
+    T = np.asarray(triangles, np.int64)
+    if len(T) == 0:
+        return np.zeros((0, 2), np.int64)
+    fn = triangle_normals(points, T)
+    t = np.repeat(np.arange(len(T)), 3)
+    k = np.tile(np.arange(3), len(T))
+    other = triangle_neighbours(T).ravel()
+    ok = other >= 0
+    sharp = np.einsum("ij,ij->i", fn[t[ok]], fn[other[ok]]) < np.cos(np.deg2rad(crease_deg))
+    tt, kk = t[ok][sharp], k[ok][sharp]  # edge k joins vertices (k+1)%3 and (k+2)%3
+    pairs = np.sort(np.c_[T[tt, (kk + 1) % 3], T[tt, (kk + 2) % 3]], axis=1)
+    return np.unique(pairs, axis=0) if len(pairs) else pairs.reshape(0, 2)
+
+
 def crease_blend(points: np.ndarray, triangles: np.ndarray, radius: float, crease_deg: float = 30.0):
     """:func:`contact_normals`' blend: (β (n, 1), the ball-averaged normals (n, 3)), β the smoothstep of the
     distance to the nearest crease vertex over ``radius`` (1 on a crease, 0 from ``radius`` on); None without
     creases.  The contact normal is (1 − β) n + β n_ball, normalised."""
     if not radius > 0 or len(triangles) == 0:
         return None
-    fn = triangle_normals(points, triangles)
-    nb = triangle_neighbours(triangles)
-    t = np.repeat(np.arange(len(triangles)), 3)
-    k = np.tile(np.arange(3), len(triangles))
-    other = nb.ravel()
-    ok = other >= 0
-    cosang = np.einsum("ij,ij->i", fn[t[ok]], fn[other[ok]])
-    sharp = cosang < np.cos(np.deg2rad(crease_deg))
-    # the two vertices of each sharp edge (edge k joins vertices (k+1)%3 and (k+2)%3)
-    tt, kk = t[ok][sharp], k[ok][sharp]
     crease = np.zeros(len(points), bool)
-    crease[triangles[tt, (kk + 1) % 3]] = True
-    crease[triangles[tt, (kk + 2) % 3]] = True
+    crease[crease_edges(points, triangles, crease_deg).ravel()] = True
     if not crease.any():
         return None
     pairs = surface_pairs_within(points, triangles, radius)

@@ -193,9 +193,10 @@ def coupling_blocks(c, states, active):
                 hit = cache.get((a, b))
                 if hit is None or hit[0] != ta or hit[1] != tb:
                     hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(srf._parent[ta], srf._parent[tb]))
-                P = hit[2]
-                _, a0, a1, a2 = srf.mesh_point(ta, *states[a].b)  # φ on the mesh triangles, where ζ lives
-                _, b0, b1, b2 = srf.mesh_point(tb, *states[b].b)
+                P, (a0, a1, a2), (b0, b1, b2) = hit[2], states[a].b, states[b].b
+                if srf._mapped:  # a subdivided surface: φ on the mesh triangles, where ζ lives
+                    _, a0, a1, a2 = srf.mesh_point(ta, a0, a1, a2)
+                    _, b0, b1, b2 = srf.mesh_point(tb, b0, b1, b2)
                 # S_k = Σ_xy w_xy P_xy,k as three row sums t_x = Σ_y w_xy P_xy,k (block xy at 9 (3x + y)), then
                 # (t_0 + t_1) + t_2, as the C's (whose tick waits on the chain of adds); a zero weight adds ±0,
                 # which leaves a sum as it was (P is finite)

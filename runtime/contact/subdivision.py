@@ -41,7 +41,7 @@ import math
 
 import numpy as np
 
-from pmask.runtime.geometry import triangle_normals, vertex_normals
+from pmask.runtime.geometry import crease_edges, triangle_normals, vertex_normals
 
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
@@ -89,7 +89,11 @@ def facet_angle(points, triangles, crease_deg: float = 30.0) -> float:
     if not len(T):
         return 0.0
     fn, vn = triangle_normals(P, T), vertex_normals(P, T)
-    _, _, crease = _edges(T, P, crease_deg)
+    try:
+        _, _, E_open = _edges(T)
+    except ValueError:  # not a manifold: no subdivision, whatever the angle
+        return 0.0
+    crease = _creases(P, T, E_open, crease_deg)
     on = np.zeros(len(P), bool)
     on[crease.ravel()] = True
     keep = ~on[T].any(axis=1)
@@ -127,9 +131,10 @@ def subdivide(points, triangles, levels: int, crease_deg: float = 30.0, attribut
     A = None if attributes is None else np.asarray(attributes, float).reshape(len(P), -1)
     if levels <= 0 or not m:
         return Subdivided(P.copy(), T.copy(), parent, corners, 0, None if A is None else A.copy())
-    _, _, crease = _edges(T, P, crease_deg)
+    E, _, E_open = _edges(T)
+    crease = _creases(P, T, E_open, crease_deg)
     fixed = _corners(P, crease, crease_deg)
-    X = _interpolating_control(P, T, crease, fixed)
+    X = _interpolating_control(P, E, crease, fixed)
     if A is not None:
         X = np.hstack([X, A])
     for _ in range(levels):
@@ -162,7 +167,7 @@ def _corners(P, crease, crease_deg):
     return fixed
 
 
-def _interpolating_control(P0, T, crease, fixed, rtol: float = 1e-13, iterations: int = 500):
+def _interpolating_control(P0, E, crease, fixed, rtol: float = 1e-13, iterations: int = 500):
     """Control points Q whose limit surface passes through the mesh's vertices: M Q = P0, M Loop's limit mask (a
     vertex's limit position depends on its own level's ring only, and is the same at every level).  Loop's
     surface of the mesh itself lies inside a convex mesh by about twice its sagitta (0.08 mm at the median vertex
@@ -171,7 +176,6 @@ def _interpolating_control(P0, T, crease, fixed, rtol: float = 1e-13, iterations
     smooth surface through them does.  Richardson iteration: M's eigenvalues lie in (0, 1] (smooth vertices of
     valence 6: [1/4, 1]), so the residual falls by at least 3/4 a sweep (measured: ~40 sweeps to 1e-13)."""
     scale = float(np.abs(P0).max()) or 1.0
-    E, _, _ = _edges(T, P0, 180.0)
     is_crease = _crease_flags(E, crease)
     Q = P0.copy()
     for _ in range(iterations):
@@ -192,30 +196,21 @@ def mesh_point(parent, corners, t, b0, b1, b2):
 
 
 # ----------------------------------------------------------------------------------------------- the scheme
-def _edges(T, P, crease_deg):
-    """(unique edges (e, 2) sorted, edge of each triangle side (m, 3): side k joins corners k and k+1,
-    crease edges (c, 2) sorted: boundary edges and those whose facets meet at more than crease_deg)."""
+def _edges(T):
+    """(unique edges (e, 2) sorted, edge of each triangle side (m, 3): side k joins corners k and k+1, the open
+    edges (b, 2)).  Raises ValueError on an edge of more than two triangles."""
     sides = np.stack([T, np.roll(T, -1, axis=1)], axis=2).reshape(-1, 2)
-    key = np.sort(sides, axis=1)
-    E, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
+    E, inv, count = np.unique(np.sort(sides, axis=1), axis=0, return_inverse=True, return_counts=True)
     if np.any(count > 2):
         raise ValueError("an edge is shared by more than two triangles")
-    fn = triangle_normals(P[:, :3], T)
-    tri = np.repeat(np.arange(len(T)), 3)
-    first = np.full(len(E), -1)
-    second = np.full(len(E), -1)
-    order = np.argsort(inv, kind="stable")
-    e_sorted = inv[order]
-    starts = np.r_[True, e_sorted[1:] != e_sorted[:-1]]
-    first[e_sorted[starts]] = tri[order][starts]
-    two = ~starts
-    second[e_sorted[two]] = tri[order][two]
-    sharp = second < 0
-    both = ~sharp
-    cos = np.einsum("ij,ij->i", fn[first[both]], fn[second[both]])
-    sharp[both] = cos < math.cos(math.radians(crease_deg))
-    return E, inv.reshape(-1, 3), E[sharp]
+    return E, inv.reshape(-1, 3), E[count == 1]
+
+
+def _creases(P, T, E_open, crease_deg):
+    """The edges kept as creases: the open ones and those whose facets meet at more than crease_deg (the test
+    the contact normals blend by, :func:`pmask.runtime.geometry.crease_edges`)."""
+    sharp = np.vstack([E_open, crease_edges(P, T, crease_deg)])
+    return np.unique(sharp, axis=0) if len(sharp) else sharp
 
 
 def _valence(n, E):
@@ -248,7 +243,7 @@ def _split(P, T, crease, parent, corners, fixed):
     """One level: every triangle into four (corners' barycentrics halved along its edges), new vertices on the
     edges by Loop's odd mask (3/8, 3/8, 1/8, 1/8; a crease's midpoint), old ones by the even mask."""
     n = len(P)
-    E, side, _ = _edges(T, P, 180.0)
+    E, side, _ = _edges(T)
     is_crease = _crease_flags(E, crease)
     # the vertex opposite each side, gathered per edge (two for an interior edge)
     opp = np.roll(T, -2, axis=1).ravel()
@@ -305,5 +300,5 @@ def _smooth_or_crease(P, E, is_crease, fixed, smooth, crease_rule):
 
 
 def _limit(P, T, crease, fixed):
-    E, _, _ = _edges(T, P, 180.0)
+    E, _, _ = _edges(T)
     return _smooth_or_crease(P, E, _crease_flags(E, crease), fixed, _limit_smooth, _limit_crease)
