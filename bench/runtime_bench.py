@@ -388,6 +388,49 @@ def surface_bench(name: str, surface, probes: np.ndarray, exe, work: Path, *, re
     return row
 
 
+#: free vertices drawn at random (seeded) for the deep pushes; the test (tests/test_deep.py) draws 20 of them
+DEEP_SITES = 80
+
+
+def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dict:
+    """The hands issue's straight pushes (:data:`pmask.pipeline.strokes.PUSH_LINES`, to 15 mm at 10 mm/s) at
+    ``n_sites`` random free vertices: how many lines reach the deep regime, how many lose force while going
+    deeper (the issue: none) and by how much, short of it and in it (:func:`pmask.pipeline.strokes.push_metrics`).
+    Physics, not speed; here because it steps the haptic engine a few hundred thousand times."""
+    from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics
+    from pmask.runtime import HapticContact
+    from pmask.runtime.contact import tracking
+
+    P = model.points
+    srf = HapticContact(stiff, levels=levels, engine="python").surface
+    below = depth_below(P, model.triangles)
+    sites = np.random.default_rng(1).choice(model.contact[model.core], n_sites, replace=False)
+    out = {"levels": levels, "sites": int(n_sites), "lines": 0, "deep_lines": 0, "released": 0, "falls": [],
+           "fall_contact_max": 0.0}
+    for v in sites:
+        t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])
+        N = np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float)))
+        for tilt, azimuths in PUSH_LINES:
+            for az in azimuths:
+                probes, s = push_line(P[v], N, tilt, az)
+                h = HapticContact(stiff, levels=levels)
+                steps = [h.step(p) for p in probes]
+                status = np.array([int(st) for _, st in steps])
+                depth = below(probes) * np.sign(s)
+                m = push_metrics(np.array([f for f, _ in steps]), status, depth)
+                out["lines"] += 1
+                out["deep_lines"] += m["deep"]
+                out["released"] += m["released"]
+                out["fall_contact_max"] = max(out["fall_contact_max"], m["fall_contact"])
+                if m["fall"] > 1e-12:
+                    k = m["fall_at"]
+                    out["falls"].append({"vertex": int(v), "tilt": tilt, "azimuth": az, "fall": m["fall"],
+                                         "depth_mm": 1e3 * float(depth[k]), "status": int(status[k]),
+                                         "to_support_mm": 1e3 * float(np.linalg.norm(P[model.fixed] - P[v],
+                                                                                     axis=1).min())})
+    return out
+
+
 def run(kidneys: dict, synthetic, work: Path) -> dict:
     """kidneys: {surface vertices: artifact path}; synthetic: callable n -> SurfaceStiffness."""
     from pmask.pipeline.strokes import tour
@@ -422,6 +465,8 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
         res["surfaces"][f"synthetic_{len(srf.P)}"] = dict(surface_bench(f"synthetic_{n}", srf, eq, exe, work),
                                                           synthetic=True)
     m, stiff, srf = default
+    print(f"  deep pushes at {DEEP_SITES} random sites, mesh and subdivided ...", flush=True)
+    res["deep"] = [deep_pushes(m, stiff, levels) for levels in (0, 2)]
     print("  several contacts ...", flush=True)
     srf.coupling()
     table = write_table(work / "kidney_default_zeta.tbl", srf, {"bench": "several"}, zeta=True)
@@ -448,6 +493,8 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
 
 # ------------------------------------------------------------------------------------------ report
 def markdown(res: dict) -> str:
+    from pmask.runtime.contact.state import Status
+
     L = ["**The haptic step** (µs per tick, one instrument; tight = back to back over the probe trace, paced = in a "
          "1 kHz loop on an absolute schedule as a device loop runs it; the kidneys run the haptics issue's tour, "
          "the synthetic gmsh ellipsoids (random SPD K_i) a press and two turns round the equator)", "",
@@ -500,6 +547,25 @@ def markdown(res: dict) -> str:
         L += ["", f"Contacts each route keeps in the 1 ms tick (the step's p99 within {tick['limit_us']:.0f} µs, "
                   f"half the tick; the rest is the device's and the application's): C core {kept('c')}, the native "
                   f"engine from Python {kept('binding')}, the Python engine {kept('python')}."]
+    deep = res.get("deep")
+    if deep:
+        L += ["", f"**Deep pushes at random sites** (default kidney, {deep[0]['sites']} free vertices drawn at random, "
+                  "the hands issue's nine straight pushes at each (along the inward normal, 30° and 45° off it "
+                  "towards four azimuths) to 15 mm at 10 mm/s, over the stretch where the line goes deeper; "
+                  "physics, not speed: `pmask.pipeline.strokes.push_metrics`)", "",
+              "| contact surface | lines | reaching DEEP | contact ended | largest fall tick to tick short of DEEP | "
+              "lines where \|F\| falls | their falls at a DEEP tick | largest fall (depth below the surface, "
+              "distance of the site from the support) |", "|---|---|---|---|---|---|---|---|"]
+        for d in deep:
+            f = d["falls"]
+            w = max(f, key=lambda x: x["fall"]) if f else None
+            worst = (f"{100 * w['fall']:.2g} % ({w['depth_mm']:.1f} mm, {w['to_support_mm']:.0f} mm); the others "
+                     + ", ".join(f"{100 * x['fall']:.2g}" for x in sorted(f, key=lambda x: -x["fall"])[1:]) + " %"
+                     if w else "none")
+            label = f"subdivided (`levels={d['levels']}`)" if d["levels"] else "mesh"
+            deep_ticks = sum(x["status"] == Status.DEEP for x in f)
+            L.append(f"| {label} | {d['lines']} | {d['deep_lines']} | {d['released']} | {d['fall_contact_max']:.1g} | "
+                     f"{len(f)} | {deep_ticks} | {worst} |")
     L += ["", "**Servo thread at 1 kHz** (probes set from Python at 200 Hz along the tour; beside it nothing, a "
               "Python graphics thread at 60 Hz (the displayed deformation and 3 ms of pure Python per frame), or "
               "a Python thread saturating both cores (SVDs on the threaded BLAS and Python loops))", "",

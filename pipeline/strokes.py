@@ -304,3 +304,68 @@ def _out_and_back(centre, e1, a0: float, a1: float, depth: float, sp: float, par
     a, b = len(press), len(press) + len(curve)
     return probes, {"press": slice(0, a), "out": slice(a, b), "back": slice(b, b + len(curve)),
                     "lift": slice(b + len(curve), len(probes))}
+
+
+#: the hands issue's straight pushes into the surface: along the inward normal, and 30° and 45° off it towards
+#: four azimuths (radians, about the normal)
+PUSH_LINES = ((0, (0.0,)), (30, (0.0, 1.57, 3.14, 4.71)), (45, (0.0, 1.57, 3.14, 4.71)))
+
+
+def push_line(x, normal, tilt_deg: float, azimuth: float, depth: float = 0.015, speed: float = 0.01,
+              rate: float = RATE) -> tuple[np.ndarray, np.ndarray]:
+    """Probe positions of a straight push from 2 mm outside through the surface point x, ``tilt_deg`` off the
+    inward normal −N towards ``azimuth``, ``depth`` along the line past x, at ``speed`` (the issue's 10 mm/s);
+    and each one's distance along the line past x (negative outside)."""
+    N = np.asarray(normal, float)
+    a = np.cross(N, [1.0, 0.0, 0.0])
+    if np.linalg.norm(a) < 0.3:
+        a = np.cross(N, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    t = np.radians(tilt_deg)
+    line = -np.cos(t) * N + np.sin(t) * (np.cos(azimuth) * a + np.sin(azimuth) * np.cross(N, a))
+    s = np.arange(-0.002, depth, speed / rate)
+    return np.asarray(x, float) + s[:, None] * line, s
+
+
+def depth_below(points, triangles):
+    """A function of probe positions (m, 3) giving their distance to the undeformed surface (to a dense sampling of
+    its triangles, 1/12 of an edge apart: ~0.25 mm on the default kidney)."""
+    from scipy.spatial import cKDTree
+
+    b = np.array([(i, j, 12 - i - j) for i in range(13) for j in range(13 - i)], float) / 12
+    tree = cKDTree(np.einsum("sk,tkd->tsd", b, np.asarray(points)[np.asarray(triangles)]).reshape(-1, 3))
+    return lambda probes: tree.query(probes)[0]
+
+
+def push_metrics(force, status, depth, speed: float = 0.01, rate: float = RATE) -> dict:
+    """What a straight push does over the stretch where the line goes deeper (from first contact to the deepest
+    point of the line, the ticks where its depth below the surface grows by at least half the push's speed;
+    ``depth`` signed, negative outside: :func:`depth_below` times the sign of :func:`push_line`'s distance):
+
+    - ``released``: the contact ended on the way (it must not);
+    - ``fall``: the largest fall of |F| below its largest value so far, relative (the issue: none);
+    - ``fall_contact``: the largest fall of |F| from one tick to the next where both ticks are in contact short of
+      the deep regime (status CONTACT or REGION_EDGE, δ < δ_lin);
+    - ``deep``: the status said DEEP somewhere on the stretch; ``end``: the deepest tick; ``fall_at``: the tick of
+      the largest fall (-1 when none)."""
+    from pmask.runtime.contact.state import Status
+
+    force, status, signed = np.asarray(force), np.asarray(status), np.asarray(depth, float)
+    mag = np.linalg.norm(force, axis=1)
+    run = np.maximum.accumulate(signed)
+    back = np.flatnonzero((signed < run - 1e-4) & (run > 0))
+    end = int(np.argmax(signed[:back[0]])) if len(back) else len(signed) - 1
+    touching = np.isin(status, TOUCHING)
+    first = int(np.flatnonzero(touching)[0]) if touching.any() else end
+    i = np.arange(first + 1, end + 1)
+    i = i[np.diff(signed)[i - 1] >= 0.5 * speed / rate]
+    m = mag[i]
+    best = np.maximum.accumulate(m) if len(m) else m
+    shallow = np.isin(status, (Status.CONTACT, Status.REGION_EDGE))
+    j = i[shallow[i] & shallow[i - 1]]
+    falls = (best - m) / best
+    return {"released": bool(not touching[first:end + 1].all()),
+            "fall": float(np.max(falls)) if len(m) else 0.0,
+            "fall_at": int(i[np.argmax(falls)]) if len(m) and np.max(falls) > 0.0 else -1,
+            "fall_contact": float(np.max(1.0 - mag[j] / mag[j - 1])) if len(j) else 0.0,
+            "deep": bool(np.any(status[first:end + 1] == Status.DEEP)), "end": end, "first": first}
