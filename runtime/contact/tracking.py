@@ -217,6 +217,12 @@ def prepare(c, st, sample):
         st.above = h >= r  # starting inside the body is not a contact
         release(st)
         return None, False
+    mx, my, mz = st.move
+    if not st.in_contact and mx * mx + my * my + mz * mz > s.mean_edge * s.mean_edge:
+        # a jump out of contact (a mouse dragged across the view, a device's reset): the walk starts from the
+        # grid's nearest triangle, not from where the probe was; walking from the body's far side it found a
+        # projection there, read the probe as deep inside and began a contact on the wrong side
+        st.tri = s.grid.nearest((px, py, pz))
     t, b0, b1, b2, h = locate(c, st.tri, px, py, pz)
     if not st.in_contact:
         st.tri, st.b = t, (b0, b1, b2)
