@@ -389,6 +389,19 @@ def cmd_export(args) -> int:
     return 0
 
 
+def add_levels(p) -> None:
+    """``--levels``: the contact surface the haptic contact runs on (export-table, view)."""
+    p.add_argument("--levels", default="0", choices=["0", "1", "2", "3", "auto"],
+                   help="contact surface: 0 the mesh (default), n its Loop subdivision surface after n levels, auto "
+                        "the fewest levels whose facets meet the contact normals within 3.5 degrees (closed loops "
+                        "then give back less energy: see the haptics guide)")
+
+
+def levels_of(args):
+    """The ``levels`` argument of :class:`pmask.runtime.Contacts` for ``--levels``."""
+    return args.levels if args.levels == "auto" else int(args.levels)
+
+
 def add_export_table(sub) -> None:
     p = sub.add_parser("export-table", help="write a runtime table for the native servo core (C/C++ applications)",
                        description="Export what the haptic step reads for one mask and radius: the mesh, contact "
@@ -400,10 +413,7 @@ def add_export_table(sub) -> None:
     p.add_argument("--radius", type=float, help="mask radius in model units (default 2 mean edge lengths)")
     p.add_argument("--k-rigid", type=float, help="stiffness the support ramps to [N/m] (default: see Model.stiffness)")
     p.add_argument("--normal-radius", type=float, help="crease-blending radius of the contact normals (default 3 mask radii)")
-    p.add_argument("--levels", default="0", choices=["0", "1", "2", "3", "auto"],
-                   help="contact surface: 0 the mesh (default), n its Loop subdivision surface after n levels, auto "
-                        "the fewest levels whose facets meet the contact normals within 3.5 degrees (closed loops "
-                        "then give back less energy: see the haptics guide)")
+    add_levels(p)
     p.add_argument("--no-zeta", action="store_true",
                    help="leave out the zeta table (3n_c x 3n_c doubles): single contacts only, no deformation")
     p.set_defaults(func=cmd_export_table)
@@ -418,7 +428,7 @@ def cmd_export_table(args) -> int:
     compressed = model.attrs.get("greens_form") == "hmatrix"
     out = export_table(model, Path(args.out), mask=args.mask, radius=args.radius, k_rigid=args.k_rigid,
                        normal_radius=args.normal_radius, zeta=not args.no_zeta and not compressed,
-                       levels=args.levels if args.levels == "auto" else int(args.levels))
+                       levels=levels_of(args))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB)")
     if compressed and not args.no_zeta:
         n3 = 3 * len(model.contact)
@@ -441,6 +451,7 @@ def add_view(sub) -> None:
     p.add_argument("--mask", default="linear", help="pressure mask: linear, gaussian, wendland, disk or single")
     p.add_argument("--radius", type=float, help="initial mask radius in model units (default 2 mean edge lengths)")
     p.add_argument("--engine", choices=("native", "python"), help="servo engine (default: native if built)")
+    add_levels(p)
     p.set_defaults(func=cmd_view)
 
 
@@ -452,7 +463,8 @@ def cmd_view(args) -> int:
     def stop(signum, frame):  # SIGTERM stops as Ctrl-C does
         raise KeyboardInterrupt
     signal.signal(signal.SIGTERM, stop)
-    serve(args.artifact, host=args.host, port=args.port, mask=args.mask, radius=args.radius, engine=args.engine)
+    serve(args.artifact, host=args.host, port=args.port, mask=args.mask, radius=args.radius, engine=args.engine,
+          levels=levels_of(args))
     return 0
 
 

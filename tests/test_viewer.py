@@ -603,3 +603,41 @@ def _other_address():
         return None if a.startswith("127.") else a
     except OSError:
         return None
+
+
+def test_the_viewer_runs_the_subdivided_contact_surface(session, kidney_small):
+    """``pmask view --levels 2``: the probes run on the mesh's Loop subdivision surface (16 contact triangles to a
+    mesh triangle), so a press at a triangle's centroid holds the proxy on the smooth surface, off the flat
+    triangle by a fraction of an edge (its sagitta), where the default session's proxy lies in the triangle's
+    plane."""
+    from pmask.pipeline.cli import build_parser, levels_of
+
+    assert levels_of(build_parser().parse_args(["view", "m.h5", "--levels", "2"])) == 2
+    assert levels_of(build_parser().parse_args(["view", "m.h5"])) == 0
+    m = session.model
+    P, T = m.points, m.triangles
+    core = set(m.contact[m.core].tolist())
+    t = next(i for i, tri in enumerate(T) if core.issuperset(tri.tolist()))
+    c, h = P[T[t]].mean(axis=0), m.mean_edge_length
+    n = np.cross(P[T[t][1]] - P[T[t][0]], P[T[t][2]] - P[T[t][0]])
+    n /= np.linalg.norm(n)
+    if np.dot(n, _outward(m, c)) < 0:
+        n = -n
+    path = [(c + (1.5 - 1.7 * s) * h * n).tolist() for s in np.linspace(0, 1, 30)]  # to 0.2 edges deep: the
+    # proxy stays in the triangle (the interpolated normal is within a few degrees of the facet's there)
+    sub = ViewerSession(m, levels=2)
+    try:
+        assert len(sub.contacts.surface.T) == 16 * len(sub.contacts.surface.mesh_T)
+        off = {}
+        for name, s in (("mesh", session), ("subdivided", sub)):
+            for p in path:
+                reply = s.probe([p] + [None] * (N_PROBES - 1), deform=False, client="levels")
+                time.sleep(0.003)
+            time.sleep(0.05)
+            reply = s.probe([path[-1]] + [None] * (N_PROBES - 1), deform=False, client="levels")
+            s.probe([None] * N_PROBES, deform=False, client="levels")
+            assert reply["contacts"][0]["status"] in ("CONTACT", "DEEP"), (name, reply["contacts"][0])
+            off[name] = abs(float(np.dot(np.array(reply["contacts"][0]["proxy"]) - c, n)))
+        assert off["mesh"] <= 1e-9 * h and 1e-4 * h < off["subdivided"] <= 0.1 * h, off
+    finally:
+        sub.close()

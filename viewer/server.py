@@ -92,12 +92,14 @@ class ViewerSession:
     """One model on the server: its stiffness for the current mask radius and the contacts' servo thread.
 
     model : a loaded :class:`pmask.runtime.Model`; mask : the pressure mask kind; radius : the initial
-    mask radius (default :attr:`pmask.runtime.Model.default_radius`); engine : the servo engine (None: native if built).
+    mask radius (default :attr:`pmask.runtime.Model.default_radius`); engine : the servo engine (None: native if built);
+    levels : the contact surface (:class:`pmask.runtime.Contacts`: 0 the mesh, n its Loop subdivision surface, "auto").
     """
 
     def __init__(self, model: Model, *, mask: str = "linear", radius: float | None = None, engine: str | None = None,
-                 rate: float = RATE, spin: float = 0.0):
+                 rate: float = RATE, spin: float = 0.0, levels=0):
         self.model = model
+        self.levels = levels
         self.mask = mask
         self.engine = engine
         self.rate = float(rate)
@@ -140,7 +142,7 @@ class ViewerSession:
             stiffness = self.model.stiffness(self.mask, radius)
             # the mouse is not a device: a drag may move the probe several edge lengths between two page
             # updates, which a device's plausibility check (max_jump) would hold as an implausible jump
-            contacts = Contacts(stiffness, N_PROBES, engine=self.engine, max_jump=2.0 * self.diag)
+            contacts = Contacts(stiffness, N_PROBES, engine=self.engine, max_jump=2.0 * self.diag, levels=self.levels)
             contacts.start(self.rate, spin=self.spin)
             contacts.set_probes([self.park] * N_PROBES)
             masked = _norms(stiffness.K_vertex)
@@ -377,7 +379,7 @@ def make_server(session: ViewerSession, host: str = "127.0.0.1", port: int = 876
 
 
 def serve(artifact, *, host: str = "127.0.0.1", port: int = 8765, mask: str = "linear", radius=None,
-          engine: str | None = None, ready=None) -> None:
+          engine: str | None = None, levels=0, ready=None) -> None:
     """``pmask view``: load (refusing a foreign or corrupt artifact before anything listens), bind, print
     the URL, serve until Ctrl-C (KeyboardInterrupt) and stop the servo thread.  ``ready(url)`` is called
     once it listens (tests)."""
@@ -386,7 +388,7 @@ def serve(artifact, *, host: str = "127.0.0.1", port: int = 8765, mask: str = "l
         raise InputError(f"--port must lie in 0..65535, got {port}")
     t0 = time.perf_counter()
     model = Model.load(artifact)
-    session = ViewerSession(model, mask=mask, radius=radius, engine=engine)
+    session = ViewerSession(model, mask=mask, radius=radius, engine=engine, levels=levels)
     try:
         server = make_server(session, host, port)
     except BaseException:
@@ -395,8 +397,10 @@ def serve(artifact, *, host: str = "127.0.0.1", port: int = 8765, mask: str = "l
     url = f"http://{host if ':' not in host else '[' + host + ']'}:{server.server_address[1]}/"
     where = ("127.0.0.1 only (this machine; --host to change)" if host == "127.0.0.1"
              else f"{host}: other machines may reach it")
+    lv = session.contacts.surface.levels
+    on = f" on its subdivision surface ({lv} level{'s' if lv > 1 else ''})" if lv else ""
     print(f"pmask view: {Path(str(artifact)).name} ({len(model.points)} surface vertices, servo {session.contacts.engine} "
-          f"at {session.rate:.0f} Hz, ready in {time.perf_counter() - t0:.1f} s)\n"
+          f"at {session.rate:.0f} Hz{on}, ready in {time.perf_counter() - t0:.1f} s)\n"
           f"listening on {where}\nopen {url}  (Ctrl-C stops)", flush=True)
     if ready is not None:
         ready(url)
