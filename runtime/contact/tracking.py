@@ -244,7 +244,11 @@ def follow(c, st) -> None:
     Deeper than half the radius of curvature the projection nears the surface's focal point and runs off
     sideways; the proxy then moves by dead reckoning instead, by (I − δ_f S)⁻¹ P Δp (P = I − N Nᵀ at the
     proxy, S the shape operator on the tangent plane, δ_f = R / 2), the factor the law's tangential term
-    uses (:func:`pmask.runtime.contact.linalg3.tracking_depth`): a straight press keeps its contact point."""
+    uses (:func:`pmask.runtime.contact.linalg3.tracking_depth`): a straight press keeps its contact point.
+    So it does past δ_lin (status DEEP) when this tick's projection lies more than a mean edge from the proxy:
+    deep in the body the projection can land on another part of the surface (10 mm below the kidney's side,
+    beside the support, it jumped 5 mm onto the hilum's wall), and the proxy sliding there tilted the normal
+    until the penetration, and with it |F|, fell by 8-10 % while the push went deeper."""
     if st.target is None:
         return
     srf = c.surface
@@ -253,7 +257,13 @@ def follow(c, st) -> None:
         Nx, Ny, Nz = normal(srf, t, b0, b1, b2)
         St = tangent_part(Nx, Ny, Nz, shape_at(srf, t, b0, b1, b2))
         d = tracking_depth(St, st.depth)
-        if d < st.depth:
+        jumped = False
+        if st.status == Status.DEEP:
+            x, y, z = point(srf, t, b0, b1, b2)
+            tx, ty, tz = point(srf, *st.target)
+            ex, ey, ez = tx - x, ty - y, tz - z
+            jumped = ex * ex + ey * ey + ez * ez > srf.mean_edge * srf.mean_edge
+        if d < st.depth or jumped:
             mx, my, mz = st.move
             mn = Nx * mx + Ny * my + Nz * mz
             vx, vy, vz = mul3(speed_up(St, d), mx - mn * Nx, my - mn * Ny, mz - mn * Nz)

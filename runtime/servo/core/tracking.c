@@ -271,7 +271,8 @@ int pm__prepare(pm_servo *S, cstate *st, const double *sample, double *p)
 }
 
 /* the proxy's move this tick (tracking.follow): towards this tick's projection, at most proxy_speed |Δp|;
- * deeper than half the radius of curvature by dead reckoning, (I − δ_f S)⁻¹ P Δp */
+ * deeper than half the radius of curvature by dead reckoning, (I − δ_f S)⁻¹ P Δp, and so past δ_lin when the
+ * projection lies more than a mean edge away (another part of the surface) */
 int pm__follow(pm_servo *S, cstate *st)
 {
     if (!st->has_target) return 0;
@@ -283,7 +284,15 @@ int pm__follow(pm_servo *S, cstate *st)
         pm__shape_at(tb, st->tri, st->b, Sm);
         pm__tangent_part(N, Sm, St);
         double d = pm__tracking_depth(St, st->depth);
-        if (d < st->depth) {
+        int jumped = 0;
+        if (st->status == PM_DEEP) {
+            double xt[3];
+            pm__point_at(tb, st->tri, st->b, x);
+            pm__point_at(tb, st->target_t, st->target_b, xt);
+            const double ex = xt[0] - x[0], ey = xt[1] - x[1], ez = xt[2] - x[2];
+            jumped = ex * ex + ey * ey + ez * ez > tb->mean_edge * tb->mean_edge;
+        }
+        if (d < st->depth || jumped) {
             double A[9], v[3];
             const double mx = st->move[0], my = st->move[1], mz = st->move[2];
             double mn = N[0] * mx + N[1] * my + N[2] * mz;
