@@ -406,7 +406,7 @@ def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dic
     below = depth_below(P, model.triangles)
     sites = np.random.default_rng(1).choice(model.contact[model.core], n_sites, replace=False)
     out = {"levels": levels, "sites": int(n_sites), "lines": 0, "deep_lines": 0, "released": 0, "falls": [],
-           "fall_contact_max": 0.0}
+           "fall_contact_max": 0.0, "vertices": len(P), "element": str(model.attrs.get("element", "P1"))}
     for v in sites:
         t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])
         N = np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float)))
@@ -549,7 +549,9 @@ def markdown(res: dict) -> str:
                   f"engine from Python {kept('binding')}, the Python engine {kept('python')}."]
     deep = res.get("deep")
     if deep:
-        L += ["", f"**Deep pushes at random sites** (default kidney, {deep[0]['sites']} free vertices drawn at random, "
+        L += ["", f"**Deep pushes at random sites** (the {deep[0]['vertices']:,}-vertex kidney, {deep[0]['element']} as "
+                  f"this bench precomputes it (the tests' default kidney is P2), {deep[0]['sites']} free vertices drawn "
+                  "at random, "
                   "the hands issue's nine straight pushes at each (along the inward normal, 30° and 45° off it "
                   "towards four azimuths) to 15 mm at 10 mm/s, over the stretch where the line goes deeper; "
                   "physics, not speed: `pmask.pipeline.strokes.push_metrics`)", "",

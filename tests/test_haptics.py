@@ -187,7 +187,8 @@ def test_a_jump_out_of_contact_is_tracked_where_it_lands(model, stiff, levels, e
     for s in np.linspace(1.5, -0.2, 30):
         f, status = h_.step(c + s * h * n)
     assert status in (Status.CONTACT, Status.DEEP)
-    # where it pressed (the interpolated normal's projection wanders from the centroid by ~depth x angle), 0.2 edges deep
+    # where it pressed (the interpolated normal's projection wanders from the centroid by ~depth x angle), 0.2 edges
+    # deep
     assert np.linalg.norm(np.asarray(h_.proxy) - c) <= 0.25 * h and h_.depth <= 0.3 * h, (h_.proxy, c, h_.depth)
 
 

@@ -235,9 +235,8 @@ int pm__prepare(pm_servo *S, cstate *st, const double *sample, double *p)
         return 0;
     }
     /* a jump out of contact: the walk starts from the grid's nearest triangle (tracking.prepare) */
-    if (!st->in_contact &&
-        st->move[0] * st->move[0] + st->move[1] * st->move[1] + st->move[2] * st->move[2] > tb->mean_edge * tb->mean_edge)
-        st->tri = pm_table_nearest(tb, pp);
+    const double jump2 = st->move[0] * st->move[0] + st->move[1] * st->move[1] + st->move[2] * st->move[2];
+    if (!st->in_contact && jump2 > tb->mean_edge * tb->mean_edge) st->tri = pm_table_nearest(tb, pp);
     if (pm__locate(S, st->tri, pp, 1, &L)) return -1;
     if (!st->in_contact) {
         st->tri = L.t;
