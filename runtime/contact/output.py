@@ -73,7 +73,8 @@ def render(c, states, active, geo, ubar, result) -> None:
             if full and delta > 0.0:
                 dt = increment_depth(dlin, k, gx, gy, gz)
                 if delta >= dt:
-                    st.frozen, st.frozen_depth, st.frozen_stiffness = True, delta, k
+                    # δ_t where a press crosses it (st.depth: the last tick's), else where it is (law.py)
+                    st.frozen, st.frozen_depth, st.frozen_stiffness = True, dt if st.depth < dt else delta, k
         elif delta < st.frozen_depth:
             st.frozen = False
         # the stored energy's gradient along the surface, ψ(δ) (I − δ_f S)⁻¹ ∇k: ψ = ½ δ², frozen

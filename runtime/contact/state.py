@@ -69,7 +69,7 @@ class ContactState:
         self.b = (1.0, 0.0, 0.0)          # tracking; proxy barycentrics
         self.anchor = None                # with friction: the material point the tool holds (x, y, z)
         self.frozen = False               # past δ_t: increments of depth at the stiffness k* where it began
-        self.frozen_depth = 0.0           # δ* = δ when it froze (law.py)
+        self.frozen_depth = 0.0           # δ*: δ_t, or δ when it froze past δ_t (law.py)
         self.frozen_stiffness = 0.0       # k* = k there
         self.in_contact = False
         self.above = False                # the probe was seen outside the body since tracking began

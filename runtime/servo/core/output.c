@@ -76,7 +76,7 @@ int pm__render(pm_servo *S, int32_t na)
                 if (FROZEN_CHANGE * k < dt * gm) dt = FROZEN_CHANGE * k / gm;
                 if (delta >= dt) {
                     st->frozen = 1;
-                    st->frozen_depth = delta;
+                    st->frozen_depth = st->depth < dt ? dt : delta;  /* a press crossing δ_t, or already past it */
                     st->frozen_stiffness = k;
                 }
             }
