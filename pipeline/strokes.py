@@ -343,8 +343,8 @@ def push_metrics(force, status, depth, speed: float = 0.01, rate: float = RATE) 
     ``depth`` signed, negative outside: :func:`depth_below` times the sign of :func:`push_line`'s distance):
 
     - ``released``: the contact ended on the way (it must not);
-    - ``fall``: the largest fall of |F| below its largest value so far, relative (the issue: none);
-    - ``fall_contact``: the largest fall of |F| from one tick to the next where both ticks are in contact short of
+    - ``fall``: the largest fall of ‖F‖ below its largest value so far, relative (the issue: none);
+    - ``fall_contact``: the largest fall of ‖F‖ from one tick to the next where both ticks are in contact short of
       the deep regime (status CONTACT or REGION_EDGE, δ < δ_lin);
     - ``deep``: the status said DEEP somewhere on the stretch; ``end``: the deepest tick; ``fall_at``: the tick of
       the largest fall (-1 when none)."""

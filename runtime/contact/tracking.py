@@ -248,7 +248,7 @@ def follow(c, st) -> None:
     So it does past δ_lin (status DEEP) when this tick's projection lies more than a mean edge from the proxy:
     deep in the body the projection can land on another part of the surface (10 mm below the kidney's side,
     beside the support, it jumped 5 mm onto the hilum's wall), and the proxy sliding there tilted the normal
-    until the penetration, and with it |F|, fell by 8-10 % while the push went deeper."""
+    until the penetration, and with it ‖F‖, fell by 8-10 % while the push went deeper."""
     if st.target is None:
         return
     srf = c.surface
