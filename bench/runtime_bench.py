@@ -397,9 +397,8 @@ def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dic
     ``n_sites`` random free vertices: how many lines reach the deep regime, how many lose force while going
     deeper (the issue: none) and by how much, short of it and in it (:func:`pmask.pipeline.strokes.push_metrics`).
     Physics, not speed; here because it steps the haptic engine a few hundred thousand times."""
-    from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics
+    from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics, vertex_normal
     from pmask.runtime import HapticContact
-    from pmask.runtime.contact import tracking
 
     P = model.points
     srf = HapticContact(stiff, levels=levels, engine="python").surface
@@ -408,8 +407,7 @@ def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dic
     out = {"levels": levels, "sites": int(n_sites), "lines": 0, "deep_lines": 0, "released": 0, "falls": [],
            "fall_contact_max": 0.0, "vertices": len(P), "element": str(model.attrs.get("element", "P1"))}
     for v in sites:
-        t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])
-        N = np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float)))
+        N = vertex_normal(srf, v)
         for tilt, azimuths in PUSH_LINES:
             for az in azimuths:
                 probes, s = push_line(P[v], N, tilt, az)

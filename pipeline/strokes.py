@@ -311,6 +311,15 @@ def _out_and_back(centre, e1, a0: float, a1: float, depth: float, sp: float, par
 PUSH_LINES = ((0, (0.0,)), (30, (0.0, 1.57, 3.14, 4.71)), (45, (0.0, 1.57, 3.14, 4.71)))
 
 
+def vertex_normal(surface, v) -> np.ndarray:
+    """The contact normal at mesh vertex v of a :class:`pmask.runtime.contact.ContactSurface` (the mesh's or its
+    subdivision surface's: both keep the mesh's vertices, indices and positions)."""
+    from pmask.runtime.contact import tracking
+
+    t = int(np.flatnonzero(np.any(surface.T == v, axis=1))[0])
+    return np.array(tracking.normal(surface, t, *(surface.T[t] == v).astype(float)))
+
+
 def push_line(x, normal, tilt_deg: float, azimuth: float, depth: float = 0.015, speed: float = 0.01,
               rate: float = RATE) -> tuple[np.ndarray, np.ndarray]:
     """Probe positions of a straight push from 2 mm outside through the surface point x, ``tilt_deg`` off the

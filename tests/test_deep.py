@@ -9,16 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics
+from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics, vertex_normal
 from pmask.runtime import HapticContact, Status
-from pmask.runtime.contact import tracking
-
-
-def site_normal(srf, v):
-    """The contact normal at mesh vertex v (the contact surface keeps the mesh's vertices, indices and
-    positions)."""
-    t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])
-    return np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float)))
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +27,7 @@ def kidney(model, stiff):
     sites = {"pole": free[np.argmax(P[free, 0])], "top": free[np.argmax(P[free, 2])],
              "lateral face": lateral[np.argmax(P[lateral, 1])], "support rim": free[np.argmin(to_support)],
              "hilum's lip": free[np.argmin(curv[free])]}
-    normals = {name: (P[v], site_normal(srf, v)) for name, v in sites.items()}
+    normals = {name: (P[v], vertex_normal(srf, v)) for name, v in sites.items()}
     return normals, depth_below(P, model.triangles)
 
 
@@ -92,7 +84,7 @@ def test_at_random_sites_pushing_harder_never_feels_softer_short_of_the_deep_reg
     sites = np.random.default_rng(1).choice(model.contact[model.core], 20, replace=False)
     deep = 0
     for v in sites:
-        N = site_normal(srf, v)
+        N = vertex_normal(srf, v)
         for tilt, azimuths in PUSH_LINES:
             for az in azimuths:
                 F, status, depth = push(stiff, P[v], N, tilt, az, below)

@@ -9,8 +9,8 @@ import itertools
 import numpy as np
 import pytest
 
+from pmask.pipeline.strokes import vertex_normal
 from pmask.runtime import HapticContact
-from pmask.runtime.contact import tracking
 from pmask.runtime.contact.state import TOUCHING
 
 SPEED, RATE = 0.02, 1000.0
@@ -37,8 +37,7 @@ def grid(request, model, stiff):
     free = model.contact[model.core]
     v = free[np.argmax(P[free, 2] - 0.2 * np.abs(P[free, 0] - 0.01))]  # the upper face, 10 mm off the middle
     srf = HapticContact(stiff, engine="python", levels=levels).surface
-    t = int(np.flatnonzero(np.any(srf.T == v, axis=1))[0])  # the contact surface keeps the mesh's vertices
-    N = np.array(tracking.normal(srf, t, *(srf.T[t] == v).astype(float)))
+    N = vertex_normal(srf, v)
     a = np.cross(N, [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(N, a)
