@@ -248,7 +248,10 @@ def cmd_info(args) -> int:
         "material": a["material"], "units": a["units"], "r_max": float(a["r_max"]),
         "Xi": (f"{d['greens/Xi'].shape} {d['greens/Xi'].dtype}" if "greens/Xi" in d else
                f"compressed, tolerance {a['tolerance']:g}: {len(d['greens/hmatrix/dense_index'])} dense and "
-               f"{len(d['greens/hmatrix/lowrank_index'])} low-rank blocks, {d['greens/hmatrix/dense'].dtype}"),
+               f"{len(d['greens/hmatrix/lowrank_index'])} low-rank blocks, "
+               + (f"{d['greens/hmatrix/dense'].dtype}" if d.get("greens/hmatrix/dense") is not None else
+                  f"pairs within r_max in {d['greens/hmatrix/near_exact'].dtype}, the dense blocks' others in "
+                  "16 bits")),
         "input_hash": a["input_hash"],
         "libraries": a["provenance"].get("libraries"), "timings": a["timings"],
     }

@@ -59,6 +59,7 @@ import scipy.sparse as sp
 
 from pmask.errors import InputError, ResourceError
 from pmask.runtime.artifact import READ_BLOCK_BYTES
+from pmask.runtime.compressed import encode_near
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +82,7 @@ READ_BYTES = 64 * 2**20
 #: the W store's file layout (a store of another layout is swept again)
 LAYOUT = "X_s row-major, supernodes in postorder"
 #: the tile store's layout (a store of another layout is computed again): pieces of the tree's blocks
-TILE_LAYOUT = "tree blocks, pieces per panel, near = a pair within r_max"
+TILE_LAYOUT = "tree blocks, pieces per panel, near = a pair within r_max, dense blocks pair by pair"
 #: seconds a client waits for a lost scheduler to come back before the run stops (a rerun resumes)
 SCHEDULER_WAIT = 10.0
 #: tolerances at least this large store the far field's factors in float32 (:func:`far_dtype`)
@@ -495,12 +496,14 @@ def panel_columns(factor, perm: np.ndarray, c0: int, c1: int, upto: int | None =
     return solved_columns(factor, dcols)[rows], np.arange(len(rows))
 
 
-def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
+def tile(factor, tree: ClusterTree, column: int, blocks, tol: float, near=None) -> dict:
     """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
     reader's layout with offsets relative to this tile (:func:`assemble` shifts them), the low-rank
     index with an eighth column: the block's column cluster J.  Where J is wider than the panel the
     entry is a *piece* Ξ_{I,column} of the block, compressed within ``tol``/2 with V's columns
-    orthonormal; :func:`assemble` merges a block's pieces (:func:`merge_pieces`) within the other half."""
+    orthonormal; :func:`assemble` merges a block's pieces (:func:`merge_pieces`) within the other half.
+    ``near``: (the vertices' positions in cluster order, r_max): the dense blocks are stored pair by pair, those
+    within r_max exactly and the others in 16 bits (:func:`pmask.runtime.compressed.encode_near`); None: whole."""
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # one past the last row any block needs
@@ -508,7 +511,9 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
     t_solve = time.perf_counter() - t0
     rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
+    near_index, near_q, near_mask, near_scale = [], [], [], []
     d_off = u_off = v_off = 0
+    at_near = np.zeros(3, np.int64)  # offsets in near_q, near_mask, near_scale
     for i, j, far in blocks:
         r0, r1 = int(tree.start[i]), int(tree.stop[i])
         b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
@@ -517,7 +522,17 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
         uv = low_rank(B, tol / 2 if piece else tol, rng) if far else None
         if uv is None and piece:  # a piece is merged in low-rank form: its exact columns, V = I
             uv = (np.array(B), np.eye(B.shape[1]))
-        if uv is None:
+        if uv is None and near is not None:
+            pts, r_max = near
+            exact = np.linalg.norm(pts[r0:r1, None] - pts[None, b0:b1], axis=2) <= r_max * (1.0 + 1e-9)  # (close)
+            parts = encode_near(B, exact, tol)
+            dense_index.append((r0, r1, b0, b1, d_off))
+            near_index.append(tuple(at_near))
+            for lst, arr in zip((dense, near_q, near_scale, near_mask), parts):
+                lst.append(arr)
+            d_off += len(parts[0])
+            at_near += [len(parts[1]), len(parts[3]), len(parts[2])]
+        elif uv is None:
             dense_index.append((r0, r1, b0, b1, d_off))
             dense.append(np.ascontiguousarray(B).ravel())
             d_off += B.size
@@ -527,10 +542,12 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float) -> dict:
             Us.append(U.ravel()), Vs.append(V.ravel())
             u_off += U.size
             v_off += V.size
-    cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731
+    cat = lambda parts, dt=np.float64: np.concatenate(parts) if parts else np.zeros(0, dt)  # noqa: E731
     return {"column": int(column), "dense_index": np.array(dense_index, np.int64).reshape(-1, 5),
             "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 8), "U": cat(Us),
-            "V": cat(Vs), "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid()}
+            "V": cat(Vs), "near_index": np.array(near_index, np.int64).reshape(-1, 3),
+            "near_q": cat(near_q, np.int16), "near_mask": cat(near_mask, np.uint8), "near_scale": cat(near_scale),
+            "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid()}
 
 
 def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -645,7 +662,8 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
         merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1],
                        U.ravel().astype(lowrank_dtype, copy=False), V.ravel().astype(lowrank_dtype, copy=False)))
     merge_s = time.perf_counter() - t0
-    dense_index, lowrank_index, runs = [], [], {"dense": [], "U": [], "V": []}
+    dense_index, lowrank_index, near_index = [], [], []
+    runs = {"dense": [], "U": [], "V": [], "near_q": [], "near_mask": [], "near_scale": []}
     at = dict.fromkeys(TileStore.FIELDS, 0)
     times = {"solve_s": 0.0, "compress_s": 0.0}
 
@@ -660,9 +678,13 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
         di = g["dense_index"][()].reshape(-1, 5)
         di[:, 4] += at["dense"]
         dense_index.append(di)
-        n = int(g["dense"].shape[0])
-        run("dense", f"{g.name}/dense", 0, n)
-        at["dense"] += n
+        ni = g["near_index"][()].reshape(-1, 3)
+        if len(ni):  # (pair by pair: every tile's dense blocks are, or none are)
+            near_index.append(ni + [at["near_q"], at["near_mask"], at["near_scale"]])
+        for field in ("dense", "near_q", "near_mask", "near_scale"):
+            n = int(g[field].shape[0])
+            run(field, f"{g.name}/{field}", 0, n)
+            at[field] += n
         keep = li[w]
         sizes = {"U": 3 * (keep[:, 1] - keep[:, 0]) * keep[:, 4], "V": 3 * (keep[:, 3] - keep[:, 2]) * keep[:, 4]}
         entry = np.empty((len(keep), 7), np.int64)
@@ -685,8 +707,13 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
            "dense_index": np.concatenate(dense_index).astype(np.int64) if dense_index else np.zeros((0, 5), np.int64),
            "lowrank_index": np.concatenate(lowrank_index) if lowrank_index else np.zeros((0, 7), np.int64),
-           "dense": Concatenated(store.path, dtype, runs["dense"]),
-           **{k: Concatenated(store.path, lowrank_dtype, runs[k]) for k in ("U", "V")}}
+           # (pair by pair under another name than whole blocks: a reader of format 1.5 refuses it as missing
+           # "dense" where it would misread it)
+           ("near_exact" if near_index else "dense"): Concatenated(store.path, dtype, runs["dense"]),
+           **{k: Concatenated(store.path, lowrank_dtype, runs[k]) for k in ("U", "V")},
+           "near_index": np.concatenate(near_index) if near_index else np.zeros((0, 3), np.int64),
+           **{k: Concatenated(store.path, dt, runs[k])
+              for k, dt in (("near_q", np.int16), ("near_mask", np.uint8), ("near_scale", np.float64))}}
     times.update({"merge_s": merge_s, "merged_blocks": len(merged),
                   "merged_pieces": int(sum(len(p) for p in blocks.values()))})
     return out, times
@@ -698,7 +725,7 @@ class TileStore:
     arrives; a group is complete once its ``done`` attribute is set), so that neither a lost worker
     nor a crashed client loses one."""
 
-    FIELDS = ("dense_index", "dense", "lowrank_index", "U", "V")
+    FIELDS = ("dense_index", "dense", "lowrank_index", "U", "V", "near_index", "near_q", "near_mask", "near_scale")
 
     def __init__(self, path: Path, key: str):
         import h5py
@@ -939,13 +966,16 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                                          "work folder (.work next to -o) must be on a filesystem every worker mounts")
                 attempts = {c: 0 for c in todo}
                 done = len(cols) - len(todo)
-                fac = None
+                fac = near = None
                 while todo:
                     check_scheduler(client, scheduler, done, len(cols), store)
                     if fac is None or fac.status != "finished":
                         fac = client.scatter(source, broadcast=True, hash=False)
-                    futures = {client.submit(tile, fac, tree, c, plan[c], tol, key=f"pmask-tile-{c}-{attempts[c]}",
-                                             pure=False): c for c in todo}
+                    if near is None or near.status != "finished":  # (a lost worker may take it with it)
+                        near = client.scatter((np.asarray(points, float)[tree.perm], float(r_max)), broadcast=True,
+                                              hash=False)
+                    futures = {client.submit(tile, fac, tree, c, plan[c], tol, near,
+                                             key=f"pmask-tile-{c}-{attempts[c]}", pure=False): c for c in todo}
                     lost = []
                     for fut in as_completed(futures):
                         c = futures[fut]
@@ -985,7 +1015,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
         ts.close()
     stats.update({"seconds": time.perf_counter() - t0, **times,
                   "dense_blocks": len(out["dense_index"]), "lowrank_blocks": len(out["lowrank_index"]),
-                  "stored_bytes": int(out["dense"].nbytes + out["U"].nbytes + out["V"].nbytes),
+                  "stored_bytes": int(sum(out[k].nbytes for k in ("dense", "near_exact", "U", "V", "near_q",
+                                                                 "near_mask", "near_scale") if k in out)),
                   "dense_bytes": int(8 * (3 * len(points)) ** 2),
                   "max_rank": int(out["lowrank_index"][:, 4].max()) if len(out["lowrank_index"]) else 0})
     stats["ratio"] = stats["dense_bytes"] / max(stats["stored_bytes"], 1)

@@ -49,8 +49,9 @@ def write_artifact(path, *, meta: dict, volume_points, tets, surface_vertices, t
         big["volume/material_region"] = (meta["materials"]["label"], np.int64)
     if isinstance(Xi, dict):  # compressed (pmask.precompute.compress): its arrays in the dtypes it chose
         attrs.update({"greens_form": "hmatrix", "tolerance": float(meta["tolerance"])})
-        for k, arr in Xi.items():  # (the near field in ``dtype``, the far field's factors maybe narrower)
-            big[f"greens/hmatrix/{k}"] = (arr, arr.dtype if arr.dtype.kind == "f" else np.int64)
+        for k, arr in Xi.items():  # (the near field in ``dtype``, the far field's factors maybe narrower, the 16-bit
+            # near-field values and their mask as they are)
+            big[f"greens/hmatrix/{k}"] = (arr, arr.dtype if arr.dtype.kind in "fiu" else np.int64)
     else:
         big["greens/Xi"] = (Xi, dtype)
     if reactions is not None:

@@ -19,6 +19,12 @@ Layout (format 1.x)::
     /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
+Format 1.6 stores a compressed Ξ's dense blocks pair by pair (``/greens/hmatrix/near_index``, ``near_exact``,
+``near_mask``, ``near_q``, ``near_scale`` in place of ``dense``: :mod:`pmask.runtime.compressed`): the pairs
+within r_max exactly, the others in 16 bits within the tolerance.  A 1.5 reader refuses such a file as missing
+``/greens/hmatrix/dense`` (it would read the pairs as whole blocks); a file with ``dense`` (≤ 1.5) is read as
+before.
+
 Format 1.5 changes how the large datasets are checked, for the time to open a large organ: every dataset above
 64 MiB also has the SHA-256 of each block of rows (``sha256_covers["blocks"][name]``: ``{"rows": R,
 "sha256": [...]}``), which a reader hashes on both cores while it reads (its whole-dataset digest stays, so a
@@ -63,7 +69,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.5.0"
+FORMAT_VERSION = "1.6.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -77,17 +83,21 @@ SURFACE = ("surface/points", "surface/triangles", "surface/vertex_areas", "surfa
 #: reader reads :data:`HMATRIX` in Ξ's place)
 RUNTIME = SURFACE + ("greens/Xi",)
 HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V",
-                                                 "scale"))
+                                                 "scale", "near_index", "near_exact", "near_mask", "near_q",
+                                                 "near_scale"))
 #: the datasets a reader may leave in the file and read in slices without their SHA-256 (a large organ's far
 #: field: :class:`FileArray`); only these carry HDF5's Fletcher-32 (format 1.5)
 SLICED = ("greens/hmatrix/U", "greens/hmatrix/V")
 #: the exact near field, which a reader may read when first needed, a block at a time, each block checked by its
 #: SHA-256 (:class:`BlocksOnDemand`)
-NEAR = ("greens/hmatrix/dense",)
+NEAR = ("greens/hmatrix/dense", "greens/hmatrix/near_exact", "greens/hmatrix/near_q")
 #: datasets above this size also get a SHA-256 per block of rows (format 1.5), verified on both cores
 BLOCK_DIGEST_BYTES = 64 << 20
-#: of these, optional (before format 1.4 every block was stored: no scale)
-HMATRIX_OPTIONAL = ("greens/hmatrix/scale",)
+#: of these, optional (before format 1.4 every block was stored: no scale; format 1.6 stores its dense blocks pair
+#: by pair, near_exact and the others in place of dense, whole blocks: the reader needs one of the two)
+HMATRIX_OPTIONAL = ("greens/hmatrix/scale", "greens/hmatrix/dense", "greens/hmatrix/near_index",
+                    "greens/hmatrix/near_exact", "greens/hmatrix/near_mask", "greens/hmatrix/near_q",
+                    "greens/hmatrix/near_scale")
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
 #: the display surface (optional, format 1.3): read only when asked for (Model.display)
@@ -568,8 +578,8 @@ def _check_shapes(path, d, finite: dict | None = None) -> None:
         perm = d["greens/hmatrix/perm"]
         if len(perm) != nc or not np.array_equal(np.sort(perm), np.arange(nc)):
             problems.append("the compressed Green's functions' vertex order is not a permutation of the contact vertices")
-        elif not all(is_finite(f"greens/hmatrix/{k}") for k in ("dense", "U", "V")
-                     if f"greens/hmatrix/{k}" in d):  # (a far field left in the file is checked as it is read)
+        elif not all(is_finite(f"greens/hmatrix/{k}") for k in ("dense", "near_exact", "U", "V", "near_scale")
+                     if d.get(f"greens/hmatrix/{k}") is not None):  # (a far field left in the file: as it is read)
             problems.append("Xi holds NaN or inf")
     if d.get("greens/reactions") is not None and nu is not None and nc is not None:
         if d["greens/reactions"].shape != (3 * nu, 3 * nc):

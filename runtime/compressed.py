@@ -14,15 +14,16 @@ blocks over pairs of tree clusters (I, J) (a hierarchical matrix): a pair with n
 ``r_max`` of a vertex of J, whose bounding boxes are farther apart than the larger box's diagonal / η, is
 *admissible* and stored as :math:`U V^T` with :math:`\|\Xi_{IJ} - U V^T\|_F \le \varepsilon \|\Xi_{IJ}\|_F`
 (ε: the artifact's ``tolerance``, default 1e-4); every other block (all of the near field among them) is stored
-densely, exactly as the dense route computes it.  Every block's rows and columns are whole leaf clusters, so a
-block is found from two leaf indices (:meth:`CompressedXi.owner`).  Built by :mod:`pmask.precompute.compress`.
+densely, every pair within r_max exactly as the dense route computes it (format 1.6: the others in 16 bits,
+below).  Every block's rows and columns are whole leaf clusters, so a block is found from two leaf indices
+(:meth:`CompressedXi.owner`).  Built by :mod:`pmask.precompute.compress`.
 
 Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in vertices)::
 
     perm           (n,)     contact index of each position
     leaves         (L+1,)   first position of each leaf cluster, and n
-    dense_index    (nd, 5)  r0, r1, c0, c1, offset: block rows 3 r0..3 r1, columns 3 c0..3 c1, values
-                            row-major at ``dense[offset:]``
+    dense_index    (nd, 5)  r0, r1, c0, c1, offset: block rows 3 r0..3 r1, columns 3 c0..3 c1, values at
+                            ``dense[offset:]`` (row-major; with ``near_index`` its exact pairs', below)
     dense          (·,)     the dense blocks' values
     lowrank_index  (nl, 7)  r0, r1, c0, c1, rank k, offset in U, offset in V
     U, V           (·,)     U (3(r1-r0), k) and V (3(c1-c0), k), row-major, block ≈ U Vᵀ (float32 when
@@ -30,6 +31,23 @@ Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in 
     scale          (n,)     optional; when not empty Ξ = G diag(a) with G symmetric, a = scale (contact order),
                             and only the blocks on and above the diagonal (r0 ≤ c0) are stored: the block
                             below is :math:`\Xi_{JI} = \mathrm{diag}(a_J)^{-1}\,\Xi_{IJ}^T\,\mathrm{diag}(a_I)`
+    near_index     (nd, 3)  optional (format 1.6): the dense blocks are stored pair by pair, offsets of block b
+                            in near_q (values), near_mask (bytes) and near_scale (values); see below
+    near_exact     (·,)     with near_index, in place of ``dense``: the exact pairs' values (a format 1.5
+                            reader, which would read them as whole blocks, refuses the file as missing ``dense``)
+    near_mask      (·,)     uint8: for each dense block, one bit per vertex pair (row-major over its m x w
+                            pairs, ``numpy.packbits`` order, each block from a whole byte): set where the pair
+                            is stored exactly
+    near_q         (·,)     int16: the 3x3 blocks of the other pairs, in the same order, as multiples of ...
+    near_scale     (·,)     ... one scale per column of the block (3w values)
+
+With ``near_index`` a dense block is stored at the granularity of its vertex pairs (:func:`encode_near`): every
+pair within r_max (what K_i read: eq. 12) as its nine float64 values in ``near_exact`` (at ``dense_index``'s
+offset, pair after pair), the block's other pairs in 16 bits per value, ``value = q * scale[column]`` with each
+column's scale its largest |value| / 32767, kept only where the block then stays within half the tolerance of its
+norm (``‖Ξ_IJ − Ξ̃_IJ‖_F ≤ ε/2 ‖Ξ_IJ‖_F``; else every pair of the block is stored exactly).  A leaf block holds
+pairs up to r_max plus two leaves' diagonals apart (the bench page's organ rows give both parts' bytes).  Without
+it (format ≤ 1.5) a dense block is stored whole, row-major at ``dense[offset:]``.
 
 A P1 artifact is stored that way (half the bytes: K_i's near field and the far field alike); the
 partition is symmetric ((J, I) is a block whenever (I, J) is), so the pair of blocks is one stored block.
@@ -42,13 +60,43 @@ from pmask.errors import InputError
 from pmask.runtime.artifact import HMATRIX as DATASETS  # the compressed form's datasets, as the artifact names them
 
 
+#: the largest |q| of the 16-bit near-field values (near_q): symmetric, so that −value is representable
+Q_MAX = 32767
+#: set bits in each byte value (a pair's rank among its block's exact pairs)
+_ONES = np.array([bin(k).count("1") for k in range(256)], np.int64)
+
+
+def encode_near(B: np.ndarray, exact: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A dense block B (3m, 3w) in the pair-granular layout (module docstring): the pairs where ``exact`` (m, w) is
+    set as float64 values, the others as int16 multiples of one scale per column of B, unless that leaves B
+    farther than ``tol``/2 of its norm from its values (Frobenius), when every pair is stored exactly.  Returns
+    (exact values (9k,), q (9(mw − k),) int16, scale (3w,), mask bytes (⌈mw/8⌉,) uint8)."""
+    m, w = B.shape[0] // 3, B.shape[1] // 3
+    P = np.asarray(B, np.float64).reshape(m, 3, w, 3).transpose(0, 2, 1, 3).reshape(m * w, 3, 3)
+    keep = np.asarray(exact, bool).ravel().copy()
+    scale = np.zeros((w, 3))
+    q = np.zeros((0, 3, 3), np.int16)
+    if not keep.all():
+        R, cols = P[~keep], np.flatnonzero(~keep) % w
+        np.maximum.at(scale, cols, np.abs(R).max(axis=1))  # each column's largest |value| among these pairs
+        scale /= Q_MAX
+        s = np.broadcast_to(scale[cols][:, None, :], R.shape)
+        qf = np.rint(np.divide(R, s, out=np.zeros_like(R), where=s > 0))
+        if np.linalg.norm(R - qf * s) <= 0.5 * tol * np.linalg.norm(P):
+            q = qf.astype(np.int16)
+        else:  # (a tolerance below what 16 bits hold: the block stays exact)
+            keep[:], scale[:] = True, 0.0
+    return P[keep].ravel(), q.ravel(), scale.ravel(), np.packbits(keep)
+
+
 class CompressedXi:
     """Ξ (3n x 3n) as near-field dense blocks and far-field low-rank blocks (module docstring).
 
     The runtime's access layer for Ξ: :meth:`blocks` (3x3 blocks of vertex pairs: eq. 12's sums and the
     coupling of contacts), :meth:`matvec` (Ξ x: the deformation of eq. 16), :meth:`to_dense` (tests)."""
 
-    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U, V, *, tolerance: float, scale=None):
+    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U, V, *, tolerance: float, scale=None,
+                 near_index=None, near_mask=None, near_q=None, near_scale=None):
         self.perm = np.asarray(perm, np.int64)
         n = len(self.perm)
         self.n = n
@@ -71,6 +119,38 @@ class CompressedXi:
         self.leaf_of = np.repeat(np.arange(len(self.leaves) - 1), np.diff(self.leaves))
         self._nd = len(self.dense_index)
         self._key, self._block, self._flip = self._leaf_rows()
+        self.packed = near_index is not None and len(near_index) > 0  # format 1.6: the near field pair by pair
+        if self.packed:
+            self.near_index = np.asarray(near_index, np.int64).reshape(-1, 3)
+            self.near_mask = np.asarray(near_mask, np.uint8)
+            self.near_scale = np.asarray(near_scale, np.float64)
+            self.near_q = near_q  # (may be read on demand, as the exact values)
+            self._check_packed()
+        else:
+            self.near_index = np.zeros((0, 3), np.int64)
+            self.near_mask = np.zeros(0, np.uint8)
+            self.near_scale = np.zeros(0)
+            self.near_q = np.zeros(0, np.int16)
+
+    def _check_packed(self) -> None:
+        """The pair-granular near field's offsets and counts against the arrays they index (one line if not), and
+        the bits set before each byte of the mask (a pair's rank among its block's exact pairs)."""
+        di, ni = self.dense_index, self.near_index
+        pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])
+        nbytes = -(-pairs // 8)
+        ones = _ONES[self.near_mask]
+        dt = np.int32 if ones.sum() < 2**31 else np.int64
+        self._ones_before = np.concatenate([[0], np.cumsum(ones, dtype=dt)])
+        ok = len(ni) == len(di) and (not len(ni) or (ni.min() >= 0 and di[:, 4].min() >= 0
+                                                     and np.all(ni[:, 1] + nbytes <= len(self.near_mask))))
+        if ok and len(ni):
+            k = self._ones_before[ni[:, 1] + nbytes] - self._ones_before[ni[:, 1]]  # exact pairs of each block
+            ok = (np.all(di[:, 4] + 9 * k <= len(self.dense))
+                  and np.all(ni[:, 0] + 9 * (pairs - k) <= len(self.near_q))
+                  and np.all(ni[:, 2] + 3 * (di[:, 3] - di[:, 2]) <= len(self.near_scale)))
+        if not ok:
+            raise InputError("the compressed Green's functions' near field does not match its index; recompute the "
+                             "artifact (pmask precompute --force)")
 
     def _leaf_rows(self):
         """The stored blocks over each leaf row, as sorted keys ``row * L + first leaf column`` (L leaves), the
@@ -119,7 +199,29 @@ class CompressedXi:
     @property
     def nbytes(self) -> int:
         """Bytes of the stored values (what the compression ratio compares with (3n)² dense numbers)."""
-        return int(self.dense.nbytes + self.U.nbytes + self.V.nbytes)
+        return int(self.near_nbytes + self.U.nbytes + self.V.nbytes)
+
+    @property
+    def near_nbytes(self) -> int:
+        """Bytes of the dense blocks (the exact pairs, and, format 1.6, the others' 16-bit values, their scales and
+        the mask that tells them apart)."""
+        return int(self.dense.nbytes + self.near_q.nbytes + self.near_mask.nbytes + self.near_scale.nbytes)
+
+    def dense_block(self, b: int) -> np.ndarray:
+        """Dense block ``b`` of :attr:`dense_index` as its (3m, 3w) array (cluster order)."""
+        r0, r1, c0, c1, off = (int(x) for x in self.dense_index[b])
+        m, w = r1 - r0, c1 - c0
+        if not self.packed:
+            return np.asarray(self.dense[off:off + 9 * m * w], np.float64).reshape(3 * m, 3 * w)
+        qo, mo, so = (int(x) for x in self.near_index[b])
+        keep = np.unpackbits(self.near_mask[mo:mo + -(-m * w // 8)], count=m * w).astype(bool)
+        k = int(keep.sum())
+        P = np.empty((m * w, 3, 3))
+        P[keep] = np.asarray(self.dense[off:off + 9 * k], np.float64).reshape(k, 3, 3)
+        scale = self.near_scale[so:so + 3 * w].reshape(w, 3)
+        P[~keep] = (np.asarray(self.near_q[qo:qo + 9 * (m * w - k)], np.float64).reshape(-1, 3, 3)
+                    * scale[np.flatnonzero(~keep) % w][:, None, :])
+        return P.reshape(m, w, 3, 3).transpose(0, 2, 1, 3).reshape(3 * m, 3 * w)
 
     def compression_ratio(self, itemsize: int = 8) -> float:
         """Dense Ξ's bytes over this form's stored values."""
@@ -149,7 +251,9 @@ class CompressedXi:
         out = np.empty((len(p), 3, 3))
         three = np.arange(3)
         dense = b < self._nd
-        if dense.any():
+        if dense.any() and self.packed:
+            out[dense] = self._pairs(p[dense], q[dense], b[dense])
+        elif dense.any():
             r0, _, c0, c1, off = self.dense_index[b[dense]].T
             width = 3 * (c1 - c0)
             rows = 3 * (p[dense] - r0)[:, None] + three  # (k, 3)
@@ -171,6 +275,29 @@ class CompressedXi:
                 out[far[grp]] = np.einsum("grk,gck->grc", Ur, Vr)
         return out
 
+    def _pairs(self, p, q, b) -> np.ndarray:
+        """The 3x3 blocks of positions (p, q) from the pair-granular dense blocks ``b`` that hold them: pair t of
+        its block is exact where its bit is set, the (bits set before it)-th exact pair, else the (t − that)-th of
+        the 16-bit ones."""
+        r0, _, c0, c1, off = self.dense_index[b].T
+        qo, mo, so = self.near_index[b].T
+        t = (p - r0) * (c1 - c0) + (q - c0)  # the pair within its block
+        g = 8 * mo + t  # its bit
+        byte = self.near_mask[g >> 3].astype(np.int64)
+        bit = g & 7
+        before = self._ones_before[g >> 3] - self._ones_before[mo] + _ONES[byte >> (8 - bit)]  # exact pairs before t
+        exact = ((byte >> (7 - bit)) & 1).astype(bool)
+        nine = np.arange(9)
+        out = np.empty((len(p), 9))
+        if exact.any():
+            out[exact] = self.dense[(off + 9 * before)[exact, None] + nine]
+        if not exact.all():
+            o = ~exact
+            s = self.near_scale[(so + 3 * (q - c0))[o, None] + np.arange(3)]  # the pair's three columns' scales
+            out[o] = (self.near_q[(qo + 9 * (t - before))[o, None] + nine].astype(np.float64).reshape(-1, 3, 3)
+                      * s[:, None, :]).reshape(-1, 9)
+        return out.reshape(-1, 3, 3)
+
     def matvec(self, x) -> np.ndarray:
         """Ξ x for x (3n,) or (3n, m) in contact order; blocks whose columns x leaves zero are skipped (a
         deformation's load sits on a few vertices)."""
@@ -181,9 +308,9 @@ class CompressedXi:
         nz = np.concatenate([[0], np.cumsum(np.any(X.reshape(self.n, -1) != 0, axis=1))])
         loaded = lambda a, b: (nz[b] - nz[a]) > 0  # noqa: E731  (positions a..b carry load)
         di, li = self.dense_index, self.lowrank_index
-        for r0, r1, c0, c1, off in di[loaded(di[:, 2], di[:, 3])]:
-            m, w = 3 * (r1 - r0), 3 * (c1 - c0)
-            Y[3 * r0:3 * r1] += self.dense[off:off + m * w].reshape(m, w) @ X[3 * c0:3 * c1]
+        for b in np.flatnonzero(loaded(di[:, 2], di[:, 3])):
+            r0, r1, c0, c1, _ = di[b]
+            Y[3 * r0:3 * r1] += self.dense_block(b) @ X[3 * c0:3 * c1]
         for r0, r1, c0, c1, k, uo, vo in li[loaded(li[:, 2], li[:, 3])]:
             m, w = 3 * (r1 - r0), 3 * (c1 - c0)
             U = self.U[uo:uo + m * k].reshape(m, k)
@@ -191,9 +318,9 @@ class CompressedXi:
             Y[3 * r0:3 * r1] += U @ (V.T @ X[3 * c0:3 * c1])
         if self.symmetric:  # the blocks below the diagonal: Ξ_JI x_I = diag(a_J)⁻¹ Ξ_IJᵀ diag(a_I) x_I
             a = self._dof_scale[:, None]
-            for r0, r1, c0, c1, off in di[(di[:, 0] != di[:, 2]) & loaded(di[:, 0], di[:, 1])]:
-                m, w = 3 * (r1 - r0), 3 * (c1 - c0)
-                B = self.dense[off:off + m * w].reshape(m, w)
+            for b in np.flatnonzero((di[:, 0] != di[:, 2]) & loaded(di[:, 0], di[:, 1])):
+                r0, r1, c0, c1, _ = di[b]
+                B = self.dense_block(b)
                 Y[3 * c0:3 * c1] += (B.T @ (a[3 * r0:3 * r1] * X[3 * r0:3 * r1])) / a[3 * c0:3 * c1]
             for r0, r1, c0, c1, k, uo, vo in li[(li[:, 0] != li[:, 2]) & loaded(li[:, 0], li[:, 1])]:
                 m, w = 3 * (r1 - r0), 3 * (c1 - c0)
@@ -208,8 +335,7 @@ class CompressedXi:
         """The (3n, 3n) array in contact order (for tests and small models)."""
         D = np.zeros(self.shape)
         a = self._dof_scale
-        blocks = [(r0, r1, c0, c1, self.dense[off:off + 9 * (r1 - r0) * (c1 - c0)].reshape(3 * (r1 - r0), -1))
-                  for r0, r1, c0, c1, off in self.dense_index]
+        blocks = [(*self.dense_index[b, :4], self.dense_block(b)) for b in range(self._nd)]
         blocks += [(r0, r1, c0, c1, self.U[uo:uo + 3 * (r1 - r0) * k].reshape(-1, k).astype(np.float64)
                     @ self.V[vo:vo + 3 * (c1 - c0) * k].reshape(-1, k).T)
                    for r0, r1, c0, c1, k, uo, vo in self.lowrank_index]
@@ -226,8 +352,13 @@ class CompressedXi:
     def from_datasets(cls, data: dict, tolerance: float) -> "CompressedXi":
         """From the artifact's datasets (:data:`DATASETS`, keyed by their full names)."""
         g = {k.rsplit("/", 1)[1]: data.get(k) for k in DATASETS}
-        return cls(g["perm"], g["leaves"], g["dense_index"], g["dense"], g["lowrank_index"], g["U"], g["V"],
-                   tolerance=tolerance, scale=g["scale"])
+        near = g["dense"] if g["dense"] is not None else g["near_exact"]  # (whole blocks, or pair by pair)
+        if near is None or (g["near_exact"] is not None) != (g["near_index"] is not None):
+            raise InputError("the compressed Green's functions' near field is missing or does not match its index; "
+                             "recompute the artifact (pmask precompute --force)")
+        return cls(g["perm"], g["leaves"], g["dense_index"], near, g["lowrank_index"], g["U"], g["V"],
+                   tolerance=tolerance, scale=g["scale"], near_index=g["near_index"], near_mask=g["near_mask"],
+                   near_q=g["near_q"], near_scale=g["near_scale"])
 
 
 def xi_blocks(Xi, i, j) -> np.ndarray:

@@ -96,7 +96,7 @@ class Model:
             in_file = cls._far_field_in_file(path, far_field)
         on_demand = ()
         if near_field != "open":
-            size = stored_bytes(path, NEAR)
+            size = sum(stored_bytes(path, (d,)) or 0 for d in NEAR) or None  # (the parts this file has)
             if size is not None and (near_field == "demand" or size > cls.NEAR_FIELD_AT_OPEN):
                 on_demand = NEAR
         m = cls(read_artifact(path, datasets=RUNTIME, verify=verify, in_file=in_file, on_demand=on_demand,

@@ -30,8 +30,9 @@ TOL = 1e-4
 
 def read(arrays: dict) -> dict:
     """compressed_greens' arrays in memory: it returns the near field and the factors as runs of its tile store
-    (compress.Concatenated), which the writer reads a slice at a time; np.asarray reads them whole."""
-    return {k: np.asarray(v) for k, v in arrays.items()}
+    (compress.Concatenated), which the writer reads a slice at a time; np.asarray reads them whole.  The exact
+    pairs (dataset near_exact, format 1.6) are CompressedXi's ``dense``, as whole blocks were."""
+    return {("dense" if k == "near_exact" else k): np.asarray(v) for k, v in arrays.items()}
 
 
 def _pair(d, element=None):
@@ -83,9 +84,105 @@ def test_artifact_is_compressed_and_every_far_block_within_tolerance(which, requ
         worst = max(worst, np.linalg.norm(B - UV) / np.linalg.norm(B))
     # the bound is the construction's (computed, not estimated); 1.01: the two routes' round-off
     assert worst <= 1.01 * TOL
-    for r0, r1, c0, c1, off in C.dense_index[::7]:  # dense blocks: the same numbers as the dense route
-        B = Xp[3 * r0:3 * r1, 3 * c0:3 * c1]
-        assert np.abs(C.dense[off:off + B.size].reshape(B.shape) - B).max() <= 1e-12 * np.abs(B).max()
+    # dense blocks: every pair within r_max the dense route's numbers, the others' 16 bits within TOL/2 of the
+    # block (the construction's bound; 1e-12: the two routes' round-off)
+    pts = comp.points[comp.contact][C.perm]
+    assert C.packed
+    for b in range(0, len(C.dense_index), 7):
+        r0, r1, c0, c1, _ = C.dense_index[b]
+        B, got = Xp[3 * r0:3 * r1, 3 * c0:3 * c1], C.dense_block(b)
+        exact = np.repeat(np.repeat(np.linalg.norm(pts[r0:r1, None] - pts[None, c0:c1], axis=2) <= R_MAX, 3, 0), 3, 1)
+        assert np.abs(got - B)[exact].max(initial=0.0) <= 1e-12 * np.abs(B).max()
+        assert np.linalg.norm(got - B) <= TOL / 2 * np.linalg.norm(B) + 1e-12 * np.abs(B).max()
+
+
+@both
+def test_dense_blocks_are_stored_pair_by_pair(which, request):
+    """Format 1.6: a dense block's pairs within r_max are stored as their float64 values and the others in 16
+    bits (a leaf block holds pairs up to r_max plus two leaves' diagonals apart): fewer bytes than whole blocks,
+    every block read back whole, by pairs and through Ξ x alike."""
+    dense, comp, _ = request.getfixturevalue(which)
+    C = comp.Xi
+    di = C.dense_index
+    whole = 72 * int(np.sum((di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])))  # whole blocks in float64
+    pts = comp.points[comp.contact][C.perm]
+    within = sum(int(np.sum(np.linalg.norm(pts[r0:r1, None] - pts[None, c0:c1], axis=2) <= R_MAX))
+                 for r0, r1, c0, c1, _ in di)
+    assert C.dense.nbytes == 72 * within  # every pair within r_max, and only those, in float64
+    # the rest in 2 bytes a value, beside a bit a pair and a scale a column: measured 0.49-0.50 of whole
+    # blocks on this kidney (a third of its dense pairs are within r_max), 0.6 a margin
+    assert C.near_nbytes < 0.6 * whole, (C.near_nbytes, whole)
+    b = len(di) // 2
+    r0, r1, c0, c1, _ = di[b]
+    p, q = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
+    by_pairs = C._stored(p.ravel(), q.ravel(), np.full(p.size, b))  # the pairs' own reads
+    B = C.dense_block(b)
+    assert np.array_equal(by_pairs, B.reshape(r1 - r0, 3, c1 - c0, 3).transpose(0, 2, 1, 3).reshape(-1, 3, 3))
+
+
+def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path):
+    """A file of format 1.5 stores every dense block whole (``dense``) and has no near_* datasets: it is read as
+    before (the same file with its blocks decoded and written whole reads the same Ξ: the packed reader's blocks
+    against the whole ones' to the bit), and a file with both or neither is one line."""
+    import shutil
+
+    import h5py
+
+    from pmask.runtime.artifact import ArtifactError
+
+    _, comp, _ = pair_p1
+    C = comp.Xi
+    old = tmp_path / "whole.h5"
+    shutil.copy(comp.path, old)
+    with h5py.File(old, "r+") as f:
+        g = f["greens/hmatrix"]
+        index = g["dense_index"][()]
+        whole = [C.dense_block(b).ravel() for b in range(len(index))]
+        index[:, 4] = np.concatenate([[0], np.cumsum([len(w) for w in whole])[:-1]])
+        for k in ("near_index", "near_exact", "near_mask", "near_q", "near_scale", "dense_index"):
+            del g[k]
+        g["dense_index"], g["dense"] = index, np.concatenate(whole)
+        f.attrs["format_version"] = "1.5.0"
+    W = Model.load(old, verify=False).Xi  # (the digests are the 1.6 file's)
+    assert not W.packed and W.near_nbytes == 8 * sum(len(w) for w in whole)
+    n = len(comp.contact)
+    i, j = np.random.default_rng(2).integers(0, n, (2, 5000))
+    assert np.array_equal(W.blocks(i, j), C.blocks(i, j))
+    x = np.random.default_rng(3).standard_normal(3 * n)
+    assert np.allclose(W.matvec(x), C.matvec(x), rtol=0, atol=1e-14 * np.abs(C.matvec(x)).max())
+    with h5py.File(old, "r+") as f:
+        del f["greens/hmatrix/dense"]
+    with pytest.raises((ArtifactError, InputError), match="near field is missing") as err:
+        Model.load(old, verify=False)
+    assert "\n" not in str(err.value)
+
+
+def test_a_block_16_bits_cannot_hold_is_stored_exactly():
+    """Where 16-bit values would leave a block farther than half the tolerance from its own, every pair of it is
+    stored exactly (a tolerance below what 16 bits hold); a mask whose bits do not match the stored values is one
+    line."""
+    from pmask.runtime.compressed import encode_near
+
+    rng = np.random.default_rng(5)
+    B = rng.standard_normal((12, 12))  # one leaf of 4 vertices: 4 x 4 pairs, its diagonal within r_max
+    near = np.eye(4, dtype=bool)
+    exact, q, scale, mask = encode_near(B, near, 1e-4)  # uniform values: 16 bits hold 1e-5 of them
+    assert len(exact) == 4 * 9 and len(q) == 12 * 9 and q.dtype == np.int16 and np.abs(q).max() == 32767
+    exact2, q2, scale2, mask2 = encode_near(B, near, 1e-8)
+    assert len(exact2) == 16 * 9 and len(q2) == 0 and np.unpackbits(mask2, count=16).all()
+
+    def xi(e, qq, s, m):
+        return CompressedXi([0, 1, 2, 3], [0, 4], [(0, 4, 0, 4, 0)], e, np.zeros((0, 7)), np.zeros(0), np.zeros(0),
+                            tolerance=1e-4, near_index=[(0, 0, 0)], near_mask=m, near_q=qq, near_scale=s)
+
+    for parts, bound in (((exact, q, scale, mask), 0.5e-4), ((exact2, q2, scale2, mask2), 0.0)):
+        got = xi(*parts).dense_block(0)
+        assert np.linalg.norm(got - B) <= bound * np.linalg.norm(B)
+        assert all(np.array_equal(got[3 * k:3 * k + 3, 3 * k:3 * k + 3], B[3 * k:3 * k + 3, 3 * k:3 * k + 3])
+                   for k in range(4))  # the exact pairs to the bit
+    with pytest.raises(InputError, match="near field does not match its index") as err:
+        xi(exact, q, scale, mask2)  # a mask that says every pair is exact, beside four pairs' values
+    assert "\n" not in str(err.value)
 
 
 @both
@@ -372,11 +469,13 @@ def test_p2_compresses_by_solving_each_panel(tmp_path):
     C = CompressedXi(**read(arrays), tolerance=TOL)
     # every block within TOL of its norm, so the whole within TOL of Ξ's
     assert np.linalg.norm(C.to_dense() - Xi) <= TOL * np.linalg.norm(Xi)
-    for r0, r1, c0, c1, off in C.dense_index:  # near field: the dense route's numbers
+    for b, (r0, r1, c0, c1, off) in enumerate(C.dense_index):  # near field: the dense route's numbers
         rows = (3 * C.perm[r0:r1, None] + np.arange(3)).ravel()
         cols = (3 * C.perm[c0:c1, None] + np.arange(3)).ravel()
         B = Xi[np.ix_(rows, cols)]
-        assert np.abs(C.dense[off:off + B.size].reshape(B.shape) - B).max() <= 1e-12 * np.abs(Xi).max()
+        exact = np.linalg.norm(pts[C.perm[r0:r1], None] - pts[None, C.perm[c0:c1]], axis=2) <= R_MAX
+        exact = np.repeat(np.repeat(exact, 3, 0), 3, 1)
+        assert np.abs(C.dense_block(b) - B)[exact].max(initial=0.0) <= 1e-12 * np.abs(Xi).max()
 
 
 def test_a_scheduler_address_runs_the_same_tiles(pair, tmp_path):
@@ -543,7 +642,8 @@ def test_the_artifact_arrays_are_read_from_the_tile_store_in_any_slices(tmp_path
                                                workers=1)
     assert stats["merged_blocks"] > 0  # the U and V runs end in merged blocks held in memory
     rng = np.random.default_rng(5)
-    for k in ("dense", "U", "V"):
+    stored = ("near_exact", "U", "V", "near_q", "near_mask", "near_scale")
+    for k in stored:
         lazy = arrays[k]
         whole = np.asarray(lazy)
         assert isinstance(lazy, compress.Concatenated) and len(whole) == len(lazy) > 1000
@@ -555,7 +655,8 @@ def test_the_artifact_arrays_are_read_from_the_tile_store_in_any_slices(tmp_path
         for index in (np.s_[::2], np.arange(3)):
             with pytest.raises(TypeError):
                 lazy[index]
-    assert stats["stored_bytes"] == sum(arrays[k].nbytes for k in ("dense", "U", "V"))
+    assert "dense" not in arrays  # (format 1.6: a 1.5 reader refuses the file as missing it, not misreading it)
+    assert stats["stored_bytes"] == sum(arrays[k].nbytes for k in stored)
 
 
 @pytest.mark.parametrize("tol", [0.0, 1.0, -1e-4, float("nan"), 2.0])
@@ -731,7 +832,7 @@ def test_a_far_field_left_in_the_file_is_checked_chunk_by_chunk(pair, tmp_path):
     shutil.copy(comp.path, bad)
     with h5py.File(bad, "r") as f:
         ds = f["greens/hmatrix/U"]
-        assert ds.fletcher32 and not f["greens/hmatrix/dense"].fletcher32
+        assert ds.fletcher32 and not f["greens/hmatrix/near_exact"].fletcher32
         offset = ds.id.get_chunk_info(0).byte_offset
     with open(bad, "r+b") as fh:
         fh.seek(offset + 100)
@@ -756,7 +857,7 @@ def _near_field_signed_in_blocks(src, dst, n_blocks: int, change=None):
     from pmask.runtime.artifact import array_digest, metadata_digest
 
     shutil.copy(src, dst)
-    name = "greens/hmatrix/dense"
+    name = "greens/hmatrix/near_exact"
     with h5py.File(dst, "r+") as f:
         values = f[name][()]
         rows = -(-len(values) // n_blocks)
@@ -880,12 +981,12 @@ def test_a_near_field_read_on_demand_is_checked_block_by_block(pair, tmp_path, w
     _near_field_signed_in_blocks(comp.path, path, 16, change)
     lazy = Model.load(path, near_field="demand")
     lazy.Xi.dense[0:10]  # the first block is intact
-    message = "NaN or inf" if what == "nan" else "greens/hmatrix/dense \\(rows"
+    message = "NaN or inf" if what == "nan" else "greens/hmatrix/near_exact \\(rows"
     with pytest.raises(ArtifactError, match=message) as err:
         lazy.stiffness("linear", R_MAX)
     first, last = map(int, re.search(r"rows (\d+) to (\d+)", str(err.value)).groups())
     assert first <= where["at"] <= last and last - first + 1 == where["rows"]
-    with pytest.raises(ArtifactError, match="NaN or inf" if what == "nan" else "greens/hmatrix/dense"):
+    with pytest.raises(ArtifactError, match="NaN or inf" if what == "nan" else "greens/hmatrix/near_exact"):
         Model.load(path, near_field="open")
 
 
