@@ -154,7 +154,11 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
         out.update(near_blocks=len(d._read), near_block_reads=int(d.reads), near_held_limit=d.budget)
     n = len(c.contact)
     out["contact"] = n
-    out["near_bytes"] = int(c.Xi.dense.nbytes)  # the exact near field (the pairs of leaves that hold a pair within r_max)
+    # the dense blocks (the pairs of leaves that hold a pair within r_max): format 1.6 stores those pairs exactly
+    # and the blocks' other pairs in 16 bits, split here
+    out["near_bytes"] = int(c.Xi.near_nbytes)
+    out["near_exact_bytes"] = int(c.Xi.dense.nbytes)
+    out["near_16bit_bytes"] = int(c.Xi.near_nbytes - c.Xi.dense.nbytes)
     out["far_bytes"] = int(c.Xi.U.nbytes + c.Xi.V.nbytes)
     out["dense_Xi_bytes"] = 8 * (3 * n) ** 2
     # the least any format that keeps every pair within r_max exact stores: those pairs' 3x3 blocks, once per
@@ -380,7 +384,11 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
               f"**peak RSS {g['peak_rss_gib']:.2f} GiB** (process tree; largest processes "
               f"{', '.join(f'{x:.2f}' for x in g['peak_rss_per_process_gib'][:3])} GiB), W's store "
               f"{st['W_bytes'] / 2**30:.2f} GiB on disk. Stored {g['compressed_stored_bytes'] / 2**30:.2f} GiB "
-              + (f"(near field {g['near_bytes'] / 2**30:.2f}, far field {g['far_bytes'] / 2**30:.2f}"
+              + (f"(near field {g['near_bytes'] / 2**30:.2f}"
+                 + (f" (its pairs within r_max exactly {g['near_exact_bytes'] / 2**30:.2f}, its other pairs in 16 bits "
+                    f"with their scales and mask {g['near_16bit_bytes'] / 2**30:.2f})"
+                    if "near_exact_bytes" in g else "")
+                 + f", far field {g['far_bytes'] / 2**30:.2f}"
                  + (f"; the pairs within r_max alone, which any format that keeps them exact must store, are "
                     f"{g['pairs_within_r_max_bytes'] / 2**30:.2f} GiB: the leaf blocks hold pairs up to r_max plus "
                     f"two leaves' diagonals apart" if "pairs_within_r_max_bytes" in g else "") + ") "
