@@ -390,8 +390,11 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
                     if "near_exact_bytes" in g else "")
                  + f", far field {g['far_bytes'] / 2**30:.2f}"
                  + (f"; the pairs within r_max alone, which any format that keeps them exact must store, are "
-                    f"{g['pairs_within_r_max_bytes'] / 2**30:.2f} GiB: the leaf blocks hold pairs up to r_max plus "
-                    f"two leaves' diagonals apart" if "pairs_within_r_max_bytes" in g else "") + ") "
+                    f"{g['pairs_within_r_max_bytes'] / 2**30:.2f} GiB"
+                    + (" (the exact part holds those within a diagonal leaf block both ways)"
+                       if "near_exact_bytes" in g else
+                       ": the leaf blocks hold pairs up to r_max plus two leaves' diagonals apart")
+                    if "pairs_within_r_max_bytes" in g else "") + ") "
                  if "near_bytes" in g else "")
               + f"against a dense {g['dense_Xi_bytes'] / 2**30:.1f} GiB: {g['dense_Xi_bytes'] / g['compressed_stored_bytes']:.1f}x, "
               f"max rank {st['max_rank']}" + (", stored once per symmetric pair of blocks" if st.get("symmetric") else "")

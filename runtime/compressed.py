@@ -44,7 +44,7 @@ Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in 
 With ``near_index`` a dense block is stored at the granularity of its vertex pairs (:func:`encode_near`): every
 pair within r_max (what K_i read: eq. 12) as its nine float64 values in ``near_exact`` (at ``dense_index``'s
 offset, pair after pair), the block's other pairs in 16 bits per value, ``value = q * scale[column]`` with each
-column's scale its largest |value| / 32767, kept only where the block then stays within half the tolerance of its
+column's scale its largest magnitude / 32767, kept only where the block then stays within half the tolerance of its
 norm (``‖Ξ_IJ − Ξ̃_IJ‖_F ≤ ε/2 ‖Ξ_IJ‖_F``; else every pair of the block is stored exactly).  A leaf block holds
 pairs up to r_max plus two leaves' diagonals apart (the bench page's organ rows give both parts' bytes).  Without
 it (format ≤ 1.5) a dense block is stored whole, row-major at ``dense[offset:]``.
@@ -60,7 +60,7 @@ from pmask.errors import InputError
 from pmask.runtime.artifact import HMATRIX as DATASETS  # the compressed form's datasets, as the artifact names them
 
 
-#: the largest |q| of the 16-bit near-field values (near_q): symmetric, so that −value is representable
+#: the largest magnitude of the 16-bit near-field values (near_q): symmetric, so that −value is representable
 Q_MAX = 32767
 #: set bits in each byte value (a pair's rank among its block's exact pairs)
 _ONES = np.array([bin(k).count("1") for k in range(256)], np.int64)
@@ -78,7 +78,7 @@ def encode_near(B: np.ndarray, exact: np.ndarray, tol: float) -> tuple[np.ndarra
     q = np.zeros((0, 3, 3), np.int16)
     if not keep.all():
         R, cols = P[~keep], np.flatnonzero(~keep) % w
-        np.maximum.at(scale, cols, np.abs(R).max(axis=1))  # each column's largest |value| among these pairs
+        np.maximum.at(scale, cols, np.abs(R).max(axis=1))  # each column's largest magnitude among these pairs
         scale /= Q_MAX
         s = np.broadcast_to(scale[cols][:, None, :], R.shape)
         qf = np.rint(np.divide(R, s, out=np.zeros_like(R), where=s > 0))
