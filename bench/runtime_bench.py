@@ -554,7 +554,7 @@ def markdown(res: dict) -> str:
                   "towards four azimuths) to 15 mm at 10 mm/s, over the stretch where the line goes deeper; "
                   "physics, not speed: `pmask.pipeline.strokes.push_metrics`)", "",
               "| contact surface | lines | reaching DEEP | contact ended | largest fall tick to tick short of DEEP | "
-              "lines where \|F\| falls | their falls at a DEEP tick | largest fall (depth below the surface, "
+              "lines where \\|F\\| falls | their falls at a DEEP tick | largest fall (depth below the surface, "
               "distance of the site from the support) |", "|---|---|---|---|---|---|---|---|"]
         for d in deep:
             f = d["falls"]
