@@ -233,7 +233,8 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
     checked by HDF5's Fletcher-32 rather than by their SHA-256).  ``on_demand``: names among them returned as
     :class:`BlocksOnDemand` (read when first indexed, a block at a time, each checked by its SHA-256: format
     1.5's per-block digests, or the dataset's own as one block; read at once from a format 1.0 file), each
-    holding at most ``on_demand_budget`` bytes of read blocks (None: all it reads).  Raises
+    holding at most ``on_demand_budget`` bytes of read blocks between them, shared in proportion to their sizes
+    (None: all they read).  Raises
     :class:`ArtifactError` for a missing, truncated, corrupt, altered or foreign file, or one whose major
     format version this reader does not know.
     """
@@ -265,6 +266,7 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
             blocks = _block_digests(attrs) if verify and not legacy else {}
             finite: dict = {}  # datasets whose finiteness the reading threads checked, block by block
             later = [d for d in on_demand if d in datasets and d in f and not legacy and d not in in_file]
+            size = {d: f[d].size * f[d].dtype.itemsize for d in later}
             data = {d: (_read(f[d], digests if verify and not legacy else None, d, blocks.get(d), finite)
                         if d in f else None) for d in wanted if d not in in_file and d not in later}
     except ArtifactError:
@@ -283,16 +285,20 @@ def read_artifact(path, *, datasets=RUNTIME + VOLUME + REACTIONS + MATERIALS, ve
     data = {k: v for k, v in data.items() if k in datasets}
     _check_shapes(path, data, finite)
     data.update({d: FileArray(path, d) for d in in_file if d in datasets})
+    total = max(sum(size.values()), 1)
     for d in later:  # their digests, from sha256_covers, which the metadata digest has just vouched for
         covered = attrs["sha256_covers"]["datasets"] if verify else {}
         if verify and d not in covered:
             raise ArtifactError(f"{path}: dataset {d} is not covered by the file's checksums; recompute it")
+        # several read on demand (format 1.6's near field: its exact pairs and its 16-bit part) share the budget
+        # in proportion to their sizes
+        budget = None if on_demand_budget is None else int(on_demand_budget) * size[d] // total
         if d in blocks:
-            data[d] = BlocksOnDemand(path, d, int(blocks[d]["rows"]), blocks[d]["sha256"], on_demand_budget)
+            data[d] = BlocksOnDemand(path, d, int(blocks[d]["rows"]), blocks[d]["sha256"], budget)
         elif verify:  # below the per-block threshold: one block, the dataset's own digest
-            data[d] = BlocksOnDemand(path, d, 1 << 62, [covered[d]], on_demand_budget)
+            data[d] = BlocksOnDemand(path, d, 1 << 62, [covered[d]], budget)
         else:
-            data[d] = BlocksOnDemand(path, d, None, None, on_demand_budget)
+            data[d] = BlocksOnDemand(path, d, None, None, budget)
     return {"attrs": attrs, **data}
 
 

@@ -76,8 +76,8 @@ class Model:
         a corrupt block is refused then, by the first :meth:`stiffness` at the latest), or "auto": on demand
         when larger than :data:`NEAR_FIELD_AT_OPEN`.  Read at open, it stays in memory.
 
-        near_field_bytes: read on demand, the bytes of it held at once (of each part: format 1.6 stores its exact
-        pairs and the dense blocks' 16-bit values apart): beyond them the blocks least recently
+        near_field_bytes: read on demand, the bytes of it held at once (format 1.6 stores its exact pairs and the
+        dense blocks' 16-bit values apart: they share them by size): beyond them the blocks least recently
         used are let go and read (and checked) again when next needed, so that every K_i of an organ whose
         near field exceeds the memory to spare runs within it.  "auto": :data:`NEAR_FIELD_HELD`; None: all of
         it, kept once read."""

@@ -934,10 +934,13 @@ def test_a_near_field_larger_than_its_budget_is_read_again_not_held(pair, tmp_pa
     _near_field_signed_in_blocks(comp.path, path, 16)
     probe = Model.load(path, near_field="demand", near_field_bytes=None).Xi.dense
     block = probe.rows * probe.row_bytes
-    budget = 3 * block
+    rest = Model.load(path, near_field="demand", near_field_bytes=None).Xi.near_q  # (its 16-bit part, format 1.6)
+    total = probe.nbytes + rest.nbytes
+    budget = -(-3 * block * total // probe.nbytes)  # the exact pairs' share of it: 3 of their 16 blocks
     lazy = Model.load(path, near_field="demand", near_field_bytes=budget)
-    near = lazy.Xi.dense
-    assert isinstance(near, BlocksOnDemand) and near.budget == budget
+    near, rest = lazy.Xi.dense, lazy.Xi.near_q  # (format 1.6: the exact pairs and the 16-bit part share the budget)
+    assert isinstance(near, BlocksOnDemand) and isinstance(rest, BlocksOnDemand)
+    assert near.budget + rest.budget <= budget and near.budget == 3 * block
     monkeypatch.setattr(st, "PAIRS_PER_PASS", 2000)
     held = []
     real = near._ensure
@@ -950,9 +953,10 @@ def test_a_near_field_larger_than_its_budget_is_read_again_not_held(pair, tmp_pa
     sl, sm = lazy.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
     assert np.array_equal(sl.K_full, sm.K_full)
     assert near.reads > 16 and not near.complete
-    assert all(h <= max(budget, w * block) for h, w in held)  # within the budget, or one indexing's own blocks
-    assert near.held_bytes <= budget
-    assert _resident_bytes(near._arr.ctypes.data) <= budget + 2 * 16 * 4096
+    assert all(h <= max(near.budget, w * block) for h, w in held)  # within its share, or one indexing's blocks
+    assert near.held_bytes <= near.budget
+    assert rest.held_bytes <= max(rest.budget, rest.rows * rest.row_bytes)  # (one indexing's block: here one)
+    assert _resident_bytes(near._arr.ctypes.data) <= near.budget + 2 * 16 * 4096
     _same_deformation_and_coupling(sl, sm, seed=7)
     for bad in (-1, "1 GiB", 2.5, True):
         with pytest.raises(InputError, match="near_field_bytes must be") as err:
