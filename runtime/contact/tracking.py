@@ -252,6 +252,7 @@ def follow(c, st) -> None:
     if st.target is None:
         return
     srf = c.surface
+    here = there = None  # the proxy's point and the projection's, each evaluated once a tick
     if st.depth > 0.0:
         t, (b0, b1, b2) = st.tri, st.b
         Nx, Ny, Nz = normal(srf, t, b0, b1, b2)
@@ -259,18 +260,17 @@ def follow(c, st) -> None:
         d = tracking_depth(St, st.depth)
         jumped = False
         if st.status == Status.DEEP:
-            x, y, z = point(srf, t, b0, b1, b2)
-            tx, ty, tz = point(srf, *st.target)
-            ex, ey, ez = tx - x, ty - y, tz - z
+            here, there = point(srf, t, b0, b1, b2), point(srf, *st.target)
+            ex, ey, ez = there[0] - here[0], there[1] - here[1], there[2] - here[2]
             jumped = ex * ex + ey * ey + ez * ez > srf.mean_edge * srf.mean_edge
         if d < st.depth or jumped:
             mx, my, mz = st.move
             mn = Nx * mx + Ny * my + Nz * mz
             vx, vy, vz = mul3(speed_up(St, d), mx - mn * Nx, my - mn * Ny, mz - mn * Nz)
-            x, y, z = point(srf, t, b0, b1, b2)
+            x, y, z = here if here is not None else point(srf, t, b0, b1, b2)
             move_proxy(c, st, x + vx, y + vy, z + vz, math.sqrt(vx * vx + vy * vy + vz * vz))
             return
-    move_proxy(c, st, *point(srf, *st.target), c.proxy_speed * norm(st.move))
+    move_proxy(c, st, *(there if there is not None else point(srf, *st.target)), c.proxy_speed * norm(st.move))
 
 
 def norm(v):

@@ -276,7 +276,8 @@ int pm__follow(pm_servo *S, cstate *st)
 {
     if (!st->has_target) return 0;
     const pm_table *tb = S->tab;
-    double x[3];
+    double x[3] = {0.0, 0.0, 0.0}, xt[3] = {0.0, 0.0, 0.0};  /* the proxy's point, the projection's: once a tick */
+    int known = 0;  /* both are (a DEEP tick's jump test) */
     if (st->depth > 0.0) {
         double N[3], Sm[9], St[9];
         if (pm__normal_at(tb, st->tri, st->b, N)) return -1;
@@ -285,9 +286,9 @@ int pm__follow(pm_servo *S, cstate *st)
         double d = pm__tracking_depth(St, st->depth);
         int jumped = 0;
         if (st->status == PM_DEEP) {
-            double xt[3];
             pm__point_at(tb, st->tri, st->b, x);
             pm__point_at(tb, st->target_t, st->target_b, xt);
+            known = 1;
             const double ex = xt[0] - x[0], ey = xt[1] - x[1], ez = xt[2] - x[2];
             jumped = ex * ex + ey * ey + ez * ez > tb->mean_edge * tb->mean_edge;
         }
@@ -297,11 +298,11 @@ int pm__follow(pm_servo *S, cstate *st)
             double mn = N[0] * mx + N[1] * my + N[2] * mz;
             pm__speed_up(St, d, A);
             pm__mul3(A, mx - mn * N[0], my - mn * N[1], mz - mn * N[2], v);
-            pm__point_at(tb, st->tri, st->b, x);
+            if (!known) pm__point_at(tb, st->tri, st->b, x);
             double tg[3] = {x[0] + v[0], x[1] + v[1], x[2] + v[2]};
             return pm__move_proxy(S, st, tg, sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]));
         }
     }
-    pm__point_at(tb, st->target_t, st->target_b, x);
-    return pm__move_proxy(S, st, x, S->o.proxy_speed * pm__norm3(st->move));
+    if (!known) pm__point_at(tb, st->target_t, st->target_b, xt);
+    return pm__move_proxy(S, st, xt, S->o.proxy_speed * pm__norm3(st->move));
 }
