@@ -59,9 +59,31 @@ def largest_curvature(S):
 FOCAL_FRACTION = 0.5
 
 
+#: from this fraction of the radius of curvature to FOCAL_FRACTION the proxy's move blends from following the
+#: projection into dead reckoning.  A switch at FOCAL_FRACTION made it hop where κ_max δ hovered about it (sliding
+#: over the kidney's hilum 7 mm deep): every third tick a following tick pulled the proxy back onto the projection
+#: the dead-reckoning ticks had drifted from, and the force changed in a sawtooth (tests/test_haptics.py)
+RECKON_FROM = 0.4
+
+
 def tracking_depth(S, delta):
     """min(δ, FOCAL_FRACTION / κ_max): the depth whose speed-up (I − δ S)⁻¹ the proxy moves with."""
     kmax = largest_curvature(S)
     if kmax * delta > FOCAL_FRACTION:
         return FOCAL_FRACTION / kmax
     return delta
+
+
+def reckoning(S, delta):
+    """(:func:`tracking_depth`, w): w the share of the proxy's move made by dead reckoning, 0 up to κ_max δ =
+    RECKON_FROM, 1 from FOCAL_FRACTION, a smoothstep between (continuous in the state, so the proxy never hops
+    between the two)."""
+    kmax = largest_curvature(S)
+    x = kmax * delta
+    d = FOCAL_FRACTION / kmax if x > FOCAL_FRACTION else delta
+    if x <= RECKON_FROM:
+        return d, 0.0
+    if x >= FOCAL_FRACTION:
+        return d, 1.0
+    u = (x - RECKON_FROM) / (FOCAL_FRACTION - RECKON_FROM)
+    return d, u * u * (3.0 - 2.0 * u)

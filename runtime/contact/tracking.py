@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from pmask.runtime.contact.linalg3 import mul3, speed_up, tangent_part, tracking_depth
+from pmask.runtime.contact.linalg3 import mul3, reckoning, speed_up, tangent_part
 from pmask.runtime.contact.state import FAR_FACTOR, VELOCITY_FILTER, Status, hold, release
 from pmask.runtime.contact.surface import shape_at
 
@@ -245,6 +245,9 @@ def follow(c, st) -> None:
     sideways; the proxy then moves by dead reckoning instead, by (I − δ_f S)⁻¹ P Δp (P = I − N Nᵀ at the
     proxy, S the shape operator on the tangent plane, δ_f = R / 2), the factor the law's tangential term
     uses (:func:`pmask.runtime.contact.linalg3.tracking_depth`): a straight press keeps its contact point.
+    From 0.4 R to R/2 the move blends from the one into the other (:func:`~pmask.runtime.contact.linalg3.reckoning`:
+    weight w of the dead reckoning, 1 − w of following's move, towards the projection by at most proxy_speed
+    ‖Δp‖ along the chord), so that the proxy does not hop where the depth hovers about R/2.
     So it does past δ_lin (status DEEP) when this tick's projection lies more than a mean edge from the proxy:
     deep in the body the projection can land on another part of the surface (10 mm below the kidney's side,
     beside the support, it jumped 5 mm onto the hilum's wall), and the proxy sliding there tilted the normal
@@ -257,17 +260,24 @@ def follow(c, st) -> None:
         t, (b0, b1, b2) = st.tri, st.b
         Nx, Ny, Nz = normal(srf, t, b0, b1, b2)
         St = tangent_part(Nx, Ny, Nz, shape_at(srf, t, b0, b1, b2))
-        d = tracking_depth(St, st.depth)
-        jumped = False
+        d, w = reckoning(St, st.depth)
         if st.status == Status.DEEP:
             here, there = point(srf, t, b0, b1, b2), point(srf, *st.target)
             ex, ey, ez = there[0] - here[0], there[1] - here[1], there[2] - here[2]
-            jumped = ex * ex + ey * ey + ez * ez > srf.mean_edge * srf.mean_edge
-        if d < st.depth or jumped:
+            if ex * ex + ey * ey + ez * ez > srf.mean_edge * srf.mean_edge:  # jumped
+                w = 1.0
+        if w > 0.0:
             mx, my, mz = st.move
             mn = Nx * mx + Ny * my + Nz * mz
             vx, vy, vz = mul3(speed_up(St, d), mx - mn * Nx, my - mn * Ny, mz - mn * Nz)
             x, y, z = here if here is not None else point(srf, t, b0, b1, b2)
+            if w < 1.0:  # and the rest towards the projection, as far as following would go (the chord)
+                tx, ty, tz = there if there is not None else point(srf, *st.target)
+                gx, gy, gz = tx - x, ty - y, tz - z
+                g = math.sqrt(gx * gx + gy * gy + gz * gz)
+                lim = c.proxy_speed * norm(st.move)
+                f = (1.0 - w) * (lim / g if g > lim else 1.0)
+                vx, vy, vz = w * vx + f * gx, w * vy + f * gy, w * vz + f * gz
             move_proxy(c, st, x + vx, y + vy, z + vz, math.sqrt(vx * vx + vy * vy + vz * vz))
             return
     move_proxy(c, st, *(there if there is not None else point(srf, *st.target)), c.proxy_speed * norm(st.move))

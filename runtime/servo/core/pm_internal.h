@@ -341,6 +341,21 @@ static inline double pm__tracking_depth(const double *Sm, double delta)
     return delta;
 }
 
+#define RECKON_FROM 0.4
+
+/* the share w of the proxy's move made by dead reckoning, 0 up to κ_max δ = RECKON_FROM, 1 from FOCAL_FRACTION, a
+   smoothstep between; *d the tracking depth (linalg3.reckoning) */
+static inline double pm__reckoning(const double *Sm, double delta, double *d)
+{
+    double kmax = pm__largest_curvature(Sm);
+    double x = kmax * delta;
+    *d = x > FOCAL_FRACTION ? FOCAL_FRACTION / kmax : delta;
+    if (x <= RECKON_FROM) return 0.0;
+    if (x >= FOCAL_FRACTION) return 1.0;
+    double u = (x - RECKON_FROM) / (FOCAL_FRACTION - RECKON_FROM);
+    return u * u * (3.0 - 2.0 * u);
+}
+
 /* S(x) alone, interpolated as pm__at does (surface.shape_at): what step 1 reads every tick */
 static inline void pm__shape_at(const pm_table *tb, int64_t t, const double *b, double *Sm)
 {

@@ -270,8 +270,9 @@ int pm__prepare(pm_servo *S, cstate *st, const double *sample, double *p)
 }
 
 /* the proxy's move this tick (tracking.follow): towards this tick's projection, at most proxy_speed |Δp|;
- * deeper than half the radius of curvature by dead reckoning, (I − δ_f S)⁻¹ P Δp, and so past δ_lin when the
- * projection lies more than a mean edge away (another part of the surface) */
+ * deeper than half the radius of curvature by dead reckoning, (I − δ_f S)⁻¹ P Δp (blended in from 0.4 of it:
+ * pm__reckoning), and so past δ_lin when the projection lies more than a mean edge away (another part of the
+ * surface) */
 int pm__follow(pm_servo *S, cstate *st)
 {
     if (!st->has_target) return 0;
@@ -283,22 +284,31 @@ int pm__follow(pm_servo *S, cstate *st)
         if (pm__normal_at(tb, st->tri, st->b, N)) return -1;
         pm__shape_at(tb, st->tri, st->b, Sm);
         pm__tangent_part(N, Sm, St);
-        double d = pm__tracking_depth(St, st->depth);
-        int jumped = 0;
+        double d;
+        double w = pm__reckoning(St, st->depth, &d);
         if (st->status == PM_DEEP) {
             pm__point_at(tb, st->tri, st->b, x);
             pm__point_at(tb, st->target_t, st->target_b, xt);
             known = 1;
             const double ex = xt[0] - x[0], ey = xt[1] - x[1], ez = xt[2] - x[2];
-            jumped = ex * ex + ey * ey + ez * ez > tb->mean_edge * tb->mean_edge;
+            if (ex * ex + ey * ey + ez * ez > tb->mean_edge * tb->mean_edge) w = 1.0;  /* jumped */
         }
-        if (d < st->depth || jumped) {
+        if (w > 0.0) {
             double A[9], v[3];
             const double mx = st->move[0], my = st->move[1], mz = st->move[2];
             double mn = N[0] * mx + N[1] * my + N[2] * mz;
             pm__speed_up(St, d, A);
             pm__mul3(A, mx - mn * N[0], my - mn * N[1], mz - mn * N[2], v);
             if (!known) pm__point_at(tb, st->tri, st->b, x);
+            if (w < 1.0) {  /* and the rest towards the projection, as far as following would go (the chord) */
+                if (!known) pm__point_at(tb, st->target_t, st->target_b, xt);
+                const double gx = xt[0] - x[0], gy = xt[1] - x[1], gz = xt[2] - x[2];
+                const double g = sqrt(gx * gx + gy * gy + gz * gz), lim = S->o.proxy_speed * pm__norm3(st->move);
+                const double f = (1.0 - w) * (g > lim ? lim / g : 1.0);
+                v[0] = w * v[0] + f * gx;
+                v[1] = w * v[1] + f * gy;
+                v[2] = w * v[2] + f * gz;
+            }
             double tg[3] = {x[0] + v[0], x[1] + v[1], x[2] + v[2]};
             return pm__move_proxy(S, st, tg, sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]));
         }
