@@ -49,9 +49,12 @@ def test_pushing_harder_never_feels_softer(stiff, kidney, site):
     contact never ends and |F| never falls below its largest value so far, beyond round-off (measured: not at
     all, on every line; it fell by 27 % at the pole before, and by 0.94 % on a 30° line at the lateral face with
     an earlier form of the deep law, whose increments followed k(x) as the contact slid towards softer tissue);
-    for a normal push at a smooth convex part (pole, top, lateral face) F stays within 10° of the contact normal
-    at first contact (measured ≤ 9.2°; it turned 45-65° before); and past δ_lin the status is DEEP.  These
-    five sites hold it past δ_lin too; other sites do not (the next test)."""
+    for a normal push F stays within 10° of the contact normal at first contact (the issue asks it on smooth
+    convex parts; the law's bound, atan(2 FROZEN_CHANGE) = 10.0°, holds at every site: measured 6.1° at the pole,
+    6.9° at the top, 9.1° at the lateral face, 7.3° at the hilum's lip, 9.2° at the support rim; it turned 45-65°
+    at the pole before, and 12.3° at the lateral face and 12.6° at the rim with FROZEN_CHANGE 1/8 once the
+    projection was exact); and past δ_lin the status is DEEP.  These five sites hold it past δ_lin too; other
+    sites do not (the next test)."""
     normals, below = kidney
     x, N = normals[site]
     for tilt, azimuths in PUSH_LINES:
@@ -63,11 +66,10 @@ def test_pushing_harder_never_feels_softer(stiff, kidney, site):
             if tilt == 0:
                 end, first = m["end"], m["first"]
                 assert depth[end] > 0.01 and Status.DEEP in status, (site, depth[end])
-                if site in ("pole", "top", "lateral face"):
-                    on = np.arange(first + 5, end + 1)
-                    mag = np.linalg.norm(F[on], axis=1)
-                    angle = np.degrees(np.arccos(np.clip(F[on] @ N / mag, -1.0, 1.0)))
-                    assert angle.max() <= 10.0, (site, angle.max())
+                on = np.arange(first + 5, end + 1)
+                mag = np.linalg.norm(F[on], axis=1)
+                angle = np.degrees(np.arccos(np.clip(F[on] @ N / mag, -1.0, 1.0)))
+                assert angle.max() <= 10.0, (site, angle.max())
 
 
 def test_at_random_sites_pushing_harder_never_feels_softer_short_of_the_deep_regime(model, stiff, kidney):

@@ -280,8 +280,11 @@ def test_two_probes_are_coupled_through_the_body(browser, server, session):
     out = [1.5 * m.mean_edge_length * _outward(m, p) for p in probes]
     f_ref, statuses = _reference(session, probes, out)
     assert statuses == [1, 1]
+    # a contact pressed past δ_t keeps the stiffness k* of where it froze for its increments (law.py), so its
+    # force depends on the path by (k(x) − k*)(δ − δ*): the page's press and the reference's approach froze the
+    # first probe 2.9 mm deep at points apart, 4e-4 of the force (measured); the coupling is > 1 % (below)
     for f_page, f in zip((f0, f1), f_ref):
-        assert np.allclose(f_page, f, rtol=1e-5, atol=1e-5 * np.linalg.norm(f))
+        assert np.allclose(f_page, f, rtol=2e-3, atol=2e-3 * np.linalg.norm(f))
     alone = [_reference(session, [p, None], [o, None])[0][0] for p, o in zip(probes, out)]
     assert max(np.linalg.norm(a - f) / np.linalg.norm(f) for a, f in zip(alone, f_ref)) > 0.01
 

@@ -331,7 +331,7 @@ static inline double pm__largest_curvature(const double *Sm)
 }
 
 #define FOCAL_FRACTION 0.5
-#define FROZEN_CHANGE 0.125
+#define FROZEN_CHANGE (0.125 / 1.4142135623730951)  /* 1/(8√2) (law.FROZEN_CHANGE: 0.125 / math.sqrt(2.0)) */
 
 /* min(δ, FOCAL_FRACTION / κ_max) (linalg3.tracking_depth) */
 static inline double pm__tracking_depth(const double *Sm, double delta)

@@ -5,6 +5,11 @@
  * The proxy follows that projection along the surface by at most proxy_speed times the probe's motion. */
 #include "pm_internal.h"
 
+#define PROJECT_STEPS 8
+#define PROJECT_TOL 1e-13
+
+/* the Phong projection of p onto triangle t's plane, p = x + s N(x): Newton's method on the fixed point b = g(b),
+   from the flat projection, to PROJECT_TOL; a fixed-point step where the Jacobian nearly vanishes (tracking.project) */
 static void project(const pm_table *tb, int64_t t, const double *p, double *b0o, double *b1o, double *b2o, double *so)
 {
     const double *F = tb->frames + 12 * t;
@@ -12,12 +17,16 @@ static void project(const pm_table *tb, int64_t t, const double *p, double *b0o,
     const double nx = F[9], ny = F[10], nz = F[11];
     const int64_t *v = tb->T + 3 * t;
     const double *n0 = tb->N + 3 * v[0], *n1 = tb->N + 3 * v[1], *n2 = tb->N + 3 * v[2];
+    const double m1x = n1[0] - n0[0], m1y = n1[1] - n0[1], m1z = n1[2] - n0[2];  /* ∂N/∂b1 */
+    const double m2x = n2[0] - n0[0], m2y = n2[1] - n0[1], m2z = n2[2] - n0[2];  /* ∂N/∂b2 */
+    const double e1 = nx * m1x + ny * m1y + nz * m1z;
+    const double e2 = nx * m2x + ny * m2y + nz * m2z;
     double dx = p[0] - ox, dy = p[1] - oy, dz = p[2] - oz;
     double h = nx * dx + ny * dy + nz * dz;
     double b1 = ax * dx + ay * dy + az * dz;
     double b2 = bx * dx + by * dy + bz * dz;
     double s = h;
-    for (int it = 0; it < 2; it++) {
+    for (int it = 0; it < PROJECT_STEPS; it++) {
         double b0 = 1.0 - b1 - b2;
         double Nx = b0 * n0[0] + b1 * n1[0] + b2 * n2[0];
         double Ny = b0 * n0[1] + b1 * n1[1] + b2 * n2[1];
@@ -26,8 +35,26 @@ static void project(const pm_table *tb, int64_t t, const double *p, double *b0o,
         if (hn < 0.1) break;
         s = h / hn;
         double qx = dx - s * Nx, qy = dy - s * Ny, qz = dz - s * Nz;
-        b1 = ax * qx + ay * qy + az * qz;
-        b2 = bx * qx + by * qy + bz * qz;
+        double r1 = ax * qx + ay * qy + az * qz - b1;  /* g(b) − b */
+        double r2 = bx * qx + by * qy + bz * qz - b2;
+        double c1 = s * e1 / hn, c2 = s * e2 / hn;  /* ∂q/∂b_k = c_k N − s m_k */
+        double u1x = c1 * Nx - s * m1x, u1y = c1 * Ny - s * m1y, u1z = c1 * Nz - s * m1z;
+        double u2x = c2 * Nx - s * m2x, u2y = c2 * Ny - s * m2y, u2z = c2 * Nz - s * m2z;
+        double j11 = 1.0 - (ax * u1x + ay * u1y + az * u1z);  /* I − ∂g/∂b */
+        double j12 = -(ax * u2x + ay * u2y + az * u2z);
+        double j21 = -(bx * u1x + by * u1y + bz * u1z);
+        double j22 = 1.0 - (bx * u2x + by * u2y + bz * u2z);
+        double det = j11 * j22 - j12 * j21, d1, d2;
+        if (det > 0.05) {
+            d1 = (j22 * r1 - j12 * r2) / det;
+            d2 = (j11 * r2 - j21 * r1) / det;
+        } else {  /* a fold: the fixed-point step */
+            d1 = r1;
+            d2 = r2;
+        }
+        b1 += d1;
+        b2 += d2;
+        if (fabs(d1) + fabs(d2) <= PROJECT_TOL) break;
     }
     *b0o = 1.0 - b1 - b2;
     *b1o = b1;
