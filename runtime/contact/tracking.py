@@ -27,7 +27,7 @@ log = logging.getLogger("pmask.runtime.haptics")
 
 #: Newton steps at most for the Phong projection (:func:`project`; it converges in 2-4 from the flat projection)
 PROJECT_STEPS = 8
-#: and the step in barycentric coordinates below which it stops (at a 3 mm edge, 3e-16 m)
+#: and the residual in barycentric coordinates at which it stops (at a 3 mm edge, 3e-16 m)
 PROJECT_TOL = 1e-13
 
 
@@ -70,6 +70,8 @@ def project(srf, t, px, py, pz):
         qx, qy, qz = dx - s * Nx, dy - s * Ny, dz - s * Nz
         r1 = ax * qx + ay * qy + az * qz - b1  # g(b) − b
         r2 = bx * qx + by * qy + bz * qz - b2
+        if abs(r1) + abs(r2) <= PROJECT_TOL:  # converged: b, and s with it
+            break
         c1, c2 = s * e1 / hn, s * e2 / hn  # ∂q/∂b_k = c_k N − s m_k
         u1x, u1y, u1z = c1 * Nx - s * m1x, c1 * Ny - s * m1y, c1 * Nz - s * m1z
         u2x, u2y, u2z = c2 * Nx - s * m2x, c2 * Ny - s * m2y, c2 * Nz - s * m2z
@@ -85,8 +87,6 @@ def project(srf, t, px, py, pz):
             d1, d2 = r1, r2
         b1 += d1
         b2 += d2
-        if abs(d1) + abs(d2) <= PROJECT_TOL:
-            break
     return 1.0 - b1 - b2, b1, b2, s
 
 

@@ -37,6 +37,7 @@ static void project(const pm_table *tb, int64_t t, const double *p, double *b0o,
         double qx = dx - s * Nx, qy = dy - s * Ny, qz = dz - s * Nz;
         double r1 = ax * qx + ay * qy + az * qz - b1;  /* g(b) − b */
         double r2 = bx * qx + by * qy + bz * qz - b2;
+        if (fabs(r1) + fabs(r2) <= PROJECT_TOL) break;  /* converged: b, and s with it */
         double c1 = s * e1 / hn, c2 = s * e2 / hn;  /* ∂q/∂b_k = c_k N − s m_k */
         double u1x = c1 * Nx - s * m1x, u1y = c1 * Ny - s * m1y, u1z = c1 * Nz - s * m1z;
         double u2x = c2 * Nx - s * m2x, u2y = c2 * Ny - s * m2y, u2z = c2 * Nz - s * m2z;
@@ -54,7 +55,6 @@ static void project(const pm_table *tb, int64_t t, const double *p, double *b0o,
         }
         b1 += d1;
         b2 += d2;
-        if (fabs(d1) + fabs(d2) <= PROJECT_TOL) break;
     }
     *b0o = 1.0 - b1 - b2;
     *b1o = b1;
