@@ -45,17 +45,18 @@ def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, opti
       (a tick's work is the force the device holds times the probe's motion; the trapezoid rule too);
     - the largest force change per tick anywhere is <= 2x the largest on smooth free surface at the same
       speed (the tour's reference segments: slides over the top face, presses to 6 mm on four faces; the
-      hands issue's bound, 3x before; measured 1.6x sliding onto and across the hilum's support 5 mm deep);
+      hands issue's bound, 3x before; measured 1.55x sliding back across the hilum's support 5 mm deep);
     - the proxy never moves more than twice the probe's own motion in one tick.
 
     One allowance, 12 mm deep at the pole (DEEP, 5 mm past the pole's focal depth of 7 mm): rocking there, the
     proxy moves by dead reckoning at twice the probe's tangential speed (the speed-up at half the radius of
     curvature) and the force turns with the normal across the pole's tip; with
     friction the stuck contact breaks away, its force falling while the anchor catches up (at most the tool's
-    own motion a tick, measured 3.1x).  Bound 5x there (4.2x measured frictionless on the test session's kidney).
+    own motion a tick, measured 3.3x).  Bound 5x there (3.3x measured frictionless on the test session's kidney,
+    4.2x with the projection of two fixed-point steps).
 
-    On the subdivided surface (levels=2) too (by hand before): measured 1.51x and 1.24x (frictionless, friction),
-    onto and across the hilum.
+    On the subdivided surface (levels=2) too (by hand before): measured 1.51x and 1.06x (frictionless, friction),
+    over the hilum; 2.9x and 3.3x 12 mm deep at the pole.
     """
     probes, segments = the_tour
     m = tour_metrics(run_contact(HapticContact(stiff, **options), probes), probes, segments)
@@ -138,14 +139,16 @@ def test_out_and_back_across_the_support_rim(stiff, depth):
 
     What holds: the body never gives back more than it was given (net ≤ +1 %: the law does not generate, where
     it gained 7-54 µJ over such a slide before), and short of the lip (to 0.5 rad, on tissue whose stiffness
-    rises towards the support) |net| ≤ 3 % (measured 2.5 % and 1.0 %).  What does not: over the lip the law
-    dissipates, measured 41 % (2 mm) and 144 % (4 mm) of the press's work (bound here 60 % and 160 %, to catch a
-    return of the proxy's drag: 2.2x and 4.3x with the proxy limited to 1.25x the probe, the default before).
+    rises towards the support) |net| ≤ 3 % (measured 2.5 % and 0.9 %).  What does not: over the lip the law
+    dissipates, measured 12 % (2 mm) and 30 % (4 mm) of the press's work (bound here 20 % and 45 %, to catch a
+    return of the projection's drift: 41 % and 144 % while step 1's projection took two fixed-point steps, whose
+    answers on neighbouring triangles differed where the normals turn fast; or of the proxy's drag: 2.2x and 4.3x
+    with the proxy limited to 1.25x the probe, the default before).
     The cause is the lip's contact normals, blended over ``normal_radius`` (3 mask radii) so that the force
     turns smoothly over the crease: there they are up to 50° off the facets the proxy moves on, the force is
     not the gradient of the energy the law stores, and work and stored energy drift apart by up to 44 % of it
     on the way in (measured), more than the passivity controller's slack, so with it on the controller takes
-    a further 12x (2 mm) and 3.6x (4 mm) of the press's work out as drag over this slide.  A law that is
+    a further 12x (2 mm) and 3.3x (4 mm) of the press's work out as drag over this slide.  A law that is
     passive at the lip needs a smooth (C¹) surface whose normal is the contact normal, in both engines."""
     for end, bound in ((0.5, 0.03), (0.0, None)):
         net, press_in = out_and_back_work(stiff, depth, end, passivity=False)
@@ -154,7 +157,7 @@ def test_out_and_back_across_the_support_rim(stiff, depth):
         if bound is not None:
             assert abs(net) <= bound * press_in, (end, net / press_in)
         else:
-            assert net >= -(0.6 if depth < 0.003 else 1.6) * press_in, net / press_in
+            assert net >= -(0.2 if depth < 0.003 else 0.45) * press_in, net / press_in
 
 
 # ------------------------------------------------------------------------------------- the contact law

@@ -4,7 +4,7 @@ The law's frictionless force is k δ along the contact normal N plus the term th
 stored energy ½ k δ² (:mod:`pmask.runtime.contact.law`).  That holds exactly only where N is the normal of the
 surface the proxy moves on.  On the finite-element mesh's flat triangles it is not: N is interpolated from the
 vertices (so that the force turns smoothly over edges) and differs from a facet's own normal by up to the angle
-between neighbouring facets, a few degrees on the default kidney; closed loops then gave back up to 1.75 % of
+between neighbouring facets, a few degrees on the default kidney; closed loops then gave back up to 1.78 % of
 their stored energy (the hands issue asks ≤ 1 %), and with the facets' own normals the force jumped at every
 edge.  A surface whose facets meet at vanishing angles removes the conflict: this module subdivides the contact
 mesh with Loop's scheme (Loop 1987; each level splits every triangle in four and moves the vertices by Loop's
@@ -28,7 +28,7 @@ interpolation over the mesh's triangles, whose gradient jumps at every mesh edge
 differs from K_i by Loop's smoothing (on the default kidney: median 0.6 %, 99th percentile 4.4 %, at most 9 %, by
 the support's ramp).  Measured on the hands issue's grid of closed loops (two levels): with K interpolated
 linearly the worst loop gave back 0.23 % and the deep presses lost up to 0.18 % of their force where the
-proxy crossed a mesh edge (∇k jumped 2x there); with K subdivided 0.064 %.  ζ and the deformation stay on the
+proxy crossed a mesh edge (∇k jumped 2x there); with K subdivided 0.064 % (0.024 % with step 1's projection exact).  ζ and the deformation stay on the
 mesh's vertices: each subdivided triangle knows the mesh triangle it lies in (``parent``) and the barycentric
 coordinates in it of its three corners (``corners``), so a point (t, b) of the subdivided surface is the point
 :math:`\beta = \sum_k b_k\, \mathrm{corners}_{t,k}` of triangle ``parent[t]`` (:func:`mesh_point`).
@@ -45,8 +45,8 @@ from pmask.runtime.geometry import crease_edges, triangle_normals, vertex_normal
 
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
-#: hands issue's grid of closed loops, controller off) the mesh's 9.1° gave back up to 1.75 % of a loop's stored
-#: energy, one level (5.1°) 0.44 %, two levels (2.95°) 0.064 % (tests/test_passivity_grid.py's loops; one level
+#: hands issue's grid of closed loops, controller off) the mesh's 9.1° gave back up to 1.78 % of a loop's stored
+#: energy, one level (5.1°) 0.44 %, two levels (2.95°) 0.024 % (tests/test_passivity_grid.py's loops; one level
 #: by hand)
 MAX_FACET_ANGLE = math.radians(3.5)
 #: at most this many levels, and at most this many subdivided triangles (the contact surface's arrays grow 4x a
