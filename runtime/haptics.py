@@ -107,8 +107,9 @@ class Contacts:
         to within a small angle; "auto" the fewest levels that bring that angle within 3.5°
         (:mod:`pmask.runtime.contact.subdivision`).  Measured on the default kidney's grid of closed loops
         (tests/test_passivity_grid.py): with the controller off at most 1.78 % of a loop's energy given back on
-        the mesh, 0.024 % with 2 levels (0.44 % with one, by hand, with an earlier projection).  K_i and λ are carried by the same masks (at the mesh's
-        vertices within Loop's smoothing of them: at most 9 % on the default kidney, by the support's ramp).
+        the mesh, 0.024 % with 2 levels (0.44 % with one, by hand, with an earlier projection).  K_i and λ are
+        carried by the same masks (at the mesh's vertices within Loop's smoothing of them: at most 9 % on the
+        default kidney, by the support's ramp).
     coupled
         solve several contacts together (default: when the stiffness has Green's functions).
     engine

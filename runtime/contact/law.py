@@ -32,8 +32,9 @@ turned 45-65° and fell), and the tangential term ½ δ² ∇k outgrows the norm
 than 10° off the normal on the flat top).  The first is step 1's (the proxy moves by dead reckoning past half
 the radius of curvature, :func:`pmask.runtime.contact.tracking.follow`); for the second, past the depth
 δ_t = min(δ_lin, c k / ‖∇k‖) (where k changes by c = 1/(8√2) of itself, :data:`FROZEN_CHANGE`; only inside the
-full contact region, λ = 1) the contact remembers δ* and k* = k at the tick it gets there: δ* = δ_t when a press crosses it,
-and δ* = δ, its own depth, when a contact already deeper enters the full region or slides to where δ_t is smaller
+full contact region, λ = 1) the contact remembers δ* and k* = k at the tick it gets there: δ* = δ_t when a press
+crosses it, and δ* = δ, its own depth, when a contact already deeper enters the full region or slides to where δ_t is
+smaller
 (freezing at δ_t there turned the tangential term from ½ δ² ∇k to (δ_t δ − ½ δ_t²) ∇k in one tick; at δ it
 changes nothing), and while δ ≥ δ* its stored energy is
 

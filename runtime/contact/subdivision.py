@@ -28,8 +28,9 @@ interpolation over the mesh's triangles, whose gradient jumps at every mesh edge
 differs from K_i by Loop's smoothing (on the default kidney: median 0.6 %, 99th percentile 4.4 %, at most 9 %, by
 the support's ramp).  Measured on the hands issue's grid of closed loops (two levels): with K interpolated
 linearly the worst loop gave back 0.23 % and the deep presses lost up to 0.18 % of their force where the
-proxy crossed a mesh edge (∇k jumped 2x there); with K subdivided 0.064 % (0.024 % with step 1's projection exact).  ζ and the deformation stay on the
-mesh's vertices: each subdivided triangle knows the mesh triangle it lies in (``parent``) and the barycentric
+proxy crossed a mesh edge (∇k jumped 2x there); with K subdivided 0.064 % (0.024 % with step 1's projection
+exact).  ζ and the deformation stay on the mesh's vertices: each subdivided triangle knows the mesh triangle it lies
+in (``parent``) and the barycentric
 coordinates in it of its three corners (``corners``), so a point (t, b) of the subdivided surface is the point
 :math:`\beta = \sum_k b_k\, \mathrm{corners}_{t,k}` of triangle ``parent[t]`` (:func:`mesh_point`).
 
