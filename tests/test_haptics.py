@@ -110,8 +110,8 @@ def test_the_proxy_does_not_hop_where_the_depth_hovers_about_half_the_radius(sti
     following tick pulled it back onto the projection the dead-reckoning ticks had drifted from, and the force
     changed in a sawtooth (on the subdivided surface the largest second difference of F per tick was 1.59x its
     largest first difference; with friction the slide's largest change per tick 1.37x the reference's, 1.14x
-    now).  Blended over 0.4-0.5 R (linalg3.reckoning) it is continuous in the state: ‖Δ²F‖ ≤ ‖ΔF‖ at its largest
-    (measured 0.77-0.82 on both surfaces; a sawtooth's is twice)."""
+    with the blend).  Blended over 0.4-0.5 R (linalg3.reckoning) it is continuous in the state: ‖Δ²F‖ ≤ ‖ΔF‖ at
+    its largest (measured 0.77-0.81 on both surfaces; a sawtooth's is up to twice)."""
     probes, segments = the_tour
     F = run_contact(HapticContact(stiff, levels=levels), probes)["force"]
     dF = np.linalg.norm(np.diff(F, axis=0), axis=1)
