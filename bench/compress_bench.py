@@ -169,6 +169,7 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
     within = int(cKDTree(Pc).query_ball_point(Pc, r_max, return_length=True).sum())  # ordered pairs, i = j too
     out["pairs_within_r_max_bytes"] = 72 * (within + n) // 2
     out["compressed_stored_bytes"] = c.Xi.nbytes
+    out.update(disk_bytes(p))
     dense = stages.Spec(model="kidney", params=params, r_max=r_max, element=ELEMENT)
     mesh = stages.support_stage(dense, stages.mesh_stage(dense))
     out["dense_need_gib"] = elements.get_element("P1").memory_estimate(len(mesh.points), n)["total"] / 2**30
@@ -193,6 +194,20 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
     nm = np.repeat(np.repeat(near, 3, axis=0), 3, axis=1)
     out["near_max_abs_rel"] = float(np.abs(got - exact)[nm].max() / np.abs(exact).max())
     return out
+
+
+def disk_bytes(path: Path) -> dict:
+    """The compressed Ξ's bytes in the file (HDF5's storage sizes: the near field deflated,
+    :data:`pmask.runtime.artifact.NEAR_FILTERS`), beside the values' bytes the rows give (what a reader holds)."""
+    import h5py
+
+    from pmask.runtime.artifact import NEAR
+
+    with h5py.File(path, "r") as f:
+        g = f["greens/hmatrix"]
+        size = {f"greens/hmatrix/{k}": int(g[k].id.get_storage_size()) for k in g}
+    near = sum(v for k, v in size.items() if k in NEAR)
+    return {"disk_stored_bytes": sum(size.values()), "near_disk_bytes": near}
 
 
 def haptic_step(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> dict:
@@ -313,11 +328,14 @@ def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
     slope = (np.log(g["greens_s"] / small["compressed_2"]["greens_s"]) / np.log(n0 / small["contact"])
              if small.get("compressed_2") else None)
     rows = []
+    disk = g["disk_stored_bytes"] / g["compressed_stored_bytes"] if "disk_stored_bytes" in g else None
     for n in sizes:
         near = g["near_bytes"] * (n / n0) ** 2
         far = g["far_bytes"] * n * np.log(n) / (n0 * np.log(n0))
         t = f", GF stage ~{g['greens_s'] * (n / n0) ** slope / 3600:.1f} h on 2 workers" if slope else ""
-        rows.append(f"{n:,}: ~{(near + far) / 2**30:.1f} GiB stored ({near / 2**30:.1f} near, {far / 2**30:.1f} far){t}")
+        rows.append(f"{n:,}: ~{(near + far) / 2**30:.1f} GiB stored ({near / 2**30:.1f} near, {far / 2**30:.1f} far"
+                    + (f"; ~{disk * (near + far) / 2**30:.1f} in the file at this run's ratio" if disk else "")
+                    + f"){t}")
     check = ""
     o = res.get("organ")
     if o and "near_bytes" in o:  # the model against the measured run at ~50,000
@@ -336,7 +354,7 @@ def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
             + refit(res))
 
 
-def refit(res: dict, sizes=(100_000, 200_000), workers=(2, 16, 64)) -> str:
+def refit(res: dict, sizes=(50_000, 100_000, 200_000), workers=(2, 16, 64)) -> str:
     """The extrapolation again, each quantity a power of n through the two largest runs at the same r_max (the
     organ-scale run and the 50,000 row): what the measured growth says, still a model.  The W sweep runs in the
     client (serial whatever the workers); the rest of the GF stage is the tiles', which N workers on a real
@@ -358,7 +376,9 @@ def refit(res: dict, sizes=(100_000, 200_000), workers=(2, 16, 64)) -> str:
         sweep = at(o["stats"]["sweep_s"], "sweep_s", n)
         tiles = at(o["greens_s"], "greens_s", n) - sweep
         times = ", ".join(f"{(sweep + tiles * 2 / w) / 3600:.1f} h on {w}" for w in workers)
-        rows.append(f"{n:,}: ~{(near + far) / 2**30:.0f} GiB stored ({near / 2**30:.0f} near, {far / 2**30:.1f} far), "
+        disk = (f", ~{o['disk_stored_bytes'] / o['compressed_stored_bytes'] * (near + far) / 2**30:.2f} in the file at "
+                f"the {o['contact']:,}-vertex run's ratio" if "disk_stored_bytes" in o else "")
+        rows.append(f"{n:,}: ~{(near + far) / 2**30:.2f} GiB stored ({near / 2**30:.2f} near, {far / 2**30:.2f} far{disk}), "
                     f"GF stage ~{times} workers")
     return (f" Refitted through the {g['contact']:,}- and {o['contact']:,}-vertex runs (measured {res['date']} and "
             f"{o.get('date', '')}; each quantity a power of n: "
@@ -384,6 +404,8 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
               f"**peak RSS {g['peak_rss_gib']:.2f} GiB** (process tree; largest processes "
               f"{', '.join(f'{x:.2f}' for x in g['peak_rss_per_process_gib'][:3])} GiB), W's store "
               f"{st['W_bytes'] / 2**30:.2f} GiB on disk. Stored {g['compressed_stored_bytes'] / 2**30:.2f} GiB "
+              + (f"of values, **{g['disk_stored_bytes'] / 2**30:.2f} GiB in the file** (the near field deflated: "
+                 f"{g['near_disk_bytes'] / g['near_bytes']:.2f} of its bytes) " if "disk_stored_bytes" in g else "")
               + (f"(near field {g['near_bytes'] / 2**30:.2f}"
                  + (f" (its pairs within r_max exactly {g['near_exact_bytes'] / 2**30:.2f}, its other pairs in 16 bits "
                     f"with their scales and mask {g['near_16bit_bytes'] / 2**30:.2f})"
