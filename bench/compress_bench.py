@@ -284,6 +284,7 @@ def main(out: Path) -> dict:
     kept = json.loads(out.read_text()) if out.exists() else {}
     for key in (k for k in kept if k.startswith("organ")):  # `ONLY=organ`'s runs, kept
         res[key] = kept[key]
+    res["refit"] = refit_numbers(res)
     out.write_text(json.dumps(res, indent=1, default=float))
     return res
 
@@ -308,6 +309,7 @@ def organ(out: Path, r_max: float = R_MAX) -> dict:
     r["date"] = time.strftime("%Y-%m-%d %H:%M")
     r["machine"] = machine()
     res[organ_key(r_max)] = r
+    res["refit"] = refit_numbers(res)
     print(json.dumps(r, default=str)[:600], flush=True)
     out.write_text(json.dumps(res, indent=1, default=float))
     return res
@@ -354,34 +356,55 @@ def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
             + refit(res))
 
 
-def refit(res: dict, sizes=(50_000, 100_000, 200_000), workers=(2, 16, 64)) -> str:
+#: the sizes the refit goes to (refit_numbers)
+REFIT_SIZES = (50_000, 100_000, 200_000)
+
+
+def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
+    """The refit below as numbers, kept in the results (``refit``) so that the guides can quote them: its
+    exponents, and per size the values' bytes (near, far, total), the bytes in the file at the organ run's ratio
+    of the two, and the W sweep's and the tiles' seconds on this machine's 2 workers."""
+    g, o = res.get("large"), res.get("organ")
+    if not (g and o and "near_bytes" in g and "near_bytes" in o):
+        return None
+    ln = np.log(o["contact"] / g["contact"])
+    exp = {k: float(np.log(o[k] / g[k]) / ln) for k in ("near_bytes", "far_bytes", "greens_s")}
+    exp["sweep_s"] = float(np.log(o["stats"]["sweep_s"] / g["stats"]["sweep_s"]) / ln)
+    ratio = o["disk_stored_bytes"] / o["compressed_stored_bytes"] if "disk_stored_bytes" in o else None
+
+    def at(value, key, n):
+        return value * (n / o["contact"]) ** exp[key]
+
+    out = {"exponents": exp, "from": [g["contact"], o["contact"]], "dates": [res.get("date", ""), o.get("date", "")]}
+    for n in sizes:
+        near, far = at(o["near_bytes"], "near_bytes", n), at(o["far_bytes"], "far_bytes", n)
+        sweep = at(o["stats"]["sweep_s"], "sweep_s", n)
+        out[str(n)] = {"near_bytes": near, "far_bytes": far, "stored_bytes": near + far,
+                       "disk_bytes": None if ratio is None else ratio * (near + far),
+                       "sweep_s": sweep, "tiles_s": at(o["greens_s"], "greens_s", n) - sweep}
+    return out
+
+
+def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
     """The extrapolation again, each quantity a power of n through the two largest runs at the same r_max (the
     organ-scale run and the 50,000 row): what the measured growth says, still a model.  The W sweep runs in the
     client (serial whatever the workers); the rest of the GF stage is the tiles', which N workers on a real
     scheduler divide by at most N/2 (this machine's 2 workers); their I/O of W's store is assumed to scale with
     them (a shared filesystem that does not is slower)."""
-    g, o = res.get("large"), res.get("organ")
-    if not (g and o and "near_bytes" in g and "near_bytes" in o):
+    r = refit_numbers(res, sizes)
+    if r is None:
         return ""
-    ln = np.log(o["contact"] / g["contact"])
-    exp = {k: float(np.log(o[k] / g[k]) / ln) for k in ("near_bytes", "far_bytes", "greens_s")}
-    exp["sweep_s"] = float(np.log(o["stats"]["sweep_s"] / g["stats"]["sweep_s"]) / ln)
-
-    def at(value, key, n):
-        return value * (n / o["contact"]) ** exp[key]
-
+    exp, (n_g, n_o) = r["exponents"], r["from"]
     rows = []
     for n in sizes:
-        near, far = at(o["near_bytes"], "near_bytes", n), at(o["far_bytes"], "far_bytes", n)
-        sweep = at(o["stats"]["sweep_s"], "sweep_s", n)
-        tiles = at(o["greens_s"], "greens_s", n) - sweep
-        times = ", ".join(f"{(sweep + tiles * 2 / w) / 3600:.1f} h on {w}" for w in workers)
-        disk = (f", ~{o['disk_stored_bytes'] / o['compressed_stored_bytes'] * (near + far) / 2**30:.2f} in the file at "
-                f"the {o['contact']:,}-vertex run's ratio" if "disk_stored_bytes" in o else "")
-        rows.append(f"{n:,}: ~{(near + far) / 2**30:.2f} GiB stored ({near / 2**30:.2f} near, {far / 2**30:.2f} far{disk}), "
-                    f"GF stage ~{times} workers")
-    return (f" Refitted through the {g['contact']:,}- and {o['contact']:,}-vertex runs (measured {res['date']} and "
-            f"{o.get('date', '')}; each quantity a power of n: "
+        x = r[str(n)]
+        times = ", ".join(f"{(x['sweep_s'] + x['tiles_s'] * 2 / w) / 3600:.1f} h on {w}" for w in workers)
+        disk = (f", ~{x['disk_bytes'] / 2**30:.2f} in the file at the {n_o:,}-vertex run's ratio"
+                if x["disk_bytes"] is not None else "")
+        rows.append(f"{n:,}: ~{x['stored_bytes'] / 2**30:.2f} GiB stored ({x['near_bytes'] / 2**30:.2f} near, "
+                    f"{x['far_bytes'] / 2**30:.2f} far{disk}), GF stage ~{times} workers")
+    return (f" Refitted through the {n_g:,}- and {n_o:,}-vertex runs (measured {r['dates'][0]} and "
+            f"{r['dates'][1]}; each quantity a power of n: "
             f"near field n^{exp['near_bytes']:.2f}, far field n^{exp['far_bytes']:.2f}, GF stage "
             f"n^{exp['greens_s']:.2f} of which the client's W sweep n^{exp['sweep_s']:.2f}; N workers divide the rest "
             f"by at most N/2): " + "; ".join(rows) + ".")

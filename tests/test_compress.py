@@ -851,8 +851,9 @@ def test_the_near_field_is_stored_deflated_and_a_broken_chunk_is_one_line(which,
     are checked as read by the tests above, bitwise against the artifact's own K_i and to 1e-12 against the
     dense route).  On disk its float64 pairs take at most 0.93 of their bytes and its 16-bit part at most 0.98
     (measured on this kidney 0.88 and 0.95, P2 and P1 alike; 0.88 and 0.92 on the bench's 3,882-vertex one: the
-    exponents' bytes repeat, the mantissas' do not; the bounds leave a few hundredths for another mesh's values).  A byte flipped inside a deflated
-    chunk on disk is one line when read, at open and when read on demand."""
+    exponents' bytes repeat, the mantissas' do not; the bounds leave a few hundredths for another mesh's
+    values).  A byte flipped inside a deflated chunk on disk is one line when read, at open and when read on
+    demand."""
     import shutil
 
     import h5py
