@@ -98,7 +98,8 @@ NEAR = ("greens/hmatrix/dense", "greens/hmatrix/near_exact", "greens/hmatrix/nea
 #: values' exponent bytes repeat, their mantissas do not: 13 % fewer bytes on the float64 pairs within r_max and
 #: 9 % on the 16-bit ones on a 3,882-vertex kidney, by hand; the bench page's organ rows give both sizes.  The far
 #: field's factors (read in slices when left in the file) stay as they are: a slice would inflate whole chunks.
-#: Deflate costs reading: about 0.5 GB/s a core, on top of the SHA-256 the blocks are checked by
+#: Deflate costs reading: zlib inflates about 0.55 GB/s a core, on top of the SHA-256 the blocks are checked by,
+#: so reading the near field takes about 3x as long as reading it plain (the large-organs guide gives the bench's)
 NEAR_FILTERS = {"shuffle": True, "compression": "gzip", "compression_opts": 1}
 #: datasets above this size also get a SHA-256 per block of rows (format 1.5), verified on both cores
 BLOCK_DIGEST_BYTES = 64 << 20
@@ -402,8 +403,9 @@ def _deflated(ds) -> bool:
 def _read_rows(ds, arr: np.ndarray, r0: int, r1: int, pool) -> None:
     """``arr[r0:r1] = ds[r0:r1]``.  A deflated dataset's chunks are read as stored and inflated and unshuffled
     by ``pool``'s threads (zlib and numpy's copies release the GIL), where HDF5 inflates them one after another
-    in the reading thread: reading a deflated near field then takes about what reading it plain did (the bench
-    page's organ rows).  A corrupt chunk raises OSError, as HDF5's own read would."""
+    in the reading thread; with the blocks' SHA-256 on the same two threads the read is bound by the cores
+    (about 1.7 core-seconds a GB here, by hand, a third of it besides inflating).  A corrupt chunk raises
+    OSError, as HDF5's own read would."""
     if not _deflated(ds):
         ds.read_direct(arr, np.s_[r0:r1], np.s_[r0:r1])
         return
