@@ -393,6 +393,15 @@ def _read_and_hash(ds, arr: np.ndarray, rows: int, blocks) -> list:
         return [p.result() for p in pending]
 
 
+def take_runs(values: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """``values[starts[:, None] + arange(width)]`` for 1-D ``values``: as rows of a (-1, width) view when every run
+    starts on a multiple of ``width`` (a compressed Ξ's exact pairs, nine values each, always do), one gather of
+    whole rows instead of one per value."""
+    if len(values) % width == 0 and not np.any(starts % width):
+        return values.reshape(-1, width)[starts // width]
+    return values[starts[:, None] + np.arange(width)]
+
+
 def _deflated(ds) -> bool:
     """Whether ``ds`` is stored as :data:`NEAR_FILTERS` stores the near field: 1-D chunks through shuffle and
     deflate and no other filter (then :func:`_read_rows` inflates its chunks itself, on two threads)."""
@@ -521,6 +530,21 @@ class BlocksOnDemand:
             self._ensure(want)
             out = self._arr[key]
             return out.copy() if self.budget is not None and isinstance(key, slice) else out
+
+    def runs(self, starts, width: int) -> np.ndarray:
+        """``self[starts[:, None] + arange(width)]``: runs of ``width`` consecutive values (a compressed Ξ's exact
+        pairs, nine values each), the blocks to read found from the runs' two ends alone (a run shorter than a
+        block lies in at most two), not from every index as ``[]`` does."""
+        starts = np.asarray(starts, np.int64)
+        if not starts.size or starts.min() < 0 or not 0 < width <= self.rows or self.ndim != 1:
+            return self[starts[:, None] + np.arange(width)]
+        if self.complete:
+            return take_runs(self._arr, starts, width)
+        ends = np.concatenate([starts // self.rows, (starts + (width - 1)) // self.rows])
+        want = np.flatnonzero(np.bincount(ends, minlength=len(self._read)))
+        with self._lock:  # (a gather: a copy, which a block let go later cannot change)
+            self._ensure(want)
+            return take_runs(self._arr, starts, width)
 
     def _ensure(self, want: np.ndarray) -> None:
         """Read (and check) the blocks ``want`` that are not held, then let go of the least recently used

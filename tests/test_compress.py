@@ -922,6 +922,27 @@ def test_deflated_chunks_inflated_on_two_threads_are_hdf5s_own_read(tmp_path):
             _read_rows(f["f8"], np.zeros(300_001), 0, 300_001, pool)
 
 
+def test_runs_of_nine_are_the_values_indexed_one_by_one(pair_p1, tmp_path):
+    """The exact pairs' nine values gathered as whole rows (artifact.take_runs, BlocksOnDemand.runs) are the
+    values indexed one by one, for runs on multiples of nine (rows) and off them (values); read on demand, runs
+    that straddle a block boundary read both blocks and no other."""
+    from pmask.runtime.artifact import BlocksOnDemand, take_runs
+
+    values = np.arange(9 * 1000, dtype=float) * 0.5
+    for starts in (np.array([0, 81, 9 * 999, 18]), np.array([1, 80, 9 * 999 - 4])):
+        assert np.array_equal(take_runs(values, starts, 9), values[starts[:, None] + np.arange(9)])
+    _, comp, _ = pair_p1
+    path = tmp_path / "blocks.h5"
+    rows = _near_field_signed_in_blocks(comp.path, path, 16)
+    whole = Model.load(path, near_field="open").Xi.dense
+    near = Model.load(path, near_field="demand").Xi.dense
+    assert isinstance(near, BlocksOnDemand) and near.rows == rows
+    straddle = 3 * rows - 4  # its run crosses from the third block into the fourth
+    for starts, blocks in ((np.array([9 * 7]), {0}), (np.array([9 * 7, straddle]), {0, 2, 3})):
+        assert np.array_equal(near.runs(starts, 9), whole[starts[:, None] + np.arange(9)])
+        assert set(np.flatnonzero(near._read)) == blocks
+
+
 def _near_field_signed_in_blocks(src, dst, n_blocks: int, change=None):
     """A copy of a compressed artifact whose near field carries per-block SHA-256 digests (format 1.5 gives them
     to datasets above 64 MiB; this one's is smaller) over ``n_blocks`` blocks, the metadata digest re-signed;
