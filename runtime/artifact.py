@@ -431,6 +431,17 @@ def _read_rows(ds, arr: np.ndarray, r0: int, r1: int, pool) -> None:
         j.result()
 
 
+def deflate_chunk(part: np.ndarray, c: int) -> bytes:
+    """A chunk of ``c`` values as HDF5's shuffle then deflate store it (the last chunk whole, zero beyond the
+    dataset's end): what :func:`_inflate_chunk` undoes, the writer's half of the near field's storage."""
+    import zlib
+
+    full = np.zeros(c, part.dtype)
+    full[:len(part)] = part
+    shuffled = np.ascontiguousarray(full.view(np.uint8).reshape(c, part.dtype.itemsize).T)
+    return zlib.compress(shuffled.tobytes(), NEAR_FILTERS["compression_opts"])
+
+
 def _inflate_chunk(raw: bytes, skip: int, out: np.ndarray) -> None:
     """Elements ``skip:skip + len(out)`` of a chunk stored through shuffle (byte k of every element, then byte
     k + 1, ...) and deflate, into ``out``."""
