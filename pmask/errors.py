@@ -12,6 +12,12 @@ ValueError`` keeps working.
 class PmaskError(Exception):
     """An error the user can fix; its message says what to change."""
 
+    def __reduce__(self):
+        # pickled as its own class with its message, so that one raised on a Dask worker reaches the client as
+        # itself (one line): distributed's tblib otherwise rebuilds a ResourceError through MemoryError.__new__,
+        # which refuses it, and the client gets a bare Exception with a traceback
+        return type(self), self.args, self.__dict__ or None
+
 
 class InputError(PmaskError, ValueError):
     """A parameter, value or file content that cannot be used."""
