@@ -129,6 +129,8 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
     out = {"params": params, "r_max_m": r_max, "greens_s": s["timings"]["greens"], "total_s": sum(s["timings"].values()),
            "timings": s["timings"], "peak_rss_gib": m.peak / 2**30,
            "peak_rss_per_process_gib": sorted((v / 2**30 for v in m.per.values()), reverse=True)[:4],
+           "client_peak_rss_gib": m.per.get(os.getpid(), 0) / 2**30,  # this process: the pipeline's client
+           "sweep_worker_peak_rss_gib": m.per.get(s["factor_stats"]["compress"].get("sweep_pid"), 0) / 2**30,
            "bytes": p.stat().st_size, "stats": s["factor_stats"]["compress"], "dofs": s["factor_stats"]["dofs"]}
     eager = []
     for _ in range(3):  # the near field read (and checked) at open, as every artifact was before
@@ -324,7 +326,7 @@ def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
     The near field is every pair within r_max, so at a fixed r_max (mm) it grows like n² as the mesh refines
     (a mask covers ∝ n vertices); the far field like n log n; the GF stage's time with the slope measured
     between the 3,882- and the 20,427-vertex runs; N workers on a real scheduler divide the tiles' time by
-    N/2 at best (the W sweep stays serial in the client)."""
+    N/2 at best (the W sweep stays serial, on one worker)."""
     g, small = res["large"], res.get("kidney_0.003", {})
     n0 = g["contact"]
     slope = (np.log(g["greens_s"] / small["compressed_2"]["greens_s"]) / np.log(n0 / small["contact"])
@@ -387,8 +389,8 @@ def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
 
 def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
     """The extrapolation again, each quantity a power of n through the two largest runs at the same r_max (the
-    organ-scale run and the 50,000 row): what the measured growth says, still a model.  The W sweep runs in the
-    client (serial whatever the workers); the rest of the GF stage is the tiles', which N workers on a real
+    organ-scale run and the 50,000 row): what the measured growth says, still a model.  The W sweep runs on
+    one worker (serial whatever the workers); the rest of the GF stage is the tiles', which N workers on a real
     scheduler divide by at most N/2 (this machine's 2 workers); their I/O of W's store is assumed to scale with
     them (a shared filesystem that does not is slower)."""
     r = refit_numbers(res, sizes)
@@ -406,7 +408,8 @@ def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
     return (f" Refitted through the {n_g:,}- and {n_o:,}-vertex runs (measured {r['dates'][0]} and "
             f"{r['dates'][1]}; each quantity a power of n: "
             f"near field n^{exp['near_bytes']:.2f}, far field n^{exp['far_bytes']:.2f}, GF stage "
-            f"n^{exp['greens_s']:.2f} of which the client's W sweep n^{exp['sweep_s']:.2f}; N workers divide the rest "
+            f"n^{exp['greens_s']:.2f} of which the W sweep (one worker) n^{exp['sweep_s']:.2f}; N workers divide "
+            f"the rest "
             f"by at most N/2): " + "; ".join(rows) + ".")
 
 
@@ -425,7 +428,10 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
               f"compressed on 2 local workers through `pmask precompute`: whole run {g['total_s'] / 60:.1f} min "
               f"(GF stage {g['greens_s'] / 60:.1f} min: W sweep {st['sweep_s']:.0f} s, {st['tiles']} tiles), "
               f"**peak RSS {g['peak_rss_gib']:.2f} GiB** (process tree; largest processes "
-              f"{', '.join(f'{x:.2f}' for x in g['peak_rss_per_process_gib'][:3])} GiB), W's store "
+              f"{', '.join(f'{x:.2f}' for x in g['peak_rss_per_process_gib'][:3])} GiB"
+              + (f"; the client {g['client_peak_rss_gib']:.2f} GiB, the worker that factorised and swept W "
+                 f"{g['sweep_worker_peak_rss_gib']:.2f} GiB" if g.get("sweep_worker_peak_rss_gib") else "")
+              + "), W's store "
               f"{st['W_bytes'] / 2**30:.2f} GiB on disk. Stored {g['compressed_stored_bytes'] / 2**30:.2f} GiB "
               + (f"of values, **{g['disk_stored_bytes'] / 2**30:.2f} GiB in the file** (the near field deflated: "
                  f"{g['near_disk_bytes'] / g['near_bytes']:.2f} of its bytes) " if "disk_stored_bytes" in g else "")

@@ -33,7 +33,6 @@ from pmask import interrupt
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
 from pmask.runtime.artifact import FORMAT_VERSION, stored_input_hash
-from pmask.runtime.files import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -873,14 +872,17 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
         factor, saving = None, None
-        if ck.exists():
+        on_worker = bool(spec.compress) and element.name == "P1"
+        if on_worker:  # assembled, factorised and swept on a Dask worker (#27): the client holds neither
+            from pmask.precompute.compress import FactorJob
+
+            factor = FactorJob(functools.partial(factor_stage, spec, mesh, surf), ck, spec.solve_timeout)
+            if st.bar is not None:
+                st.bar.update()
+        elif ck.exists():
             t0 = time.perf_counter()
-            try:
-                factor = greens.factor_from_arrays(np.load(ck))
-            except (greens.CheckpointError, OSError, ValueError, KeyError) as exc:  # damaged on disk: start over
-                log.warning("the factor checkpoint %s cannot be used (%s); factorising again", ck, exc)
-                ck.unlink(missing_ok=True)
-            else:
+            factor = greens.load_checkpoint(ck)  # None when damaged on disk: start over
+            if factor is not None:
                 st.resumed.append("factor")
                 st.timings.update({"assemble": 0.0, "factor": time.perf_counter() - t0})
                 if st.bar is not None:
@@ -888,11 +890,14 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         if factor is None:
             factor, t = factor_stage(spec, mesh, surf)
             st.timings.update(t)
-            saving = _Background(atomic_write, ck, lambda tmp: np.savez(tmp, **greens.factor_arrays(factor)),
-                                 suffix=".npz")  # written while the Green's functions are computed
+            saving = _Background(greens.save_checkpoint, ck, factor)  # written while the Green's functions are computed
             solve.callback(saving.wait)  # a run that fails meanwhile still lets the write finish
         with st.timed("greens", f"{spec.model}: write"):
             Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])
+        if on_worker:  # what the worker measured, and whether it reused the checkpoint or W; the GF stage's wall
+            st.timings.update(factor.timings)  # time held the assembly and factorisation: the stages add up to the run
+            st.timings["greens"] -= sum(factor.timings.get(k, 0.0) for k in ("assemble", "factor"))
+            st.resumed.extend(["factor"] if factor.resumed else [])
         if saving is not None:
             with st.timed("checkpoint"):  # what is left of the factor checkpoint's write (usually nothing)
                 saving.join()

@@ -31,11 +31,13 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    The columns come from the selected inversion's W (:mod:`pmask.precompute.selinv`): with P1's load
    :math:`\Xi = W^T W\,\mathrm{diag}(a)`, W = L⁻¹PE, so :math:`\Xi_{:,J} = \sum_s X_s X_{s,J}^T a_J`
    over the supernodes s that J's columns reach (X_s: W's rows of s, :func:`sweep`).  W is computed
-   once, by one forward sweep in the client, and written supernode by supernode to a file in the run's
-   work folder (:class:`SweepStore`; under a tenth of the dense Ξ: the bench page gives it at 20,427 vertices);
+   once, by one forward sweep on a worker (:func:`factor_and_sweep`; the pipeline's assembly and factorisation
+   run there too, :class:`FactorJob`, so the client never holds the factor), and written supernode by supernode
+   to a file in the run's work folder (:class:`SweepStore`; under a tenth of the dense Ξ: the bench page gives it
+   at 20,427 vertices);
    a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
    :math:`W^TW` products (each once: a tile computes only the rows above the diagonal, P1 being
-   symmetric) and nothing else, and a worker needs no factor.
+   symmetric) and nothing else, and the tiles need no factor.
    P2 (a consistent load B ≠ E diag(a)) solves each panel instead
    (:func:`pmask.precompute.greens.inverse_columns`), with the factor sent to every worker.
 4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
@@ -48,9 +50,11 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -366,7 +370,7 @@ def sweep_reusable(path: Path, key: str) -> bool:
         store = SweepStore(path)
     except (OSError, ValueError, KeyError):
         return False  # a damaged index: sweep again
-    return store.key == key and str(store.index.get("layout")) == LAYOUT
+    return store.key == key and str(store.index.get("layout")) == LAYOUT and "factor_stats" in store.index
 
 
 #: the client's memory for the W sweep: the wanted columns are swept in as many batches as keep each
@@ -402,7 +406,7 @@ def sweep_bytes(factor, budget: float = SWEEP_BUDGET) -> int:
     return sweep_batches(tree, piv, budget)[1]
 
 
-def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepStore:
+def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET, room: float | None = None) -> SweepStore:
     """W = L⁻¹PE of a P1 factor, supernode by supernode, into ``path`` (:class:`SweepStore`); reused when
     its index holds ``key`` (a rerun after a crash does not sweep again).  Both files are written
     atomically, the index last, so a file without one is never read; refused in one line before it starts
@@ -412,7 +416,9 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepSt
     most ``budget`` bytes of pending blocks however many contact vertices there are (one sweep at 47,467
     would hold 8.6 GiB by :func:`pmask.precompute.selinv.sweep_memory`, the top separators' blocks over all
     3 n_c rows); each batch writes its rows of every
-    supernode's block into their place in the file, which has the layout of a single sweep."""
+    supernode's block into their place in the file, which has the layout of a single sweep.  ``room``: the bytes
+    this process may still use (a Dask worker's limit less what it holds: :func:`factor_and_sweep`), which the
+    batches are cut to fit; refused in one line when a single batch does not."""
     from pmask.precompute import selinv
     from pmask.runtime.files import atomic_write
 
@@ -428,7 +434,13 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepSt
     offset = np.zeros(tree.ns, np.int64)
     offset[1:] = np.cumsum(m * tree.ncol)[:-1]  # in postorder, as the single sweep emitted them
     ordered = np.sort(piv)
+    if room is not None:
+        budget = min(budget, room / PHASE_MARGIN)
     batches, peak = sweep_batches(tree, ordered, budget)
+    if room is not None and PHASE_MARGIN * peak > room:
+        raise ResourceError(f"the compressed route's W sweep needs ~{peak / 2**30:.2f} GiB at its peak beside the "
+                            f"factor, more than the {max(room, 0) / 2**30:.2f} GiB left under its Dask worker's "
+                            "memory limit; give the workers more (--worker-memory) or use fewer, larger workers")
     check_phase_memory("W sweep", peak, "restrict the region a probe can touch (--contact SELECTOR) or coarsen "
                        "the mesh (--edge-length, --size): its blocks are the contact vertices' rows by the top "
                        "separators' columns")
@@ -452,9 +464,135 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET) -> SweepSt
               "ncol": tree.ncol, "parent": tree.parent, "first": tree.snode[piv], "offset": offset,
               "scale": factor.scale, "largest": np.array(int((m * tree.ncol).max()) if len(m) else 0),
               "flops": np.array(flops[0]), "batches": np.array(len(batches)), "peak_bytes": np.array(peak),
-              "gram_flops": np.array(float(np.sum(m.astype(float) ** 2 * tree.ncol)))}  # the dense route's syrks
+              "gram_flops": np.array(float(np.sum(m.astype(float) ** 2 * tree.ncol))),  # the dense route's syrks
+              "factor_stats": np.array(json.dumps(factor.stats))}  # a rerun that reuses W needs no factor
     atomic_write(index, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
     return SweepStore(path)
+
+
+@dataclass
+class FactorJob:
+    """A P1 factorisation made where W is swept, on a Dask worker (:func:`factor_and_sweep`), so that the client
+    holds neither the stiffness's assembly, nor the factor, nor the sweep (#27: at 47,467 contact vertices those
+    made the client's 2.42 GiB).  ``make()`` returns (factor, timings): the pipeline's assembly and factorisation,
+    pickled by reference.  ``checkpoint``: the factor's file in the work folder, read instead of factorising when
+    it is there and written when it is not (a rerun after a crash resumes); ``timeout``: the factorisation's time
+    limit (:func:`pmask.precompute.native.budget`).  :func:`compressed_greens` fills in ``stats`` (the factor's),
+    ``timings`` and ``resumed`` from what the worker reports."""
+
+    make: Callable
+    checkpoint: Path | None = None
+    timeout: float | None = None
+    stats: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    resumed: bool = False
+    load = None  # as SparseFactor.load: P1's load is the unit columns times the areas
+
+    def build(self) -> tuple:
+        """(factor, timings, resumed): the checkpoint's factor, or one made (and then checkpointed by the caller)."""
+        from pmask.precompute import greens, native
+
+        t0 = time.perf_counter()
+        factor = greens.load_checkpoint(self.checkpoint) if self.checkpoint else None
+        if factor is not None:
+            return factor, {"assemble": 0.0, "factor": time.perf_counter() - t0}, True
+        with native.budget(self.timeout):
+            factor, timings = self.make()
+        if factor.load is not None:
+            raise TypeError("a FactorJob makes a P1 factor (Ξ = G diag(a)); P2's compressed route solves per panel")
+        return factor, timings, False
+
+    def summary(self) -> dict:
+        """What :func:`factor_and_sweep` reports, without a sweep, for a rerun whose tiles are all stored: the
+        loads' scale and the factor's stats read from its checkpoint, not its L (an npz member is read alone);
+        made here only when the checkpoint is gone."""
+        if self.checkpoint is not None and Path(self.checkpoint).exists():
+            try:
+                with np.load(self.checkpoint) as ck:
+                    return {"scale": ck["scale"], "stats": json.loads(str(ck["stats"])), "timings": {},
+                            "resumed": True}
+            except (OSError, ValueError, KeyError) as exc:
+                log.warning("the factor checkpoint %s cannot be read (%s); factorising again", self.checkpoint, exc)
+        factor, timings, resumed = self.build()
+        return {"scale": factor.scale, "stats": factor.stats, "timings": timings, "resumed": resumed}
+
+
+def _blas_cores() -> int:
+    """The cores this process may run on (its affinity; a container's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _worker_room() -> float | None:
+    """Bytes this Dask worker may still use before its nanny restarts it (its memory limit times dask's
+    ``distributed.worker.memory.terminate`` fraction, less its resident memory now); None outside a worker or
+    without a limit."""
+    import dask
+    import psutil
+
+    try:
+        from distributed import get_worker
+
+        limit = get_worker().memory_manager.memory_limit
+    except (ImportError, ValueError, AttributeError):
+        return None
+    fraction = dask.config.get("distributed.worker.memory.terminate", 0.95) or 1.0
+    return float(limit) * float(fraction) - psutil.Process().memory_info().rss if limit else None
+
+
+def factor_and_sweep(source, path, key: str, budget: float = SWEEP_BUDGET) -> dict:
+    """The task that sweeps W (:func:`sweep`) on whichever worker the scheduler picks, from ``source``: a
+    :class:`FactorJob` (assembled and factorised here; its checkpoint written while W is swept) or a P1 factor
+    sent along.  Its BLAS gets every core of the worker's machine: Dask starts workers with one BLAS thread each,
+    right for the tiles, but nothing else of the run is running while W is swept.  Returns what the client keeps:
+    the loads' ``scale``, the factor's ``stats``, ``timings``, ``resumed`` (the checkpoint or W reused) and where
+    it ran (``pid``, ``host``)."""
+    import platform
+
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from pmask.precompute import greens, native
+
+    native.available()  # CHOLMOD's BLAS loaded, so that the limits below reach it too
+    path = Path(path)
+    t0 = time.perf_counter()
+    with threadpool_limits(_blas_cores()):
+        threads = min((p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"), default=1)
+        if sweep_reusable(path, key):
+            W = SweepStore(path)
+            stats, timings, resumed = json.loads(str(W.index["factor_stats"])), {}, True
+        else:
+            if isinstance(source, FactorJob):
+                factor, timings, resumed = source.build()
+            else:
+                factor, timings, resumed = source, {}, False
+            saving = None
+            if isinstance(source, FactorJob) and source.checkpoint and not resumed:
+                import threading
+
+                failed = []
+
+                def save():
+                    try:
+                        greens.save_checkpoint(source.checkpoint, factor)
+                    except Exception as exc:  # noqa: BLE001 (a checkpoint is an aid: the run goes on without it)
+                        failed.append(exc)
+
+                saving = threading.Thread(target=save, name="pmask-checkpoint", daemon=True)
+                saving.start()
+            t1 = time.perf_counter()
+            W = sweep(factor, path, key, budget, _worker_room())
+            timings = {**timings, "sweep": time.perf_counter() - t1}
+            stats = factor.stats
+            if saving is not None:
+                saving.join()
+                if failed:
+                    log.warning("the factor checkpoint %s was not written (%s); a rerun factorises again",
+                                source.checkpoint, failed[0])
+    return {"scale": np.asarray(W.index["scale"]), "stats": stats, "timings": timings, "resumed": resumed,
+            "seconds": time.perf_counter() - t0, "pid": os.getpid(), "host": platform.node(), "blas_threads": threads}
 
 
 def solved_columns(factor, dcols: np.ndarray) -> np.ndarray:
@@ -907,6 +1045,28 @@ def factor_bytes(factor) -> int:
     return int(sum(np.asarray(v).nbytes for v in factor.L.values()))
 
 
+def _sweep_on_worker(client, source, path: Path, key: str, scheduler: str | None, store: Path, done: int,
+                     total: int) -> dict:
+    """:func:`factor_and_sweep` as a task on ``client``'s cluster; a refusal or a user's error raised there is
+    raised here as it was (one line); a worker lost meanwhile is one line too (what is kept, what to do)."""
+    from concurrent.futures import CancelledError
+
+    from distributed import KilledWorker
+
+    fut = client.submit(factor_and_sweep, source, str(path), key, key=f"pmask-sweep-{key[:16]}", pure=False)
+    try:
+        return fut.result()
+    except (KilledWorker, CancelledError, OSError) as exc:
+        check_scheduler(client, scheduler, done, total, store)  # one line when the scheduler is gone
+        if not isinstance(exc, KilledWorker):
+            raise
+        raise ResourceError("the Dask worker that factorised and swept W was lost (killed, or past its memory limit: "
+                            "the factor and the sweep's batch must fit in one worker's --worker-memory); run "
+                            "again with more memory per worker or fewer workers (--workers)") from None
+    finally:
+        fut.release()
+
+
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
                       key: str, scheduler: str | None = None, workers: int | None = None,
                       memory_limit: int | None = None, panel: int | None = None, client=None, dtype=np.float64,
@@ -924,7 +1084,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     panel = panel or panel_size(len(points))
     tree = cluster_tree(points)
     cols = panels(tree, panel)
-    symmetric = is_symmetric(factor)
+    job = isinstance(factor, FactorJob)
+    symmetric = job or is_symmetric(factor)  # a FactorJob is P1's
     plan = {c: [b for b in partition(tree, c, r_max) if not symmetric or tree.start[b[0]] <= tree.start[b[1]]]
             for c in cols}  # symmetric: the blocks on and above the diagonal (the reader transposes the rest)
     ts = TileStore(store, f"{key}|{TILE_LAYOUT}|symmetric={symmetric}")
@@ -935,28 +1096,40 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     own = client is None
     w_path = store.with_name(f"W-{store.stem}.bin")
     source = factor
+    report = None  # what factor_and_sweep reported (P1)
     try:
         try:
             if todo:
-                if factor.load is None:  # a P1 factor: W once, tiles read it (module docstring)
-                    t1 = time.perf_counter()
-                    reused = sweep_reusable(w_path, key)
-                    source = sweep(factor, w_path, key)  # refused before it starts if it would not fit
-                    if not reused:
-                        stats["sweep_peak_bytes"] = int(source.index["peak_bytes"])
-                    stats.update({"route": "W store", "sweep_s": time.perf_counter() - t1, "W_reused": reused,
-                                  "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
-                                  "gram_flops": float(source.index["gram_flops"]),
-                                  "sweep_batches": int(source.index.get("batches", 1))})
-                else:
-                    stats["route"] = "solve per panel"
                 client = client or connect(scheduler, workers, memory_limit)
                 info = list(client.scheduler_info()["workers"].values())
                 limits = [w.get("memory_limit") for w in info]
                 made = max((output_bytes(tree, c, plan[c]) for c in todo), default=0.0)
-                stats["tile_bytes"] = tile_bytes(source_bytes(source), len(points), panel,
-                                                 1 if isinstance(source, SweepStore) else 2, made)
-                check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
+
+                def check_tiles(held, copies):  # refuse workers too small for their tiles, before they start
+                    stats["tile_bytes"] = tile_bytes(held, len(points), panel, copies, made)
+                    check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
+
+                if factor.load is None:  # P1: W once, on a worker; the tiles read it (module docstring)
+                    check_tiles(float(READ_BYTES), 1)  # W's chunk is at most this (its size is known once swept)
+                    t1 = time.perf_counter()
+                    reused = sweep_reusable(w_path, key)
+                    report = _sweep_on_worker(client, factor, w_path, key, scheduler, store, len(cols) - len(todo),
+                                              len(cols))
+                    source = SweepStore(w_path)
+                    if not reused:
+                        stats["sweep_peak_bytes"] = int(source.index["peak_bytes"])
+                    swept = report["timings"].get("sweep", time.perf_counter() - t1)  # (not the factorisation)
+                    stats.update({"route": "W store", "sweep_s": swept, "W_reused": reused,
+                                  "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
+                                  "gram_flops": float(source.index["gram_flops"]),
+                                  "sweep_batches": int(source.index.get("batches", 1)),
+                                  "sweep_pid": report["pid"], "sweep_host": report["host"],
+                                  "sweep_blas_threads": report["blas_threads"]})
+                    log.info("factor and W's sweep on a worker (%s, pid %d, %d BLAS threads): %.1f s",
+                             report["host"], report["pid"], report["blas_threads"], report["seconds"])
+                else:
+                    stats["route"] = "solve per panel"
+                check_tiles(source_bytes(source), 1 if isinstance(source, SweepStore) else 2)
                 stats["workers"] = len(limits)
                 if isinstance(source, SweepStore):
                     seen = client.run(os.path.exists, str(source.path))
@@ -1010,7 +1183,11 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
         check_phase_memory("assembly", stats["assembly_bytes"] + WRITE_BYTES, f"every tile is kept in {store}: run again where "
                            "more memory is free (the tiles are reused), or with a larger tolerance (--compress TOL)")
         out, times = assemble(tree, ts, tol, dtype, far_dtype(tol, dtype))
-        out["scale"] = factor.scale[0::3].astype(np.float64) if symmetric else np.zeros(0)
+        if job:  # the factor's scale and stats as the worker reported them (every tile stored: its checkpoint's)
+            report = report or factor.summary()
+            factor.stats, factor.timings, factor.resumed = report["stats"], report["timings"], report["resumed"]
+        scale = factor.scale if report is None else report["scale"]
+        out["scale"] = scale[0::3].astype(np.float64) if symmetric else np.zeros(0)
     finally:
         ts.close()
     stats.update({"seconds": time.perf_counter() - t0, **times,

@@ -137,6 +137,30 @@ def factor_from_arrays(ck) -> SparseFactor:
                         scale=ck["scale"] if "scale" in ck else None, stats=json.loads(str(ck["stats"])))
 
 
+def load_checkpoint(path) -> SparseFactor | None:
+    """The factor checkpoint at ``path`` (:func:`save_checkpoint`), or None where there is none or it is damaged
+    on disk (then it is removed, with a warning: the caller factorises again)."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        return factor_from_arrays(np.load(path))
+    except (CheckpointError, OSError, ValueError, KeyError) as exc:
+        log.warning("the factor checkpoint %s cannot be used (%s); factorising again", path, exc)
+        path.unlink(missing_ok=True)
+        return None
+
+
+def save_checkpoint(path, factor: SparseFactor) -> None:
+    """Write ``factor`` to ``path`` atomically (:func:`factor_arrays`), so that a rerun after a crash does not
+    factorise again."""
+    from pmask.runtime.files import atomic_write
+
+    atomic_write(path, lambda tmp: np.savez(tmp, **factor_arrays(factor)), suffix=".npz")
+
+
 def node_graph(n_nodes: int, elements: np.ndarray) -> sp.csr_matrix:
     """Node adjacency (with diagonal) of a mesh given as (M, nodes per element) connectivity."""
     k = elements.shape[1]

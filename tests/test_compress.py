@@ -381,6 +381,53 @@ def test_a_rerun_reuses_the_finished_tiles(tmp_path):
     assert not list(tmp_path.glob("W-*"))  # W (as large as a tenth of dense Ξ) is gone once the tiles are in
 
 
+def test_the_p1_factor_and_ws_sweep_run_on_a_worker_not_in_the_client(tmp_path, monkeypatch):
+    """#27 item 2 (the client's memory bounded at any n): with P1 the pipeline's assembly, factorisation and W
+    sweep run as one task on a Dask worker (compress.FactorJob); the client never factorises nor sweeps (both
+    refuse here: the patches reach this process only), the worker's BLAS is given every core (Dask starts its
+    workers with one), and the factor's statistics and timings come back for the artifact's provenance."""
+    from pmask.precompute import greens, selinv
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the client factorised or swept")
+
+    monkeypatch.setattr(greens, "factorise", refuse)
+    monkeypatch.setattr(selinv, "forward_sweep", refuse)
+    s = run(Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1, element="P1"),
+            tmp_path / "k.h5")
+    c = s["factor_stats"]["compress"]
+    assert c["route"] == "W store" and c["sweep_pid"] != os.getpid()
+    assert c["sweep_blas_threads"] == len(os.sched_getaffinity(0))
+    assert s["dofs"] > 0 and s["factor_stats"]["element"] == "P1" and s["timings"]["factor"] > 0
+    assert "factor" not in s["resumed"]
+
+
+def test_a_factor_job_reads_its_checkpoint_and_its_summary_reads_no_factor(tmp_path):
+    """A FactorJob (the worker's factorisation) makes the factor once: a second build reads the checkpoint the
+    task wrote (the same arrays), and the summary a rerun with every tile stored takes (the loads' scale, the
+    factor's stats) is read from the checkpoint without its L; a damaged checkpoint is made again."""
+    import functools
+
+    from pmask.pipeline import stages
+    from pmask.precompute import greens
+
+    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, element="P1")
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    job = compress.FactorJob(functools.partial(stages.factor_stage, spec, mesh, surf), tmp_path / "factor.npz")
+    made, _, resumed = job.build()
+    assert not resumed and not job.checkpoint.exists()  # the task writes it (while it sweeps)
+    greens.save_checkpoint(job.checkpoint, made)
+    read, timings, resumed = job.build()
+    assert resumed and timings["assemble"] == 0.0
+    assert all(np.array_equal(made.L[k], read.L[k]) for k in made.L) and np.array_equal(made.scale, read.scale)
+    summary = job.summary()
+    assert summary["resumed"] and np.array_equal(summary["scale"], made.scale) and summary["stats"] == made.stats
+    job.checkpoint.write_bytes(b"not an npz")
+    again, _, resumed = job.build()
+    assert not resumed and np.array_equal(again.L["x"], made.L["x"])
+
+
 def _small_factor(element="P1"):
     from pmask.pipeline import stages
 
@@ -611,15 +658,17 @@ def test_each_phase_is_counted_and_refused_before_it_starts(tmp_path, monkeypatc
     assert measured["assembly"] <= stats["assembly_bytes"] <= 1.5 * measured["assembly"], (measured, stats)
     assert stats["assembly_bytes"] < 0.5 * stats["stored_bytes"]  # the near field is not held (it was, whole)
 
-    avail = {"bytes": stats["sweep_peak_bytes"]}  # the sweep's own peak, without the margin: refused
-    monkeypatch.setattr(greens, "available_memory", lambda: avail["bytes"])
+    # the sweep runs on a worker (a process the cluster spawns): the cap reaches it through the environment
+    monkeypatch.setenv("PMASK_MAX_MEMORY", str(stats["sweep_peak_bytes"]))  # its own peak, without the margin
     store = tmp_path / "b.h5"
     with pytest.raises(ResourceError, match=r"the compressed route's W sweep needs ~[\d.]+ GiB") as err:
         compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", panel=48, workers=1)
     assert "\n" not in str(err.value) and "--contact" in str(err.value)
     assert not list(tmp_path.glob("W-b*"))  # refused before a byte of W was written
+    monkeypatch.delenv("PMASK_MAX_MEMORY")
 
-    avail["bytes"] = 2**40
+    avail = {"bytes": 2**40}
+    monkeypatch.setattr(greens, "available_memory", lambda: avail["bytes"])  # the assembly runs in the client
 
     def short_after_tiles(t):  # every tile finishes; then the assembly finds too little
         avail["bytes"] = stats["assembly_bytes"] // 2
