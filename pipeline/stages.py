@@ -895,8 +895,9 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         with st.timed("greens", f"{spec.model}: write"):
             Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])
         if on_worker:  # what the worker measured, and whether it reused the checkpoint or W; the GF stage's wall
-            st.timings.update(factor.timings)  # time held the assembly and factorisation: the stages add up to the run
-            st.timings["greens"] -= sum(factor.timings.get(k, 0.0) for k in ("assemble", "factor"))
+            made = {k: factor.timings[k] for k in ("assemble", "factor") if k in factor.timings}
+            st.timings.update(made)  # time held the assembly and factorisation: the stages add up to the run
+            st.timings["greens"] -= sum(made.values())
             st.resumed.extend(["factor"] if factor.resumed else [])
         if saving is not None:
             with st.timed("checkpoint"):  # what is left of the factor checkpoint's write (usually nothing)
