@@ -317,8 +317,13 @@ def organ(out: Path, r_max: float = R_MAX) -> dict:
     return res
 
 
-if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent / "compress_results.json")
+def rederive(out: Path) -> dict:
+    """The results' derived entry (``refit``) computed again from the stored rows, nothing measured: after a change
+    to :func:`refit_numbers` (``python bench/compress_bench.py --refit``, then ``python bench/report.py``)."""
+    res = json.loads(out.read_text())
+    res["refit"] = refit_numbers(res)
+    out.write_text(json.dumps(res, indent=1, default=float))
+    return res
 
 
 def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
@@ -372,6 +377,8 @@ def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
     ln = np.log(o["contact"] / g["contact"])
     exp = {k: float(np.log(o[k] / g[k]) / ln) for k in ("near_bytes", "far_bytes", "greens_s")}
     exp["sweep_s"] = float(np.log(o["stats"]["sweep_s"] / g["stats"]["sweep_s"]) / ln)
+    peaks = [k for k in ("client_peak_rss_gib", "sweep_worker_peak_rss_gib") if g.get(k) and o.get(k)]
+    exp.update({k: float(np.log(o[k] / g[k]) / ln) for k in peaks})  # the processes' peaks (runs after #27's move)
     ratio = o["disk_stored_bytes"] / o["compressed_stored_bytes"] if "disk_stored_bytes" in o else None
 
     def at(value, key, n):
@@ -383,7 +390,8 @@ def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
         sweep = at(o["stats"]["sweep_s"], "sweep_s", n)
         out[str(n)] = {"near_bytes": near, "far_bytes": far, "stored_bytes": near + far,
                        "disk_bytes": None if ratio is None else ratio * (near + far),
-                       "sweep_s": sweep, "tiles_s": at(o["greens_s"], "greens_s", n) - sweep}
+                       "sweep_s": sweep, "tiles_s": at(o["greens_s"], "greens_s", n) - sweep,
+                       **{k: at(o[k], k, n) for k in peaks}}
     return out
 
 
@@ -403,8 +411,10 @@ def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
         times = ", ".join(f"{(x['sweep_s'] + x['tiles_s'] * 2 / w) / 3600:.1f} h on {w}" for w in workers)
         disk = (f", ~{x['disk_bytes'] / 2**30:.2f} in the file at the {n_o:,}-vertex run's ratio"
                 if x["disk_bytes"] is not None else "")
+        peaks = (f"; peak RSS of the client ~{x['client_peak_rss_gib']:.2f} GiB, of the worker that factorises and "
+                 f"sweeps ~{x['sweep_worker_peak_rss_gib']:.2f} GiB" if "sweep_worker_peak_rss_gib" in x else "")
         rows.append(f"{n:,}: ~{x['stored_bytes'] / 2**30:.2f} GiB stored ({x['near_bytes'] / 2**30:.2f} near, "
-                    f"{x['far_bytes'] / 2**30:.2f} far{disk}), GF stage ~{times} workers")
+                    f"{x['far_bytes'] / 2**30:.2f} far{disk}), GF stage ~{times} workers{peaks}")
     return (f" Refitted through the {n_g:,}- and {n_o:,}-vertex runs (measured {r['dates'][0]} and "
             f"{r['dates'][1]}; each quantity a power of n: "
             f"near field n^{exp['near_bytes']:.2f}, far field n^{exp['far_bytes']:.2f}, GF stage "
@@ -521,3 +531,10 @@ def markdown(res: dict) -> str:
               f"{max(e['peak_rss_per_worker_mib']):.0f} MiB (a tile estimated "
               f"{e['tile_estimate_mib']:.0f} MiB)."]
     return "\n".join(L)
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["--refit"]:
+        rederive(Path(__file__).parent / "compress_results.json")
+    else:
+        main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent / "compress_results.json")

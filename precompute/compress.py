@@ -1053,18 +1053,22 @@ def _sweep_on_worker(client, source, path: Path, key: str, scheduler: str | None
 
     from distributed import KilledWorker
 
-    fut = client.submit(factor_and_sweep, source, str(path), key, key=f"pmask-sweep-{key[:16]}", pure=False)
-    try:
+    fut = None
+    try:  # the job (its mesh) or the factor sent as data, not in the task graph (dask warns of a large graph)
+        fut = client.submit(factor_and_sweep, client.scatter(source, hash=False), str(path), key,
+                            key=f"pmask-sweep-{key[:16]}", pure=False)
         return fut.result()
     except (KilledWorker, CancelledError, OSError) as exc:
         check_scheduler(client, scheduler, done, total, store)  # one line when the scheduler is gone
-        if not isinstance(exc, KilledWorker):
+        if isinstance(exc, OSError):
             raise
+        # the worker died under the task (KilledWorker after dask's retries) or took the scattered job with it
         raise ResourceError("the Dask worker that factorised and swept W was lost (killed, or past its memory limit: "
                             "the factor and the sweep's batch must fit in one worker's --worker-memory); run "
                             "again with more memory per worker or fewer workers (--workers)") from None
     finally:
-        fut.release()
+        if fut is not None:
+            fut.release()
 
 
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,

@@ -402,6 +402,18 @@ def test_the_p1_factor_and_ws_sweep_run_on_a_worker_not_in_the_client(tmp_path, 
     assert "factor" not in s["resumed"]
 
 
+def test_a_worker_lost_while_it_factorises_is_one_line(tmp_path):
+    """The worker that factorises and sweeps dies (here the job ends its process, as the nanny does past a memory
+    limit): after dask's retries the run stops with one line that says what to give it, not a traceback."""
+    import functools
+
+    _, pts = _small_factor()
+    job = compress.FactorJob(functools.partial(os._exit, 3))
+    with pytest.raises(ResourceError, match="worker that factorised and swept W was lost") as err:
+        compress.compressed_greens(job, pts, R_MAX, store=tmp_path / "t.h5", key="k", panel=64, workers=1)
+    assert "\n" not in str(err.value)
+
+
 def test_a_factor_job_reads_its_checkpoint_and_its_summary_reads_no_factor(tmp_path):
     """A FactorJob (the worker's factorisation) makes the factor once: a second build reads the checkpoint the
     task wrote (the same arrays), and the summary a rerun with every tile stored takes (the loads' scale, the
