@@ -571,11 +571,16 @@ def element_name(spec: Spec, mesh: ModelMesh) -> str:
 def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | None = None) -> dict:
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
-    route (``spec.compress``) never holds the dense Ξ: the client's factor, and on each local worker one
-    tile (:func:`pmask.precompute.compress.tile_bytes`) with a chunk of W or (P2) a copy of the
-    factor (both taken as the factor's size here: a guard against runs that cannot fit, not a forecast);
-    its later phases are checked where their sizes are known (the W sweep's from the factor's tree, the
-    assembly's from the finished tiles: :func:`pmask.precompute.compress.check_phase_memory`)."""
+    route (``spec.compress``) never holds the dense Ξ.  P2: the client's factor, and on each local worker one
+    tile (:func:`pmask.precompute.compress.tile_bytes`) with a copy of the factor (taken as the factor's size
+    here: a guard against runs that cannot fit, not a forecast).  P1: the factor and the W sweep
+    (:data:`pmask.precompute.compress.SWEEP_BUDGET` at most, the factor's size where that is less) on one worker,
+    then, once they are gone, on each
+    local worker one tile with a chunk of W (:data:`pmask.precompute.compress.READ_BYTES` at most): the larger
+    of the two phases, and nothing of the factor on this machine with ``--scheduler`` (the client never holds
+    it).  The later phases are checked where their sizes are known (the W sweep's from the factor's tree and
+    its worker's limit, the tiles' from the workers' limits, the assembly's from the finished tiles:
+    :func:`pmask.precompute.compress.check_phase_memory`)."""
     from pmask.precompute import greens
 
     need = element.memory_estimate(n_volume_vertices, n_contact)
@@ -584,12 +589,19 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
 
         local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
         panel = compress.panel_size(n_contact)
-        copies = 1 if element.name == "P1" else 2  # P1's tiles sum W's products, P2's solve and reorder
-        need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact, panel, copies)
+        if element.name == "P1":  # the factor's worker, then the tiles (they sum W's products)
+            # the sweep's batches peak at SWEEP_BUDGET at most, taken here as the factor's size where that is less
+            # (a guard: its own check, from the factor's tree, runs before it starts)
+            sweep = (2.5 * need["factor"] if need["factor"] < compress.SWEEP_BUDGET
+                     else 1.5 * need["factor"] + compress.SWEEP_BUDGET) if local else 0.0
+            need["total"] = max(sweep, local * compress.tile_bytes(compress.READ_BYTES, n_contact, panel, 1))
+        else:  # the client's factor beside the tiles, which solve with a copy of it and reorder
+            need["total"] = 1.5 * need["factor"] + local * compress.tile_bytes(need["factor"], n_contact, panel, 2)
         avail = greens.available_memory()
         if avail is not None and need["total"] > avail:
             raise ResourceError(
-                f"the sparse factor (~{_bytes(need['factor'])}) and {local} local Dask workers, each with one tile, "
+                f"the sparse factor (~{_bytes(need['factor'])}) and {local} local Dask workers, each with one tile "
+                f"({element.name}), "
                 f"need ~{_bytes(need['total'])}, more than the {_bytes(avail)} this machine has "
                 "available: use fewer workers (--workers), a cluster (--scheduler) or a coarser mesh")
         return need

@@ -150,8 +150,8 @@ def _write_deflated(ds, i0: int, block: np.ndarray, c: int, pool) -> None:
     """``ds[i0:i0 + len(block)] = block`` for a 1-D dataset stored as :data:`~pmask.runtime.artifact.NEAR_FILTERS`
     says, ``i0`` on a chunk's start: its chunks shuffled and deflated by ``pool``'s threads (zlib releases the
     GIL) and written as stored, where HDF5 runs its filters one chunk after another in this thread (the write
-    stage at 20,000 vertices: 1.2 s plain, 9.2 s with HDF5 deflating, 6.8 s so; bench rows).  Read back by
-    HDF5 (tested)."""
+    stage at 20,000 vertices took 1.2 s plain and 9.2 s with HDF5 deflating, by hand; the bench page's large row
+    gives it done so).  Read back by HDF5 (tested)."""
     assert i0 % c == 0, (i0, c)  # the blocks are whole chunks (_write_blocks' steps): a chunk is written whole
     jobs = [(s, pool.submit(deflate_chunk, block[s - i0:s - i0 + c], c)) for s in range(i0, i0 + len(block), c)]
     for s, job in jobs:

@@ -742,6 +742,31 @@ def test_cli_bad_inputs_are_one_line(tmp_path):
     assert not (tmp_path / "k.h5").exists()
 
 
+def test_the_memory_check_counts_the_factor_where_it_is_held(monkeypatch):
+    """stages.check_memory's guard follows where the factor lives (#27 item 3): P1's client never holds it, so
+    with --scheduler nothing of it is counted on this machine, and locally the factor's worker (its factor and
+    the sweep) and the tiles are phases one after the other, the larger counted; P2's client makes the factor
+    and each local tile holds a copy beside it."""
+    from pmask.pipeline import stages
+    from pmask.precompute import elements, greens
+
+    monkeypatch.setattr(greens, "available_memory", lambda: None)  # the model only, never a refusal here
+    nv, nc = 300_000, 20_000
+    for name in ("P1", "P2"):
+        element = elements.get_element(name)
+        factor = element.memory_estimate(nv, nc)["factor"]
+        remote = stages.check_memory(element, nv, nc, Spec(model="kidney", compress=TOL, scheduler="tcp://h:1"))
+        local = stages.check_memory(element, nv, nc, Spec(model="kidney", compress=TOL, workers=2))
+        one_tile = compress.tile_bytes(compress.READ_BYTES if name == "P1" else factor, nc,
+                                       compress.panel_size(nc), 1 if name == "P1" else 2)
+        if name == "P1":
+            assert remote["total"] < factor  # the client needs none of it
+            # the factor's worker is counted, the phases are not summed (the factor is gone when the tiles run)
+            assert 1.5 * factor <= local["total"] < 2.5 * factor + 2 * one_tile
+        else:
+            assert remote["total"] >= 1.5 * factor and local["total"] == remote["total"] + 2 * one_tile
+
+
 def test_memory_string_parsing():
     assert compress.parse_memory("4G") == 4 * 2**30 and compress.parse_memory("512MiB") == 512 * 2**20
     assert compress.parse_memory("1000") == 1000
