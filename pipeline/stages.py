@@ -575,10 +575,9 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
     tile (:func:`pmask.precompute.compress.tile_bytes`) with a copy of the factor (taken as the factor's size
     here: a guard against runs that cannot fit, not a forecast).  P1: the factor and the W sweep
     (:data:`pmask.precompute.compress.SWEEP_BUDGET` at most, the factor's size where that is less) on one worker,
-    then, once they are gone, on each
-    local worker one tile with a chunk of W (:data:`pmask.precompute.compress.READ_BYTES` at most): the larger
-    of the two phases, and nothing of the factor on this machine with ``--scheduler`` (the client never holds
-    it).  The later phases are checked where their sizes are known (the W sweep's from the factor's tree and
+    then, once they are gone, on each local worker one tile with a chunk of W
+    (:data:`pmask.precompute.compress.READ_BYTES` at most): the larger of the two phases, and nothing of the
+    factor on this machine with ``--scheduler`` (the client never holds it).  The later phases are checked where their sizes are known (the W sweep's from the factor's tree and
     its worker's limit, the tiles' from the workers' limits, the assembly's from the finished tiles:
     :func:`pmask.precompute.compress.check_phase_memory`)."""
     from pmask.precompute import greens

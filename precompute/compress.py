@@ -373,7 +373,7 @@ def sweep_reusable(path: Path, key: str) -> bool:
     return store.key == key and str(store.index.get("layout")) == LAYOUT and "factor_stats" in store.index
 
 
-#: the client's memory for the W sweep: the wanted columns are swept in as many batches as keep each
+#: the W sweep's memory on its worker (beside the factor): the wanted columns are swept in as many batches as keep each
 #: batch's peak (:func:`pmask.precompute.selinv.sweep_memory`) below this (#27: bounded at any n)
 SWEEP_BUDGET = 1.5 * 2**30
 
@@ -555,7 +555,11 @@ def factor_and_sweep(source, path, key: str, budget: float = SWEEP_BUDGET) -> di
 
     from pmask.precompute import greens, native
 
-    native.available()  # CHOLMOD's BLAS loaded, so that the limits below reach it too
+    if not native.available():  # CHOLMOD's BLAS loaded, so that the limits below reach it too
+        try:
+            import cvxopt  # noqa: F401 (the pip-only route's CHOLMOD and its bundled BLAS)
+        except ImportError:
+            pass
     path = Path(path)
     t0 = time.perf_counter()
     with threadpool_limits(_blas_cores()):
