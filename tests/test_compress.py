@@ -382,7 +382,7 @@ def test_a_rerun_reuses_the_finished_tiles(tmp_path):
 
 
 def test_the_p1_factor_and_ws_sweep_run_on_a_worker_not_in_the_client(tmp_path, monkeypatch):
-    """#27 item 2 (the client's memory bounded at any n): with P1 the pipeline's assembly, factorisation and W
+    """#27 item 2 (the factor and the sweep leave the client): with P1 the pipeline's assembly, factorisation and W
     sweep run as one task on a Dask worker (compress.FactorJob); the client never factorises nor sweeps (both
     refuse here: the patches reach this process only), the worker's BLAS is given every core (Dask starts its
     workers with one), and the factor's statistics and timings come back for the artifact's provenance."""
