@@ -33,6 +33,7 @@ from pmask import interrupt
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
 from pmask.runtime.artifact import FORMAT_VERSION, stored_input_hash
+from pmask.runtime.files import Background
 
 log = logging.getLogger(__name__)
 
@@ -716,33 +717,6 @@ def _bytes(n: float) -> str:
     return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
-class _Background:
-    """``fn(*args, **kw)`` on a thread of its own; :meth:`join` waits for it and raises what it raised."""
-
-    def __init__(self, fn, *args, **kw):
-        import threading
-
-        self._error = None
-
-        def target():
-            try:
-                fn(*args, **kw)
-            except BaseException as exc:  # handed to the caller by join()
-                self._error = exc
-
-        self._thread = threading.Thread(target=target, name="pmask-checkpoint", daemon=True)
-        self._thread.start()
-
-    def wait(self) -> None:
-        self._thread.join()
-
-    def join(self) -> None:
-        self._thread.join()
-        if self._error is not None:
-            error, self._error = self._error, None
-            raise error
-
-
 class _Stages:
     """Timings, progress and the work folder of one run."""
 
@@ -901,7 +875,7 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         if factor is None:
             factor, t = factor_stage(spec, mesh, surf)
             st.timings.update(t)
-            saving = _Background(greens.save_checkpoint, ck, factor)  # written while the Green's functions are computed
+            saving = Background(greens.save_checkpoint, ck, factor)  # written while the Green's functions are computed
             solve.callback(saving.wait)  # a run that fails meanwhile still lets the write finish
         with st.timed("greens", f"{spec.model}: write"):
             Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])

@@ -63,6 +63,7 @@ import scipy.sparse as sp
 
 from pmask.errors import InputError, ResourceError
 from pmask.runtime.artifact import READ_BLOCK_BYTES
+from pmask.runtime.files import Background
 from pmask.runtime.compressed import encode_near
 
 log = logging.getLogger(__name__)
@@ -574,27 +575,18 @@ def factor_and_sweep(source, path, key: str, budget: float = SWEEP_BUDGET) -> di
                 factor, timings, resumed = source, {}, False
             saving = None
             if isinstance(source, FactorJob) and source.checkpoint and not resumed:
-                import threading
-
-                failed = []
-
-                def save():
-                    try:
-                        greens.save_checkpoint(source.checkpoint, factor)
-                    except Exception as exc:  # noqa: BLE001 (a checkpoint is an aid: the run goes on without it)
-                        failed.append(exc)
-
-                saving = threading.Thread(target=save, name="pmask-checkpoint", daemon=True)
-                saving.start()
+                saving = Background(greens.save_checkpoint, source.checkpoint, factor)  # while W is swept
             t1 = time.perf_counter()
-            W = sweep(factor, path, key, budget, _worker_room())
-            timings = {**timings, "sweep": time.perf_counter() - t1}
-            stats = factor.stats
-            if saving is not None:
-                saving.join()
-                if failed:
+            try:
+                W = sweep(factor, path, key, budget, _worker_room())
+            finally:  # (a refused sweep still lets the checkpoint be written)
+                try:
+                    if saving is not None:
+                        saving.join()
+                except Exception as exc:  # noqa: BLE001 (a checkpoint is an aid: the run goes on without it)
                     log.warning("the factor checkpoint %s was not written (%s); a rerun factorises again",
-                                source.checkpoint, failed[0])
+                                source.checkpoint, exc)
+            timings, stats = {**timings, "sweep": time.perf_counter() - t1}, factor.stats
     return {"scale": np.asarray(W.index["scale"]), "stats": stats, "timings": timings, "resumed": resumed,
             "seconds": time.perf_counter() - t0, "pid": os.getpid(), "host": platform.node(), "blas_threads": threads}
 

@@ -114,3 +114,29 @@ def _output_error(path: Path, exc: OSError) -> OutputError:
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return OutputError(f"cannot write {path} ({exc.strerror}); choose a writable folder (--out)")
     return OutputError(f"cannot write {path} ({exc}); check the folder and the free space")
+
+
+class Background:
+    """``fn(*args, **kw)`` on a thread of its own (a checkpoint written while the next stage computes); :meth:`join`
+    waits for it and raises what it raised, :meth:`wait` only waits."""
+
+    def __init__(self, fn, *args, **kw):
+        self._error = None
+
+        def target():
+            try:
+                fn(*args, **kw)
+            except BaseException as exc:  # handed to the caller by join()
+                self._error = exc
+
+        self._thread = threading.Thread(target=target, name="pmask-checkpoint", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        self._thread.join()
+
+    def join(self) -> None:
+        self._thread.join()
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
