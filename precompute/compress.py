@@ -38,8 +38,12 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
    :math:`W^TW` products (each once: a tile computes only the rows above the diagonal, P1 being
    symmetric) and nothing else, and the tiles need no factor.
-   P2 (a consistent load B ≠ E diag(a)) solves each panel instead
-   (:func:`pmask.precompute.greens.inverse_columns`), with the factor sent to every worker.
+   P2 (a consistent load B ≠ E diag(a)): :math:`\Xi = W_E^T W_B`, W_B = L⁻¹PB swept after W into the same
+   store (:func:`pmask.precompute.selinv.load_sweep`; a column of W_B reaches the tree paths up from all its
+   non-zeros, the vertex's neighbours), and a tile sums :math:`X_s Y_{s,J}^T` over the supernodes its columns
+   reach: the dense P2 route's gemms, every block (Ξ is not symmetric).  Before, P2's tiles solved each panel
+   from the factor, which the client made and sent to every worker: the 20,427-vertex kidney (a 6.4 GiB factor)
+   was refused on a 24 GiB machine.
 4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
    this machine, or a real cluster (``--scheduler ADDRESS``; the work folder must then be on a
    filesystem every worker sees, for W's store: checked before the tiles).  The client writes each
@@ -280,17 +284,21 @@ def low_rank(B: np.ndarray, tol: float, rng: np.random.Generator):
 
 
 class SweepStore:
-    """W's supernode blocks X_s (:func:`pmask.precompute.selinv.forward_sweep`) of a P1 factor, in a
+    """W's supernode blocks X_s (:func:`pmask.precompute.selinv.forward_sweep`) of a factor, in a
     file of the run's work folder, and the index a tile needs to read them: for each supernode its
     range of wanted columns (sorted by pivot) and its parent; for each contact dof its sorted position
-    and its first supernode.  Small to pickle (the index); the blocks stay in the file."""
+    and its first supernode.  A P2 factor's load B (Ξ = W_Eᵀ W_B, W_B = L⁻¹PB) adds W_B's blocks after
+    W_E's (:func:`pmask.precompute.selinv.load_sweep`): for each supernode the sorted set of B's columns
+    that reach it, for each column its position and the supernodes of its non-zeros.  Small to pickle
+    (the index); the blocks stay in the file."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
         with np.load(self.index_path(self.path)) as ix:
             self.index = {k: ix[k] for k in ix.files}
         self.key = str(self.index["key"])
-        self.largest = int(self.index["largest"])  # doubles in the largest X_s
+        self.largest = int(self.index["largest"])  # doubles in the largest X_s (of W_E or W_B)
+        self.load = "setptr" in self.index  # W_B stored (P2): Ξ = W_Eᵀ W_B, no area scaling
 
     @staticmethod
     def index_path(path: Path) -> Path:
@@ -305,7 +313,9 @@ class SweepStore:
     def sorted_columns(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r"""Ξ's rows ``rows`` (contact dofs, any of them) at the columns ``cols``, in W's order, and where each
         asked row is in it: ``D[at[i]] = Ξ[rows[i], cols]``.  :math:`\sum_s X_s X_{s,J}^T` over the supernodes
-        on the tree paths up from the columns' first supernodes, scaled by the columns' areas (Ξ = G diag(a)).
+        on the tree paths up from the columns' first supernodes, scaled by the columns' areas (Ξ = G diag(a));
+        with a load (P2) :math:`\sum_s X_s Y_{s,J}^T`, Y_s = W_B's block, over the paths up from the supernodes of
+        the columns' non-zeros.
         Only the rows asked for are multiplied and held (a symmetric Ξ's tile: those above it), in W's order so
         that each chunk of X_s adds to a run of D's rows.  A block larger than :data:`READ_BYTES` is read in row
         chunks (its rows are contiguous in the file), and each product X Xᴶᵀ is formed in slices of at most
@@ -314,8 +324,14 @@ class SweepStore:
         ix = self.index
         pos, lo, hi, parent, ncol, offset = ix["pos"], ix["lo"], ix["hi"], ix["parent"], ix["ncol"], ix["offset"]
         pj = pos[cols]
+        if self.load:
+            own, optr = ix["ownB"], ix["ownptr"]
+            starts = np.unique(np.concatenate([own[optr[c]:optr[c + 1]] for c in cols] + [own[:0]]))
+            pb, sets, sptr, offB = ix["posB"][cols], ix["setsB"], ix["setptr"], ix["offsetB"]
+        else:
+            starts = np.unique(ix["first"][cols])
         reached = np.zeros(len(lo), bool)
-        for s in np.unique(ix["first"][cols]):
+        for s in starts:
             while s >= 0 and not reached[s]:
                 reached[s] = True
                 s = parent[s]
@@ -336,28 +352,45 @@ class SweepStore:
                 else:
                     D[a + q:a + q + len(P), sel] += P
 
+        def read_rows(f, off, nc, idx):  # rows idx of the row-major (·, nc) block at ``off`` (doubles)
+            out = np.empty((len(idx), nc))
+            for q, r in enumerate(idx):
+                f.seek(8 * (off + int(r) * nc))
+                out[q] = np.fromfile(f, np.float64, nc)
+            return out
+
         with open(self.path, "rb") as f:
             for s in np.flatnonzero(reached):
                 if np.searchsorted(ps, lo[s]) == np.searchsorted(ps, hi[s]):
                     continue  # none of its rows asked for
-                sel = np.flatnonzero((pj >= lo[s]) & (pj < hi[s]))
                 m, nc, off = int(hi[s] - lo[s]), int(ncol[s]), int(offset[s])
                 step = max(1, READ_BYTES // (8 * nc))
-                if m <= step:
-                    f.seek(8 * off)
-                    X = np.fromfile(f, np.float64, m * nc).reshape(m, nc)
-                    add(int(lo[s]), X, X[pj[sel] - lo[s]])
-                    continue
-                XJ = np.empty((len(sel), nc))
-                for q, r in enumerate(pj[sel] - lo[s]):  # the panel's rows of X_s
-                    f.seek(8 * (off + int(r) * nc))
-                    XJ[q] = np.fromfile(f, np.float64, nc)
+                if self.load:  # the panel's columns that reach s: their rows of W_B's block Y_s
+                    cs = sets[sptr[s]:sptr[s + 1]]
+                    k = np.minimum(np.searchsorted(cs, pb), max(len(cs) - 1, 0))
+                    sel = np.flatnonzero(cs[k] == pb) if len(cs) else np.zeros(0, np.int64)
+                    if len(sel) == 0:
+                        continue
+                    if len(cs) <= step:
+                        f.seek(8 * int(offB[s]))
+                        XJ = np.fromfile(f, np.float64, len(cs) * nc).reshape(len(cs), nc)[k[sel]]
+                    else:
+                        XJ = read_rows(f, int(offB[s]), nc, k[sel])
+                else:
+                    sel = np.flatnonzero((pj >= lo[s]) & (pj < hi[s]))
+                    if m <= step:
+                        f.seek(8 * off)
+                        X = np.fromfile(f, np.float64, m * nc).reshape(m, nc)
+                        add(int(lo[s]), X, X[pj[sel] - lo[s]])
+                        continue
+                    XJ = read_rows(f, off, nc, pj[sel] - lo[s])  # the panel's rows of X_s
                 for r0 in range(0, m, step):
                     r1 = min(m, r0 + step)
                     if np.searchsorted(ps, lo[s] + r0) < np.searchsorted(ps, lo[s] + r1):
                         f.seek(8 * (off + r0 * nc))
                         add(int(lo[s]) + r0, np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc), XJ)
-        D *= ix["scale"][cols][None, :]
+        if not self.load:
+            D *= ix["scale"][cols][None, :]
         return D, at
 
 
@@ -385,30 +418,67 @@ def sweep_batches(tree, piv_sorted: np.ndarray, budget: float = SWEEP_BUDGET) ->
     arithmetic on its own columns).  Returns the ranges and the largest batch's modelled peak."""
     from pmask.precompute import selinv
 
-    n = len(piv_sorted)
+    return _batches(len(piv_sorted), lambda a, b: selinv.sweep_memory(tree, tree.perm[piv_sorted[a:b]],
+                                                                      READ_BYTES)["peak"],
+                    8 * (3 * len(piv_sorted) + 3 * tree.ns), budget)
+
+
+def load_batches(tree, B, sets: list, posB: np.ndarray, budget: float = SWEEP_BUDGET) -> tuple[list, int]:
+    """As :func:`sweep_batches` for W_B = L⁻¹PB (a P2 load; :func:`pmask.precompute.selinv.load_sweep`): contiguous
+    ranges of B's columns by position, each batch's peak modelled from the number of its columns reaching each
+    supernode."""
+    from pmask.precompute import selinv
+
+    sets_ = [np.asarray(c) for c in sets]
+    nnz_pos = np.sort(posB[np.repeat(np.arange(B.shape[1]), np.diff(B.indptr))])
+
+    def peak(a, b):
+        size = np.array([np.searchsorted(c, b) - np.searchsorted(c, a) for c in sets_], np.int64)
+        nnz = int(np.searchsorted(nnz_pos, b) - np.searchsorted(nnz_pos, a))
+        return selinv.sweep_memory(tree, nnz, READ_BYTES, size=size)["peak"]
+
+    return _batches(B.shape[1], peak, 8 * (3 * B.shape[1] + 3 * tree.ns + sum(len(c) for c in sets_)), budget)
+
+
+def _batches(n: int, peak, index: int, budget: float) -> tuple[list, int]:
+    """The fewest of 1, 2, 4, ... equal contiguous ranges of n columns whose ``peak(a, b)`` each, beside the
+    ``index`` bytes :func:`sweep` holds, stays below ``budget``; the ranges and the largest modelled peak."""
     k = 1
     while True:
         cuts = np.linspace(0, n, k + 1).round().astype(np.int64)
         ranges = [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
-        peak = max((selinv.sweep_memory(tree, tree.perm[piv_sorted[a:b]], READ_BYTES)["peak"] for a, b in ranges),
-                   default=0) + 8 * (3 * n + 3 * tree.ns)  # sweep()'s own index arrays beside the batch's
-        if peak <= budget or k >= n:
-            return ranges, int(peak)
+        top = max((peak(a, b) for a, b in ranges), default=0) + index  # sweep()'s own index arrays beside it
+        if top <= budget or k >= n:
+            return ranges, int(top)
         k *= 2
 
 
 def sweep_bytes(factor, budget: float = SWEEP_BUDGET) -> int:
-    """The W sweep's peak (bytes) for a P1 factor, swept in :func:`sweep_batches`, from its elimination tree
-    (:func:`pmask.precompute.selinv.sweep_memory`)."""
+    """The W sweep's peak (bytes) for a factor, swept in :func:`sweep_batches` (and a P2 load's W_B in
+    :func:`load_batches`, after it), from its elimination tree (:func:`pmask.precompute.selinv.sweep_memory`)."""
     from pmask.precompute import selinv
 
     tree = selinv._Tree(factor.L)
     piv = np.sort(tree.iperm[np.asarray(factor.rows[:factor.n_observed], np.int64)])
-    return sweep_batches(tree, piv, budget)[1]
+    peak = sweep_batches(tree, piv, budget)[1]
+    if factor.load is not None:
+        B = _load_columns(factor)
+        sets, posB = selinv.column_sets(tree, B)
+        peak = max(peak, load_batches(tree, B, sets, posB, budget)[1])
+    return peak
+
+
+def _load_columns(factor) -> sp.csc_matrix:
+    """A P2 factor's load B (free dofs x contact dofs), canonical CSC."""
+    B = sp.csc_matrix(factor.load)
+    B.sum_duplicates()
+    B.sort_indices()
+    return B
 
 
 def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET, room: float | None = None) -> SweepStore:
-    """W = L⁻¹PE of a P1 factor, supernode by supernode, into ``path`` (:class:`SweepStore`); reused when
+    """W = L⁻¹PE of a factor, supernode by supernode, into ``path`` (:class:`SweepStore`), and for a P2 factor
+    (a consistent load B) W_B = L⁻¹PB after it (:func:`pmask.precompute.selinv.load_sweep`); reused when
     its index holds ``key`` (a rerun after a crash does not sweep again).  Both files are written
     atomically, the index last, so a file without one is never read; refused in one line before it starts
     when its modelled peak does not fit (:func:`check_phase_memory`).
@@ -438,6 +508,25 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET, room: floa
     if room is not None:
         budget = min(budget, room / PHASE_MARGIN)
     batches, peak = sweep_batches(tree, ordered, budget)
+    size = int(np.sum(m * tree.ncol))  # doubles of W_E
+    largest = int((m * tree.ncol).max()) if len(m) else 0
+    gram = float(np.sum(m.astype(float) ** 2 * tree.ncol))  # the dense route's syrks
+    extra = {"scale": factor.scale}
+    if factor.load is not None:  # P2: W_B's blocks follow W_E's, each supernode's rows its set's columns
+        B = _load_columns(factor)
+        sets, posB = selinv.column_sets(tree, B)
+        mB = np.array([len(c) for c in sets], np.int64)
+        offsetB = size + np.concatenate([[0], np.cumsum(mB * tree.ncol)[:-1]]).astype(np.int64)
+        load_b, peak_b = load_batches(tree, B, sets, posB, budget)
+        peak = max(peak, peak_b)
+        size += int(np.sum(mB * tree.ncol))
+        largest = max(largest, int((mB * tree.ncol).max()) if len(mB) else 0)
+        gram = float(np.sum(2.0 * m * mB * tree.ncol))  # the dense route's gemms W_Eᵀ W_B
+        own = [np.unique(tree.snode[tree.iperm[B.indices[B.indptr[c]:B.indptr[c + 1]]]]) for c in range(B.shape[1])]
+        extra = {"scale": np.zeros(0), "posB": posB, "setsB": np.concatenate(sets + [np.zeros(0, np.int64)]),
+                 "setptr": np.concatenate([[0], np.cumsum(mB)]).astype(np.int64), "offsetB": offsetB,
+                 "ownB": np.concatenate(own + [np.zeros(0, np.int64)]),
+                 "ownptr": np.concatenate([[0], np.cumsum([len(o) for o in own])]).astype(np.int64)}
     if room is not None and PHASE_MARGIN * peak > room:
         raise ResourceError(f"the compressed route's W sweep needs ~{peak / 2**30:.2f} GiB at its peak beside the "
                             f"factor, more than the {max(room, 0) / 2**30:.2f} GiB left under its Dask worker's "
@@ -449,45 +538,53 @@ def sweep(factor, path: Path, key: str, budget: float = SWEEP_BUDGET, room: floa
 
     def write(tmp):
         with open(tmp, "wb") as f:
-            f.truncate(8 * int(np.sum(m * tree.ncol)))
+            f.truncate(8 * size)
+
+            def put(first, X):  # X's rows, row-major from double ``first`` on, so that a tile reads row chunks
+                f.seek(8 * int(first))
+                step = max(1, READ_BYTES // (8 * X.shape[1]))
+                for r0 in range(0, X.shape[0], step):
+                    np.ascontiguousarray(X[r0:r0 + step]).tofile(f)
+
             for b0, b1 in batches:
                 def emit(s, lo_b, X, b0=b0):  # the batch's rows [b0 + lo_b, ...) of supernode s's block
-                    first = offset[s] + (b0 + lo_b - lo[s]) * tree.ncol[s]
-                    f.seek(8 * int(first))
-                    step = max(1, READ_BYTES // (8 * X.shape[1]))
-                    for r0 in range(0, X.shape[0], step):  # row-major, so that a tile reads row chunks
-                        np.ascontiguousarray(X[r0:r0 + step]).tofile(f)
+                    put(offset[s] + (b0 + lo_b - lo[s]) * tree.ncol[s], X)
 
                 flops[0] += selinv.forward_sweep(tree, tree.perm[ordered[b0:b1]], emit)["flops"]
+            if factor.load is not None:
+                for b0, b1 in load_b:  # W_B: each batch a run of every supernode's set
+                    flops[0] += selinv.load_sweep(tree, B, sets, posB, b0, b1, lambda s, first, X: put(
+                        offsetB[s] + first * tree.ncol[s], X))["flops"]
 
     atomic_write(path, write)  # a full disk is one line (W is 8-20 % of the dense Ξ's size, measured)
     arrays = {"key": np.array(key), "layout": np.array(LAYOUT), "pos": pos, "lo": lo, "hi": hi,
-              "ncol": tree.ncol, "parent": tree.parent, "first": tree.snode[piv], "offset": offset,
-              "scale": factor.scale, "largest": np.array(int((m * tree.ncol).max()) if len(m) else 0),
-              "flops": np.array(flops[0]), "batches": np.array(len(batches)), "peak_bytes": np.array(peak),
-              "gram_flops": np.array(float(np.sum(m.astype(float) ** 2 * tree.ncol))),  # the dense route's syrks
-              "factor_stats": np.array(json.dumps(factor.stats))}  # a rerun that reuses W needs no factor
+              "ncol": tree.ncol, "parent": tree.parent, "first": tree.snode[piv], "offset": offset, **extra,
+              "largest": np.array(largest), "flops": np.array(flops[0]), "peak_bytes": np.array(peak),
+              "batches": np.array(len(batches) + (len(load_b) if factor.load is not None else 0)),
+              "gram_flops": np.array(gram), "factor_stats": np.array(json.dumps(factor.stats))}
+    # (the factor's stats: a rerun that reuses W needs no factor)
     atomic_write(index, lambda tmp: np.savez(tmp, **arrays), suffix=".npz")
     return SweepStore(path)
 
 
 @dataclass
 class FactorJob:
-    """A P1 factorisation made where W is swept, on a Dask worker (:func:`factor_and_sweep`), so that the client
+    """A factorisation made where W is swept, on a Dask worker (:func:`factor_and_sweep`), so that the client
     holds neither the stiffness's assembly, nor the factor, nor the sweep (#27: at 47,467 contact vertices those
     made the client's 2.42 GiB).  ``make()`` returns (factor, timings): the pipeline's assembly and factorisation,
     pickled by reference.  ``checkpoint``: the factor's file in the work folder, read instead of factorising when
     it is there and written when it is not (a rerun after a crash resumes); ``timeout``: the factorisation's time
     limit (:func:`pmask.precompute.native.budget`).  :func:`compressed_greens` fills in ``stats`` (the factor's),
-    ``timings`` and ``resumed`` from what the worker reports."""
+    ``timings`` and ``resumed`` from what the worker reports.  ``element``: the factor's element (P1's Ξ is
+    stored once per symmetric pair of blocks, P2's whole: :func:`is_symmetric`)."""
 
     make: Callable
     checkpoint: Path | None = None
     timeout: float | None = None
+    element: str = "P1"
     stats: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     resumed: bool = False
-    load = None  # as SparseFactor.load: P1's load is the unit columns times the areas
 
     def build(self) -> tuple:
         """(factor, timings, resumed): the checkpoint's factor, or one made (and then checkpointed by the caller)."""
@@ -499,8 +596,8 @@ class FactorJob:
             return factor, {"assemble": 0.0, "factor": time.perf_counter() - t0}, True
         with native.budget(self.timeout):
             factor, timings = self.make()
-        if factor.load is not None:
-            raise TypeError("a FactorJob makes a P1 factor (Ξ = G diag(a)); P2's compressed route solves per panel")
+        if (factor.load is None) != (self.element == "P1"):
+            raise TypeError(f"a FactorJob for {self.element} made a factor of the other element")
         return factor, timings, False
 
     def summary(self) -> dict:
@@ -509,9 +606,9 @@ class FactorJob:
         made here only when the checkpoint is gone."""
         if self.checkpoint is not None and Path(self.checkpoint).exists():
             try:
-                with np.load(self.checkpoint) as ck:
-                    return {"scale": ck["scale"], "stats": json.loads(str(ck["stats"])), "timings": {},
-                            "resumed": True}
+                with np.load(self.checkpoint) as ck:  # (P2's load is its own: no scale)
+                    return {"scale": ck["scale"] if "scale" in ck else None, "stats": json.loads(str(ck["stats"])),
+                            "timings": {}, "resumed": True}
             except (OSError, ValueError, KeyError) as exc:
                 log.warning("the factor checkpoint %s cannot be read (%s); factorising again", self.checkpoint, exc)
         factor, timings, resumed = self.build()
@@ -545,7 +642,7 @@ def _worker_room() -> float | None:
 
 def factor_and_sweep(source, path, key: str, budget: float = SWEEP_BUDGET) -> dict:
     """The task that sweeps W (:func:`sweep`) on whichever worker the scheduler picks, from ``source``: a
-    :class:`FactorJob` (assembled and factorised here; its checkpoint written while W is swept) or a P1 factor
+    :class:`FactorJob` (assembled and factorised here; its checkpoint written while W is swept) or a factor
     sent along.  Its BLAS gets every core of the worker's machine: Dask starts workers with one BLAS thread each,
     right for the tiles, but nothing else of the run is running while W is swept.  Returns what the client keeps:
     the loads' ``scale``, the factor's ``stats``, ``timings``, ``resumed`` (the checkpoint or W reused) and where
@@ -593,8 +690,8 @@ def factor_and_sweep(source, path, key: str, budget: float = SWEEP_BUDGET) -> di
 
 def solved_columns(factor, dcols: np.ndarray) -> np.ndarray:
     """Ξ's columns ``dcols`` (contact dofs), rows in contact order, solved from the factor by the selected
-    inversion (:func:`pmask.precompute.greens.inverse_columns`): the route of P2 tiles, and an independent
-    check of the W store's columns."""
+    inversion (:func:`pmask.precompute.greens.inverse_columns`): an independent check of the W store's columns
+    (the bench's)."""
     from pmask.precompute import greens
 
     if factor.load is None:  # P1: a traction at dof d is the nodal force scale[d] there
@@ -617,20 +714,17 @@ def is_symmetric(factor) -> bool:
     return bool(np.all(per_dof == per_dof[:, :1]))
 
 
-def panel_columns(factor, perm: np.ndarray, c0: int, c1: int, upto: int | None = None):
-    """Ξ's columns of positions c0..c1 (3(c1-c0) of them), and where each row in cluster order is in them:
-    ``X[at[3p + d]]`` is the row of dof d of the vertex at position p.  From W's store (:class:`SweepStore`,
-    rows in W's order: no reordered copy), or solved from the factor (rows in cluster order).  ``upto``: W's
-    store computes only the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the blocks
-    above the diagonal)."""
+def panel_columns(store: SweepStore, perm: np.ndarray, c0: int, c1: int, upto: int | None = None):
+    """Ξ's columns of positions c0..c1 (3(c1-c0) of them) from W's store (rows in W's order: no reordered copy),
+    and where each row in cluster order is in them: ``X[at[3p + d]]`` is the row of dof d of the vertex at
+    position p.  ``upto``: only the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the
+    blocks above the diagonal)."""
     rows = (3 * perm[:, None] + np.arange(3)).ravel()  # contact dofs in cluster order
     dcols = rows[3 * c0:3 * c1]  # the panel's traction columns
-    if isinstance(factor, SweepStore):
-        return factor.sorted_columns(rows if upto is None else rows[:3 * upto], dcols)
-    return solved_columns(factor, dcols)[rows], np.arange(len(rows))
+    return store.sorted_columns(rows if upto is None else rows[:3 * upto], dcols)
 
 
-def tile(factor, tree: ClusterTree, column: int, blocks, tol: float, near=None) -> dict:
+def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, near=None) -> dict:
     """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
     reader's layout with offsets relative to this tile (:func:`assemble` shifts them), the low-rank
     index with an eighth column: the block's column cluster J.  Where J is wider than the panel the
@@ -641,7 +735,7 @@ def tile(factor, tree: ClusterTree, column: int, blocks, tol: float, near=None) 
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # one past the last row any block needs
-    X, at = panel_columns(factor, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
+    X, at = panel_columns(store, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
     t_solve = time.perf_counter() - t0
     rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
@@ -950,8 +1044,7 @@ def check_scheduler(client, scheduler: str | None, done: int, total: int, store:
 
 
 def tile_bytes(held: float, n_contact: int, panel: int = PANEL, copies: int = 1, made: float = 0.0) -> float:
-    """A worker's memory for one tile: the panel (3n x 3·panel doubles; ``copies`` = 2 where its columns are
-    solved and then put in cluster order, P2's route), one slice of a product (at most :data:`READ_BYTES`,
+    """A worker's memory for one tile: the panel (3n x 3·panel doubles, ``copies`` of it), one slice of a product (at most :data:`READ_BYTES`,
     :meth:`SweepStore.sorted_columns`), ``held`` bytes (:func:`source_bytes`: what the panel's columns are
     computed from) and ``made`` (:func:`output_bytes`, the largest over the tiles; not known before the
     partition)."""
@@ -969,13 +1062,10 @@ def output_bytes(tree: ClusterTree, column: int, blocks) -> float:
     return 2 * sum(a for a, far in area if not far) + 4 * max((a for a, far in area if far), default=0.0)
 
 
-def source_bytes(source) -> float:
-    """A worker's memory for the columns' source: one chunk of W's blocks (:class:`SweepStore`); or a
-    copy of the factor and the selected inversion's W (bounded by the factor's size: measured 0.3-0.4x
-    it)."""
-    if isinstance(source, SweepStore):
-        return float(min(8 * source.largest, READ_BYTES))
-    return 2.0 * factor_bytes(source)
+def source_bytes(source: SweepStore) -> float:
+    """A worker's memory for the columns' source: one chunk of W's blocks, and with a load (P2) the panel's
+    rows of W_B's block beside it (at most as large)."""
+    return float((2 if source.load else 1) * min(8 * source.largest, READ_BYTES))
 
 
 def check_worker_memory(limits: list[int | None], need: float, threads: list[int] | None = None) -> None:
@@ -1085,7 +1175,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     tree = cluster_tree(points)
     cols = panels(tree, panel)
     job = isinstance(factor, FactorJob)
-    symmetric = job or is_symmetric(factor)  # a FactorJob is P1's
+    symmetric = factor.element == "P1" if job else is_symmetric(factor)
     plan = {c: [b for b in partition(tree, c, r_max) if not symmetric or tree.start[b[0]] <= tree.start[b[1]]]
             for c in cols}  # symmetric: the blocks on and above the diagonal (the reader transposes the rest)
     ts = TileStore(store, f"{key}|{TILE_LAYOUT}|symmetric={symmetric}")
@@ -1096,7 +1186,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     own = client is None
     w_path = store.with_name(f"W-{store.stem}.bin")
     source = factor
-    report = None  # what factor_and_sweep reported (P1)
+    report = None  # what factor_and_sweep reported
     try:
         try:
             if todo:
@@ -1109,34 +1199,30 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     stats["tile_bytes"] = tile_bytes(held, len(points), panel, copies, made)
                     check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
 
-                if factor.load is None:  # P1: W once, on a worker; the tiles read it (module docstring)
-                    check_tiles(float(READ_BYTES), 1)  # W's chunk is at most this (its size is known once swept)
-                    t1 = time.perf_counter()
-                    reused = sweep_reusable(w_path, key)
-                    report = _sweep_on_worker(client, factor, w_path, key, scheduler, store, len(cols) - len(todo),
-                                              len(cols))
-                    source = SweepStore(w_path)
-                    if not reused:
-                        stats["sweep_peak_bytes"] = int(source.index["peak_bytes"])
-                    swept = report["timings"].get("sweep", time.perf_counter() - t1)  # (not the factorisation)
-                    stats.update({"route": "W store", "sweep_s": swept, "W_reused": reused,
-                                  "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
-                                  "gram_flops": float(source.index["gram_flops"]),
-                                  "sweep_batches": int(source.index.get("batches", 1)),
-                                  "sweep_pid": report["pid"], "sweep_host": report["host"],
-                                  "sweep_blas_threads": report["blas_threads"]})
-                    log.info("factor and W's sweep on a worker (%s, pid %d, %d BLAS threads): %.1f s",
-                             report["host"], report["pid"], report["blas_threads"], report["seconds"])
-                else:
-                    stats["route"] = "solve per panel"
-                check_tiles(source_bytes(source), 1 if isinstance(source, SweepStore) else 2)
+                check_tiles(float(READ_BYTES), 1)  # W's chunk is at most this (its size is known once swept)
+                t1 = time.perf_counter()
+                reused = sweep_reusable(w_path, key)
+                report = _sweep_on_worker(client, factor, w_path, key, scheduler, store, len(cols) - len(todo),
+                                          len(cols))
+                source = SweepStore(w_path)  # W once, on a worker; the tiles read it (module docstring)
+                if not reused:
+                    stats["sweep_peak_bytes"] = int(source.index["peak_bytes"])
+                swept = report["timings"].get("sweep", time.perf_counter() - t1)  # (not the factorisation)
+                stats.update({"route": "W store", "sweep_s": swept, "W_reused": reused,
+                              "W_bytes": int(w_path.stat().st_size), "sweep_flops": float(source.index["flops"]),
+                              "gram_flops": float(source.index["gram_flops"]),
+                              "sweep_batches": int(source.index.get("batches", 1)),
+                              "sweep_pid": report["pid"], "sweep_host": report["host"],
+                              "sweep_blas_threads": report["blas_threads"]})
+                log.info("factor and W's sweep on a worker (%s, pid %d, %d BLAS threads): %.1f s",
+                         report["host"], report["pid"], report["blas_threads"], report["seconds"])
+                check_tiles(source_bytes(source), 1)
                 stats["workers"] = len(limits)
-                if isinstance(source, SweepStore):
-                    seen = client.run(os.path.exists, str(source.path))
-                    if not all(seen.values()):
-                        raise InputError(f"{sum(not v for v in seen.values())} of {len(seen)} Dask workers cannot read "
-                                         f"{source.path} (W's store for the tiles): with --scheduler the artifact's "
-                                         "work folder (.work next to -o) must be on a filesystem every worker mounts")
+                seen = client.run(os.path.exists, str(source.path))
+                if not all(seen.values()):
+                    raise InputError(f"{sum(not v for v in seen.values())} of {len(seen)} Dask workers cannot read "
+                                     f"{source.path} (W's store for the tiles): with --scheduler the artifact's "
+                                     "work folder (.work next to -o) must be on a filesystem every worker mounts")
                 attempts = {c: 0 for c in todo}
                 done = len(cols) - len(todo)
                 fac = near = None

@@ -221,21 +221,26 @@ def forward_sweep(tree: _Tree, want: np.ndarray, emit) -> dict:
     return {"pos": pos, "lo": lo, "hi": hi, "flops": flops}
 
 
-def sweep_memory(tree: _Tree, want: np.ndarray, emit_copy: int = 0) -> dict:
+def sweep_memory(tree: _Tree, want: np.ndarray, emit_copy: int = 0, size: np.ndarray | None = None) -> dict:
     """The bytes :func:`forward_sweep` holds at its peak, from the tree alone (nothing is solved): the W
     block of each supernode from its first update (or its own turn) until its turn ends, and at each
     supernode its update U (m x nr), its diagonal block's copy (nc x nc) and the two temporaries of each
     ancestor's update, then the copy ``emit`` makes of its block (at most ``emit_copy`` bytes), and the
-    sweep's own index arrays.  Returns ``peak`` (bytes) and ``at`` (the supernode at the peak): the memory
-    check's figure for the sweep, a simulation of the same allocations in the same order (tested against
-    the measured peak)."""
-    want = _distinct(want, tree.n)
-    piv = tree.iperm[want]
-    lo, hi, _ = tree.ranges(piv)
-    size = (hi - lo).astype(np.int64)
+    sweep's own index arrays.  ``size``: how many columns reach each supernode, given instead of ``want``'s
+    ranges (:func:`load_sweep`'s sets: the same allocations in the same order); ``want`` is then the number of
+    the load's non-zeros (its index arrays).  Returns ``peak`` (bytes) and
+    ``at`` (the supernode at the peak): the memory check's figure for the sweep, a simulation of the same
+    allocations in the same order (tested against the measured peak)."""
+    if size is None:
+        want = _distinct(want, tree.n)
+        lo, hi, _ = tree.ranges(tree.iperm[want])
+        size, count = hi - lo, len(want)
+    else:
+        count = int(want)
+    size = np.asarray(size, np.int64)
     blk = 8 * size * tree.ncol  # bytes of each supernode's W block
     live = np.zeros(tree.ns, bool)
-    held = peak = 8 * (4 * len(want) + 4 * tree.ns)  # want, piv, pos, the grouping; lo, hi, size, first
+    held = peak = 8 * (4 * count + 4 * tree.ns)  # want, piv, pos, the grouping; lo, hi, size, first
     at = -1
     for s in np.flatnonzero(size > 0):
         nc, nr = int(tree.ncol[s]), int(tree.nrow[s] - tree.ncol[s])
@@ -258,6 +263,46 @@ def sweep_memory(tree: _Tree, want: np.ndarray, emit_copy: int = 0) -> dict:
         held += new - int(blk[s])
         live[s] = False
     return {"peak": peak, "at": at}
+
+
+def load_sweep(tree: _Tree, B, sets: list, posB: np.ndarray, b0: int, b1: int, emit) -> dict:
+    r"""W_B = L⁻¹ P B supernode by supernode for the columns of B at positions b0..b1 (:func:`column_sets`'s
+    numbering, by lowest pivot), as :func:`forward_sweep` does for unit columns: ``emit(s, first, X_s)``
+    receives X_s, the rows of W_Bᵀ of supernode s for those of its set ``sets[s]`` in the range (a run of it,
+    from its position ``first``; the set is sorted), and a block is held only from its first update to the end
+    of its turn.  With W_E from :func:`forward_sweep`, :math:`E^T A^{-1} B = W_E^T W_B` supernode by
+    supernode (:func:`selected_columns` forms it in one pass; the compressed route stores both and forms it
+    tile by tile).  Returns ``flops``."""
+    import scipy.sparse as sp
+
+    B = sp.csc_matrix(B)
+    nz_piv = tree.iperm[B.indices]
+    col_of = np.repeat(np.arange(B.shape[1]), np.diff(B.indptr))
+    keep = (posB[col_of] >= b0) & (posB[col_of] < b1)
+    nz_piv, col_of, data = nz_piv[keep], col_of[keep], B.data[keep]
+    first = [int(np.searchsorted(c, b0)) for c in sets]
+    part = [c[f:int(np.searchsorted(c, b1))] for c, f in zip(sets, first)]
+    by = np.argsort(tree.snode[nz_piv], kind="stable")
+    split = np.searchsorted(tree.snode[nz_piv][by], np.arange(tree.ns + 1))
+
+    def alloc(t):  # W_B[t] with B's entries whose pivots are t's
+        W = np.zeros((len(part[t]), tree.ncol[t]), order="F")
+        i = by[split[t]:split[t + 1]]
+        np.add.at(W, (np.searchsorted(part[t], posB[col_of[i]]), nz_piv[i] - tree.sup[t]), data[i])
+        return W
+
+    W = [None] * tree.ns
+    flops = 0.0
+    for s in range(tree.ns):
+        if len(part[s]) == 0:
+            continue
+        if W[s] is None:
+            W[s] = alloc(s)
+        X, f = _forward(tree, W, part, s, alloc=alloc)
+        W[s] = None
+        flops += f
+        emit(s, first[s], X)
+    return {"flops": flops}
 
 
 def selected_inverse(L: dict, want: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, dict]:

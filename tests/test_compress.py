@@ -381,24 +381,28 @@ def test_a_rerun_reuses_the_finished_tiles(tmp_path):
     assert not list(tmp_path.glob("W-*"))  # W (as large as a tenth of dense Ξ) is gone once the tiles are in
 
 
-def test_the_p1_factor_and_ws_sweep_run_on_a_worker_not_in_the_client(tmp_path, monkeypatch):
-    """#27 item 2 (the factor and the sweep leave the client): with P1 the pipeline's assembly, factorisation and W
-    sweep run as one task on a Dask worker (compress.FactorJob); the client never factorises nor sweeps (both
-    refuse here: the patches reach this process only), the worker's BLAS is given every core (Dask starts its
-    workers with one), and the factor's statistics and timings come back for the artifact's provenance."""
+@pytest.mark.parametrize("element", ["P1", "P2"])
+def test_the_factor_and_ws_sweep_run_on_a_worker_not_in_the_client(element, tmp_path, monkeypatch):
+    """#27 item 2 (the factor and the sweep leave the client): the pipeline's assembly, factorisation and W sweep
+    (P2: W_E's and W_B's) run as one task on a Dask worker (compress.FactorJob); the client never factorises nor
+    sweeps (all refuse here: the patches reach this process only), the worker's BLAS is given every core (Dask
+    starts its workers with one), and the factor's statistics and timings come back for the artifact's
+    provenance."""
     from pmask.precompute import greens, selinv
 
     def refuse(*args, **kwargs):
         raise AssertionError("the client factorised or swept")
 
-    monkeypatch.setattr(greens, "factorise", refuse)
-    monkeypatch.setattr(selinv, "forward_sweep", refuse)
-    s = run(Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1, element="P1"),
-            tmp_path / "k.h5")
+    for name in ("factorise", "load_checkpoint"):
+        monkeypatch.setattr(greens, name, refuse)
+    for name in ("forward_sweep", "load_sweep"):
+        monkeypatch.setattr(selinv, name, refuse)
+    spec = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, compress=TOL, workers=1, element=element)
+    s = run(spec, tmp_path / "k.h5")
     c = s["factor_stats"]["compress"]
-    assert c["route"] == "W store" and c["sweep_pid"] != os.getpid()
+    assert c["route"] == "W store" and c["sweep_pid"] != os.getpid() and c["symmetric"] == (element == "P1")
     assert c["sweep_blas_threads"] == len(os.sched_getaffinity(0))
-    assert s["dofs"] > 0 and s["factor_stats"]["element"] == "P1" and s["timings"]["factor"] > 0
+    assert s["dofs"] > 0 and s["factor_stats"]["element"] == element and s["timings"]["factor"] > 0
     assert "factor" not in s["resumed"]
 
 
@@ -438,6 +442,16 @@ def test_a_factor_job_reads_its_checkpoint_and_its_summary_reads_no_factor(tmp_p
     job.checkpoint.write_bytes(b"not an npz")
     again, _, resumed = job.build()
     assert not resumed and np.array_equal(again.L["x"], made.L["x"])
+    # P2: its load is its own (no scale in the checkpoint); the summary still reads no factor
+    spec2 = Spec(model="kidney", params={"size": 0.009}, r_max=R_MAX, element="P2")
+    job2 = compress.FactorJob(functools.partial(stages.factor_stage, spec2, mesh, surf), tmp_path / "f2.npz",
+                              element="P2")
+    made2, _, _ = job2.build()
+    greens.save_checkpoint(job2.checkpoint, made2)
+    summary2 = job2.summary()
+    assert summary2["resumed"] and summary2["scale"] is None and summary2["stats"] == made2.stats
+    with pytest.raises(TypeError, match="other element"):  # our bug, not a user's: a traceback
+        compress.FactorJob(job2.make, element="P1").build()
 
 
 def _small_factor(element="P1"):
@@ -516,16 +530,42 @@ def test_the_sweep_in_batches_holds_its_budget_and_writes_the_same_store(tmp_pat
     assert float(split.index["flops"]) == pytest.approx(float(one.index["flops"]), rel=1e-12)
 
 
-def test_p2_compresses_by_solving_each_panel(tmp_path):
-    """P2's consistent load is not E diag(a), so its tiles solve their panels from the factor (the other
-    route); the same bounds against P2's dense Ξ."""
+def test_p2_store_columns_are_the_factor_s_own_solves(tmp_path, monkeypatch):
+    """P2's consistent load is not E diag(a): Ξ = W_Eᵀ W_B with W_B = L⁻¹PB swept after W_E into the same store
+    (selinv.load_sweep).  Its columns, read whole and in row chunks of a few rows, in one sweep and in batches
+    under a third of its peak, against the factor's own solves of the same columns (greens.inverse_columns:
+    forward and back substitution, another code): round-off."""
+    factor, pts = _small_factor("P2")
+    n = len(pts)
+    rng = np.random.default_rng(5)
+    cols = rng.choice(3 * n, 40, replace=False)
+    rows = rng.permutation(3 * n)
+    exact = compress.solved_columns(factor, cols)
+    for read_bytes in (compress.READ_BYTES, 8 * 3 * 60):  # whole blocks; then ~3 rows per read
+        monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
+        store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
+        assert store.load
+        for some in (rows, rows[:len(rows) // 3]):
+            X = store.columns(some, cols)
+            assert np.abs(X - exact[some]).max() <= 1e-12 * np.abs(exact).max()  # sums of ~10³ products
+    monkeypatch.undo()
+    whole = compress.sweep_bytes(factor)
+    split = compress.sweep(factor, tmp_path / "W-split.bin", key="k", budget=whole / 3)
+    assert int(split.index["batches"]) >= 4
+    a, b = np.fromfile(tmp_path / f"W-{compress.READ_BYTES}.bin"), np.fromfile(split.path)
+    assert a.shape == b.shape and np.abs(a - b).max() <= 1e-14 * np.abs(a).max()
+
+
+def test_p2_compresses_through_w_s_store(tmp_path):
+    """P2's tiles read W_E and W_B from the store as P1's read W (no factor on the tiles' workers); every block is
+    stored (Ξ is not symmetric), within the bounds P1's are held to against P2's dense Ξ."""
     from pmask.precompute import greens
 
     factor, pts = _small_factor("P2")
     Xi, _ = greens.greens_functions(factor)
     arrays, stats = compress.compressed_greens(factor, pts, R_MAX, tol=TOL, store=tmp_path / "t.h5", key="p2",
                                                panel=64, workers=1)
-    assert stats["route"] == "solve per panel" and stats["lowrank_blocks"] > 0
+    assert stats["route"] == "W store" and not stats["symmetric"] and stats["lowrank_blocks"] > 0
     C = CompressedXi(**read(arrays), tolerance=TOL)
     # every block within TOL of its norm, so the whole within TOL of Ξ's
     assert np.linalg.norm(C.to_dense() - Xi) <= TOL * np.linalg.norm(Xi)
@@ -743,10 +783,11 @@ def test_cli_bad_inputs_are_one_line(tmp_path):
 
 
 def test_the_memory_check_counts_the_factor_where_it_is_held(monkeypatch):
-    """stages.check_memory's guard follows where the factor lives (#27 item 3): P1's client never holds it, so
-    with --scheduler nothing of it is counted on this machine, and locally the factor's worker (its factor and
-    the sweep) and the tiles are phases one after the other, the larger counted; P2's client makes the factor
-    and each local tile holds a copy beside it."""
+    """stages.check_memory's guard follows where the factor lives (#27 item 3): the client never holds it (P1 and
+    P2 alike), so with --scheduler nothing of it is counted on this machine, and locally the factor's worker (its
+    factor and the sweep) and the tiles are phases one after the other, the larger counted.  At 20,000 contact
+    vertices and P2's factor of the 20,427-vertex kidney (6.4 GiB, its size on the bench's 24 GiB machine) that
+    fits, where the route that sent the factor to every tile needed 28 GiB and was refused."""
     from pmask.pipeline import stages
     from pmask.precompute import elements, greens
 
@@ -757,14 +798,16 @@ def test_the_memory_check_counts_the_factor_where_it_is_held(monkeypatch):
         factor = element.memory_estimate(nv, nc)["factor"]
         remote = stages.check_memory(element, nv, nc, Spec(model="kidney", compress=TOL, scheduler="tcp://h:1"))
         local = stages.check_memory(element, nv, nc, Spec(model="kidney", compress=TOL, workers=2))
-        one_tile = compress.tile_bytes(compress.READ_BYTES if name == "P1" else factor, nc,
-                                       compress.panel_size(nc), 1 if name == "P1" else 2)
-        if name == "P1":
-            assert remote["total"] < factor  # the client needs none of it
-            # the factor's worker is counted, the phases are not summed (the factor is gone when the tiles run)
-            assert 1.5 * factor <= local["total"] < 2.5 * factor + 2 * one_tile
-        else:
-            assert remote["total"] >= 1.5 * factor and local["total"] == remote["total"] + 2 * one_tile
+        chunks = compress.READ_BYTES * (1 if name == "P1" else 2)  # P2's tiles: a chunk of W_E and one of W_B
+        one_tile = compress.tile_bytes(chunks, nc, compress.panel_size(nc), 1)
+        assert remote["total"] < factor  # the client needs none of it
+        # the factor's worker is counted, the phases are not summed (the factor is gone when the tiles run)
+        assert 1.5 * factor <= local["total"] < 2.5 * factor + 2 * one_tile
+        assert local["total"] >= 2 * one_tile
+    monkeypatch.setattr(elements.P2, "memory_estimate", lambda self, nv, nc: {"Xi": 0, "factor": 6.4 * 2**30,
+                                                                              "total": 0})
+    need = stages.check_memory(elements.get_element("P2"), nv, nc, Spec(model="kidney", compress=TOL, workers=2))
+    assert need["total"] < 12 * 2**30
 
 
 def test_memory_string_parsing():
