@@ -19,9 +19,8 @@ R_MAX = 0.01  # a 10 mm probe tip
 #: r_max, ∝ r_max² at a given mesh, so this is what a smaller tip buys (`make bench ONLY=organ-5mm`)
 ORGAN_R_MAX = 0.005
 TOL = 1e-4
-#: P1 throughout: the element whose Ξ the tiles read from W's store and store once per symmetric pair (P2,
-#: the default for ν = 0.45, solves each panel from a copy of its larger factor: at 20,000 vertices the
-#: memory check refuses it on this machine)
+#: P1 for the rows below but one: the element whose Ξ is stored once per symmetric pair.  P2, the default for
+#: ν = 0.45 (what the large-organs guide's command runs), has its own row at LARGE (`make bench ONLY=organ-p2`)
 ELEMENT = "P1"
 #: the organ-scale kidney: 1.28 mm surface edges (20,427 contact vertices), the volume graded to 6 mm
 LARGE = {"size": 0.00128, "interior": 0.006}
@@ -112,7 +111,7 @@ def errors(size, work: Path) -> dict:
     return out
 
 
-def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> dict:
+def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX, element: str = ELEMENT) -> dict:
     """The organ-scale run: a kidney with ~20,000 contact vertices, compressed on 2 local workers through
     the whole pipeline (masks up to ``r_max``), peak RSS of the process tree; the dense route's refusal (and
     its Ξ's size); the compressed Ξ's columns of ``n_check`` random vertices against the same columns solved
@@ -122,7 +121,7 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
     from pmask.precompute import compress, elements
     from pmask.runtime import Model
 
-    spec = stages.Spec(model="kidney", params=params, r_max=r_max, compress=TOL, workers=2, element=ELEMENT)
+    spec = stages.Spec(model="kidney", params=params, r_max=r_max, compress=TOL, workers=2, element=element)
     p = work / "large.h5"
     with PeakRSS() as m:
         s = stages.run(spec, p, force=True)
@@ -131,7 +130,8 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
            "peak_rss_per_process_gib": sorted((v / 2**30 for v in m.per.values()), reverse=True)[:4],
            "client_peak_rss_gib": m.per.get(os.getpid(), 0) / 2**30,  # this process: the pipeline's client
            "sweep_worker_peak_rss_gib": m.per.get(s["factor_stats"]["compress"].get("sweep_pid"), 0) / 2**30,
-           "bytes": p.stat().st_size, "stats": s["factor_stats"]["compress"], "dofs": s["factor_stats"]["dofs"]}
+           "bytes": p.stat().st_size, "stats": s["factor_stats"]["compress"], "dofs": s["factor_stats"]["dofs"],
+           "element": element}
     eager = []
     for _ in range(3):  # the near field read (and checked) at open, as every artifact was before
         t0 = time.perf_counter()
@@ -172,11 +172,11 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX) -> d
     out["pairs_within_r_max_bytes"] = 72 * (within + n) // 2
     out["compressed_stored_bytes"] = c.Xi.nbytes
     out.update(disk_bytes(p))
-    dense = stages.Spec(model="kidney", params=params, r_max=r_max, element=ELEMENT)
+    dense = stages.Spec(model="kidney", params=params, r_max=r_max, element=element)
     mesh = stages.support_stage(dense, stages.mesh_stage(dense))
-    out["dense_need_gib"] = elements.get_element("P1").memory_estimate(len(mesh.points), n)["total"] / 2**30
+    out["dense_need_gib"] = elements.get_element(element).memory_estimate(len(mesh.points), n)["total"] / 2**30
     try:
-        stages.check_memory(elements.get_element("P1"), len(mesh.points), n, dense)
+        stages.check_memory(elements.get_element(element), len(mesh.points), n, dense)
         out["dense_refused"] = None
     except ResourceError as exc:
         out["dense_refused"] = str(exc)
@@ -284,33 +284,37 @@ def main(out: Path) -> dict:
         res["eight_workers"] = eight_workers(0.005, tmp)
         print(json.dumps(res["eight_workers"]), flush=True)
     kept = json.loads(out.read_text()) if out.exists() else {}
-    for key in (k for k in kept if k.startswith("organ")):  # `ONLY=organ`'s runs, kept
+    for key in (k for k in kept if k.startswith("organ") or k == "large_p2"):  # `ONLY=organ...`'s runs, kept
         res[key] = kept[key]
     res["refit"] = refit_numbers(res)
     out.write_text(json.dumps(res, indent=1, default=float))
     return res
 
 
-def organ_key(r_max: float) -> str:
-    """Where an organ run at ``r_max`` is kept in the results: "organ" at the section's R_MAX."""
+def organ_key(r_max: float, element: str = ELEMENT) -> str:
+    """Where an organ run at ``r_max`` is kept in the results: "organ" at the section's R_MAX; the P2 run at
+    LARGE, "large_p2"."""
+    if element != ELEMENT:
+        return f"large_{element.lower()}"
     return "organ" if r_max == R_MAX else f"organ_{r_max * 1e3:g}mm"
 
 
-def organ(out: Path, r_max: float = R_MAX) -> dict:
-    """The organ-scale run at ORGAN (issue #27's 50,000 contact vertices) with masks up to ``r_max``, from a
-    fresh work folder, stored beside the compressed-Ξ section's other results in ``out`` under
-    :func:`organ_key` (its own date)."""
+def organ(out: Path, r_max: float = R_MAX, element: str = ELEMENT) -> dict:
+    """The organ-scale run at ORGAN (issue #27's 50,000 contact vertices) with masks up to ``r_max``, or with
+    another element at LARGE (P2: the large-organs guide's own command), from a fresh work folder, stored beside
+    the compressed-Ξ section's other results in ``out`` under :func:`organ_key` (its own date)."""
     import tempfile
 
     res = json.loads(out.read_text()) if out.exists() else {"r_max_m": R_MAX, "tolerance": TOL, "element": ELEMENT}
-    print(f"organ scale: kidney {ORGAN}, r_max {r_max} m ...", flush=True)
+    params = ORGAN if element == ELEMENT else LARGE
+    print(f"organ scale: kidney {params}, r_max {r_max} m, {element} ...", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        r = large(ORGAN, Path(tmp), r_max=r_max)
+        r = large(params, Path(tmp), r_max=r_max, element=element)
     from run import machine
 
     r["date"] = time.strftime("%Y-%m-%d %H:%M")
     r["machine"] = machine()
-    res[organ_key(r_max)] = r
+    res[organ_key(r_max, element)] = r
     res["refit"] = refit_numbers(res)
     print(json.dumps(r, default=str)[:600], flush=True)
     out.write_text(json.dumps(res, indent=1, default=float))
@@ -432,8 +436,10 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
     small = res.get("kidney_0.003", {})
     per_flop = (small.get("dense", {}).get("greens_s", 0.0) / small["compressed_2"]["stats"]["gram_flops"]
                 if small.get("compressed_2", {}).get("stats", {}).get("gram_flops") else None)
-    est = f"~{per_flop * st['gram_flops'] / 60:.0f} min by its syrk flops" if per_flop else "not estimated"
-    return (f"**{title}**: kidney with {g['params']['size'] * 1e3:.2f} mm surface edges, volume graded to "
+    est = (f"~{per_flop * st['gram_flops'] / 60:.0f} min by its " + ("syrk" if st.get("symmetric") else "gemm")
+           + " flops" if per_flop else "not estimated")
+    return (f"**{title}**: kidney ({g.get('element', 'P1')}) with {g['params']['size'] * 1e3:.2f} mm surface edges, "
+              f"volume graded to "
               f"{g['params']['interior'] * 1e3:.0f} mm ({g['contact']:,} contact vertices, {g['dofs']:,} dofs), "
               f"compressed on 2 local workers through `pmask precompute`: whole run {g['total_s'] / 60:.1f} min "
               f"(GF stage {g['greens_s'] / 60:.1f} min: W sweep {st['sweep_s']:.0f} s, {st['tiles']} tiles), "
@@ -515,6 +521,13 @@ def markdown(res: dict) -> str:
         where = (f", {m['cpu']}, {m['cores']} cores" if m else ", on a machine this page did not record")
         L += ["", organ_paragraph(o, res, f"The same 50,000 with masks up to r_max = {o['r_max_m'] * 1e3:g} mm "
                                           f"(measured {o.get('date', '')}{where})")]
+    if res.get("large_p2"):
+        o = res["large_p2"]
+        m = o.get("machine")
+        where = (f", {m['cpu']}, {m['cores']} cores" if m else ", on a machine this page did not record")
+        L += ["", organ_paragraph(o, res, f"The organ-scale kidney with P2, the element `--element auto` takes "
+                                          f"for ν = 0.45 (the large-organs guide's command; measured "
+                                          f"{o.get('date', '')}{where}, `make bench ONLY=organ-p2`)")]
     h = res.get("haptic_step")
     if g and h:
         L += ["", f"The haptic step in C (one contact, the haptics issue's tour, tight; the native core on the "
