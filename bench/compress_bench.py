@@ -427,6 +427,14 @@ def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
             f"by at most N/2): " + "; ".join(rows) + ".")
 
 
+def exact_floor(g: dict) -> int:
+    """The bytes of the pairs within r_max, which any format keeping them exact stores: ``pairs_within_r_max_bytes``
+    counts each unordered pair (i = j included) once, which a symmetric Ξ stores; a non-symmetric one (P2) stores
+    both ways, every pair but i = j twice."""
+    once = int(g["pairs_within_r_max_bytes"])
+    return once if g["stats"].get("symmetric") else 2 * once - 72 * int(g["contact"])
+
+
 def organ_paragraph(g: dict, res: dict, title: str) -> str:
     """The paragraph of an organ-scale run (``large``)."""
     st = g["stats"]
@@ -457,8 +465,10 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
                     if "near_exact_bytes" in g else "")
                  + f", far field {g['far_bytes'] / 2**30:.2f}"
                  + (f"; the pairs within r_max alone, which any format that keeps them exact must store, are "
-                    f"{g['pairs_within_r_max_bytes'] / 2**30:.2f} GiB"
-                    + (" (the exact part holds those within a diagonal leaf block both ways)"
+                    f"{exact_floor(g) / 2**30:.2f} GiB"
+                    + ("" if st.get("symmetric") else " (both ways: Ξ is not symmetric)")
+                    + ((" (the exact part holds those within a diagonal leaf block both ways)"
+                        if st.get("symmetric") else "")
                        if "near_exact_bytes" in g else
                        ": the leaf blocks hold pairs up to r_max plus two leaves' diagonals apart")
                     if "pairs_within_r_max_bytes" in g else "") + ") "

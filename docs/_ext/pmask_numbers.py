@@ -6,7 +6,8 @@
 reference table (``tests/reference/NAME.csv``, recomputed by CI and by ``make reference``; its rows as a list),
 PATH is a dotted path into its JSON (list indices as numbers; ``a[key=value]`` picks the first element of a
 list whose ``key`` equals ``value``), FORMAT a Python format spec (``,`` for thousands, ``.2f``, ``.1e``...;
-``%`` multiplies by 100), after ``GiB`` or ``MiB`` for a number of bytes shown in that unit (``GiB.2f``).
+``%`` multiplies by 100), after ``GiB`` or ``MiB`` for a number of bytes shown in that unit (``GiB.2f``), after
+``min`` for seconds shown in minutes (``min.0f``).
 A path that does not resolve is an error, so a page cannot quote a number its generated file no longer has:
 every measured number in the docs comes from a generated file.
 """
@@ -28,8 +29,8 @@ SOURCES = {
     "figures": ROOT / "docs" / "figures.json",   # the figures' own numbers, written by `make figures`
 }
 _cache: dict = {}
-#: byte units a FORMAT may start with
-UNITS = {"GiB": 2**30, "MiB": 2**20}
+#: units a FORMAT may start with: bytes, seconds
+UNITS = {"GiB": 2**30, "MiB": 2**20, "min": 60}
 
 
 def _load(name: str):
