@@ -572,8 +572,8 @@ def element_name(spec: Spec, mesh: ModelMesh) -> str:
 def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | None = None) -> dict:
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
-    route (``spec.compress``) never holds the dense Ξ: the factor and the W sweep
-    (:data:`pmask.precompute.compress.SWEEP_BUDGET` at most, the factor's size where that is less) on one worker,
+    route (``spec.compress``) never holds the dense Ξ: the factor and the W sweep on one worker
+    (:func:`pmask.precompute.compress.factor_phase_bytes`),
     then, once they are gone, on each local worker one tile (:func:`pmask.precompute.compress.tile_bytes`) with a
     chunk of W (:data:`pmask.precompute.compress.READ_BYTES` at most; P2's tiles also a chunk of W_B): the larger
     of the two phases, and nothing of the factor on this machine with ``--scheduler`` (the client never holds
@@ -588,11 +588,9 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
 
         local = 0 if spec.scheduler else (spec.workers or os.cpu_count() or 1)
         panel = compress.panel_size(n_contact)
-        # the factor's worker, then the tiles (they sum W's products); the sweep's batches peak at SWEEP_BUDGET at
-        # most, taken here as the factor's size where that is less (a guard: its own check, from the factor's
-        # tree, runs before it starts)
-        sweep = (2.5 * need["factor"] if need["factor"] < compress.SWEEP_BUDGET
-                 else 1.5 * need["factor"] + compress.SWEEP_BUDGET) if local else 0.0
+        # the factor's worker, then the tiles (they sum W's products); the sweep's own check, from the factor's
+        # tree, runs before it starts
+        sweep = compress.factor_phase_bytes(need["factor"]) if local else 0.0
         chunks = compress.READ_BYTES * (1 if element.name == "P1" else 2)
         need["total"] = max(sweep, local * compress.tile_bytes(chunks, n_contact, panel, 1))
         avail = greens.available_memory()
@@ -857,10 +855,12 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         factor, saving = None, None
         on_worker = bool(spec.compress)
         if on_worker:  # assembled, factorised and swept on a Dask worker (#27): the client holds neither
+            from pmask.precompute import compress
             from pmask.precompute.compress import FactorJob
 
+            need = element.memory_estimate(len(mesh.points), len(surf.regions.contact))["factor"]
             factor = FactorJob(functools.partial(factor_stage, spec, mesh, surf), ck, spec.solve_timeout,
-                               element.name)
+                               element.name, compress.factor_phase_bytes(need))
             if st.bar is not None:
                 st.bar.update()
         elif ck.exists():

@@ -576,12 +576,15 @@ class FactorJob:
     it is there and written when it is not (a rerun after a crash resumes); ``timeout``: the factorisation's time
     limit (:func:`pmask.precompute.native.budget`).  :func:`compressed_greens` fills in ``stats`` (the factor's),
     ``timings`` and ``resumed`` from what the worker reports.  ``element``: the factor's element (P1's Ξ is
-    stored once per symmetric pair of blocks, P2's whole: :func:`is_symmetric`)."""
+    stored once per symmetric pair of blocks, P2's whole: :func:`is_symmetric`); ``need``: the bytes its worker
+    holds at its peak (:func:`factor_phase_bytes` of the factor's estimate; 0: unknown), which the task's worker
+    must have under its memory limit (:func:`factor_workers`)."""
 
     make: Callable
     checkpoint: Path | None = None
     timeout: float | None = None
     element: str = "P1"
+    need: float = 0.0
     stats: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     resumed: bool = False
@@ -1131,8 +1134,35 @@ def factor_bytes(factor) -> int:
     return int(sum(np.asarray(v).nbytes for v in factor.L.values()))
 
 
+def factor_phase_bytes(factor: float) -> float:
+    """The factor's worker at its peak (bytes), from the factor's size: the factorisation's transients
+    (the stiffness, CHOLMOD's workspace and the factor's arrays: 1.5x the factor; measured 9.86 GiB for P2's
+    6.4 GiB factor at 20,427 contact vertices, whose estimate is 7.3 GiB), or the factor beside W's sweep
+    (:data:`SWEEP_BUDGET` at most, the factor's size where that is less), whichever is larger: they are not
+    held at once."""
+    return max(1.5 * factor, factor + min(SWEEP_BUDGET, factor))
+
+
+def factor_workers(info: list[dict], need: float) -> list[str] | None:
+    """The Dask workers (addresses, from ``scheduler_info``) whose memory limit holds the factor's phase
+    (``need`` bytes; none asked: any worker, None), the task placed on one of them; refused in one line when
+    none does, before anything is factorised (a worker past its limit is restarted by its nanny and the
+    factorisation lost)."""
+    if not need:
+        return None
+    fit = [w["id"] for w in info if not w.get("memory_limit") or w["memory_limit"] >= need]
+    if not fit:
+        largest = max(int(w.get("memory_limit") or 0) for w in info) if info else 0
+        raise ResourceError(f"the factor's worker needs ~{need / 2**30:.1f} GiB at its peak (the factorisation, then "
+                            f"W's sweep), more than any Dask worker's memory limit (the largest "
+                            f"{largest / 2**30:.1f} GiB): run fewer local workers (--workers 1 gives one all of "
+                            "this machine's share), give them more (--worker-memory), or use a cluster with a "
+                            "larger worker")
+    return fit
+
+
 def _sweep_on_worker(client, source, path: Path, key: str, scheduler: str | None, store: Path, done: int,
-                     total: int) -> dict:
+                     total: int, workers: list[str] | None = None) -> dict:
     """:func:`factor_and_sweep` as a task on ``client``'s cluster; a refusal or a user's error raised there is
     raised here as it was (one line); a worker lost meanwhile is one line too (what is kept, what to do)."""
     from concurrent.futures import CancelledError
@@ -1141,8 +1171,8 @@ def _sweep_on_worker(client, source, path: Path, key: str, scheduler: str | None
 
     fut = None
     try:  # the job (its mesh) or the factor sent as data, not in the task graph (dask warns of a large graph)
-        fut = client.submit(factor_and_sweep, client.scatter(source, hash=False), str(path), key,
-                            key=f"pmask-sweep-{key[:16]}", pure=False)
+        fut = client.submit(factor_and_sweep, client.scatter(source, hash=False, workers=workers), str(path), key,
+                            key=f"pmask-sweep-{key[:16]}", pure=False, workers=workers, allow_other_workers=False)
         return fut.result()
     except (KilledWorker, CancelledError, OSError) as exc:
         check_scheduler(client, scheduler, done, total, store)  # one line when the scheduler is gone
@@ -1202,8 +1232,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 check_tiles(float(READ_BYTES), 1)  # W's chunk is at most this (its size is known once swept)
                 t1 = time.perf_counter()
                 reused = sweep_reusable(w_path, key)
+                where = factor_workers(info, factor.need) if job and not reused else None
                 report = _sweep_on_worker(client, factor, w_path, key, scheduler, store, len(cols) - len(todo),
-                                          len(cols))
+                                          len(cols), where)
                 source = SweepStore(w_path)  # W once, on a worker; the tiles read it (module docstring)
                 if not reused:
                     stats["sweep_peak_bytes"] = int(source.index["peak_bytes"])

@@ -418,6 +418,30 @@ def test_a_worker_lost_while_it_factorises_is_one_line(tmp_path):
     assert "\n" not in str(err.value)
 
 
+def test_the_factor_goes_to_a_worker_it_fits_or_is_refused_before_it_is_made(tmp_path):
+    """The factor's phase (compress.factor_phase_bytes: the factorisation's transients or the factor beside W's
+    sweep) must fit under its worker's memory limit, else the nanny restarts the worker and the factorisation is
+    lost (P2 at 20,427 vertices peaked at 9.86 GiB, over the 8 GiB a 16 GiB machine gives each of two local
+    workers).  The task is placed on a worker whose limit holds it; where none does, one line says what to do,
+    before anything is factorised (the job here would end its worker's process: it is never run)."""
+    import functools
+
+    info = [{"id": "tcp://a:1", "memory_limit": 8 * 2**30}, {"id": "tcp://b:1", "memory_limit": 24 * 2**30},
+            {"id": "tcp://c:1", "memory_limit": 0}]  # 0: no limit
+    need = compress.factor_phase_bytes(7.3 * 2**30)  # P2's factor estimate at 20,427 contact vertices
+    assert 1.5 * 7.3 * 2**30 <= need < 12 * 2**30  # the measured peak, 9.86 GiB, under it
+    assert compress.factor_workers(info, need) == ["tcp://b:1", "tcp://c:1"]
+    assert compress.factor_workers(info, 0.0) is None  # nothing asked: any worker
+    with pytest.raises(ResourceError, match=r"--workers 1") as err:
+        compress.factor_workers(info[:1], need)
+    assert "\n" not in str(err.value) and "8.0 GiB" in str(err.value)
+    _, pts = _small_factor()
+    job = compress.FactorJob(functools.partial(os._exit, 3), need=4 * 2**30)
+    with pytest.raises(ResourceError, match="more than any Dask worker's memory limit"):
+        compress.compressed_greens(job, pts, R_MAX, store=tmp_path / "t.h5", key="k", panel=64, workers=1,
+                                   memory_limit=2**30)
+
+
 def test_a_factor_job_reads_its_checkpoint_and_its_summary_reads_no_factor(tmp_path):
     """A FactorJob (the worker's factorisation) makes the factor once: a second build reads the checkpoint the
     task wrote (the same arrays), and the summary a rerun with every tile stored takes (the loads' scale, the
