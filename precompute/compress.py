@@ -865,14 +865,24 @@ class Concatenated:
         return whole if dtype is None else whole.astype(dtype)
 
 
+def _append(ds, values: np.ndarray) -> tuple[int, int]:
+    """Append ``values`` to the growing 1-d dataset ``ds`` (cast to its dtype); the run they fill."""
+    a = int(ds.shape[0])
+    ds.resize((a + len(values),))
+    ds[a:] = values
+    return a, a + len(values)
+
+
 def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtype=np.float64,
              lowrank_dtype=None) -> tuple[dict, dict]:
     """The artifact's ``greens/hmatrix`` arrays (:mod:`pmask.runtime.compressed`) from the finished tiles
     in ``store``: whole blocks stay where the tiles wrote them, the near field and the factors returned as
     :class:`Concatenated` runs of the store's datasets the writer reads a slice at a time; the pieces of blocks
-    wider than a panel are merged (:func:`merge_pieces`, within ``tol``), one block's pieces at a time, and only
-    they are held, until written.  Also the tiles' summed timings and the merge's."""
-    names = sorted(store.file, key=lambda g: tree.start[int(g.split("-")[1])])
+    wider than a panel are merged (:func:`merge_pieces`, within ``tol``), one block's pieces at a time, and each
+    merged block is appended to the store's ``merged`` group as it is made, so the client holds one block's merge
+    at a time, not the merged far field (which grows like the far field: by the bench's refit ~1.5 GiB of it at
+    200,000 contact vertices).  Also the tiles' summed timings and the merge's."""
+    names = sorted(store.tiles(), key=lambda g: tree.start[int(g.split("-")[1])])
     groups = [store.file[g] for g in names]
     index = [g["lowrank_index"][()].reshape(-1, 8) for g in groups]
     whole = [(li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]]) for li in index]
@@ -882,7 +892,8 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
         for e in np.flatnonzero(~w):
             blocks.setdefault((int(li[e, 0]), int(li[e, 1]), int(li[e, 7])), []).append((int(li[e, 2]), t, e))
     lowrank_dtype = np.dtype(lowrank_dtype or dtype)
-    merged = []  # (r0, r1, c0, c1, k, U, V)
+    out_U, out_V = store.merged(lowrank_dtype)
+    merged = []  # (r0, r1, c0, c1, k, U's run, V's run) in the store's merged group
     for (r0, r1, j), parts in blocks.items():
         pieces = []
         for _, t, e in sorted(parts):
@@ -890,8 +901,10 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
             pieces.append((groups[t]["U"][uo:uo + 3 * (r1 - r0) * k].reshape(-1, k),
                            groups[t]["V"][vo:vo + 3 * (c1 - c0) * k].reshape(-1, k)))
         U, V = merge_pieces(pieces, tol)
-        merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1],
-                       U.ravel().astype(lowrank_dtype, copy=False), V.ravel().astype(lowrank_dtype, copy=False)))
+        merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1], _append(out_U, U.ravel()),
+                       _append(out_V, V.ravel())))
+        del pieces, U, V
+    store.file.flush()
     merge_s = time.perf_counter() - t0
     dense_index, lowrank_index, near_index = [], [], []
     runs = {"dense": [], "U": [], "V": [], "near_q": [], "near_mask": [], "near_scale": []}
@@ -929,12 +942,12 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
         lowrank_index.append(entry)
         for k in times:
             times[k] += float(g.attrs[k])
-    for r0, r1, c0, c1, k, U, V in merged:
+    for r0, r1, c0, c1, k, (ua, ub), (va, vb) in merged:
         lowrank_index.append(np.array([[r0, r1, c0, c1, k, at["U"], at["V"]]], np.int64))
-        runs["U"].append((U,))
-        runs["V"].append((V,))
-        at["U"] += len(U)
-        at["V"] += len(V)
+        run("U", out_U.name, ua, ub)
+        run("V", out_V.name, va, vb)
+        at["U"] += ub - ua
+        at["V"] += vb - va
     out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
            "dense_index": np.concatenate(dense_index).astype(np.int64) if dense_index else np.zeros((0, 5), np.int64),
            "lowrank_index": np.concatenate(lowrank_index) if lowrank_index else np.zeros((0, 7), np.int64),
@@ -970,8 +983,21 @@ class TileStore:
         for g in [g for g in self.file if not self.file[g].attrs.get("done")]:
             del self.file[g]  # written halfway when the client stopped
 
+    def tiles(self) -> list[str]:
+        """The finished tiles' groups (``tile-C``, C the panel's cluster)."""
+        return [g for g in self.file if g.startswith("tile-")]
+
     def done(self) -> set[int]:
-        return {int(g.split("-")[1]) for g in self.file}
+        return {int(g.split("-")[1]) for g in self.tiles()}
+
+    def merged(self, dtype) -> tuple:
+        """The ``merged`` group's U and V (empty, growing: :func:`assemble` appends each block it merges),
+        made afresh (an assembly that stopped halfway left its own, which the run's start deletes too)."""
+        if "merged" in self.file:
+            del self.file["merged"]
+        g = self.file.create_group("merged")
+        return tuple(g.create_dataset(k, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(2**16,))
+                     for k in ("U", "V"))
 
     def put(self, t: dict) -> None:
         g = self.file.create_group(f"tile-{t['column']}")
@@ -1104,24 +1130,22 @@ def check_phase_memory(phase: str, need: float, advice: str) -> None:
 
 def assembly_bytes(tree: ClusterTree, store: "TileStore", lowrank_dtype=np.float64) -> int:
     """What :func:`assemble` holds at its peak (bytes), from the finished tiles' indices (nothing else read): the
-    blocks merged from pieces (in ``lowrank_dtype``, each counted as all its pieces: its rank is known only once
-    merged, so an upper bound, loose where many blocks are split), the largest block's merge in float64 four times
-    its pieces (the pieces, their stacked U, its Q and the merged factors), and the indices; the near field and
-    the tiles' whole blocks stay in the tile store (:class:`Concatenated`), and the writer adds
-    :data:`WRITE_BYTES`."""
-    split = blocks = 0
+    largest block's merge in float64 four times its pieces (the pieces, their stacked U, its Q and the merged
+    factors; a merged block goes to the tile store as it is made) and the indices; the near field, the tiles'
+    whole blocks and the merged ones stay in the tile store (:class:`Concatenated`), and the writer adds
+    :data:`WRITE_BYTES`.  (``lowrank_dtype``: the far field's, which no longer changes what is held.)"""
+    blocks = 0
     merging: dict = {}  # (r0, r1, J) -> its pieces' numbers
-    for name in store.file:
+    for name in store.tiles():
         g = store.file[name]
         li = g["lowrank_index"][()].reshape(-1, 8)
         size = 3 * ((li[:, 1] - li[:, 0]) + (li[:, 3] - li[:, 2])) * li[:, 4]
         part = ~((li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]]))
-        split += int(size[part].sum())
         for e in np.flatnonzero(part):
             key = (int(li[e, 0]), int(li[e, 1]), int(li[e, 7]))
             merging[key] = merging.get(key, 0) + int(size[e])
         blocks += len(li) + int(g["dense_index"].shape[0])
-    return split * np.dtype(lowrank_dtype).itemsize + 4 * 8 * max(merging.values(), default=0) + 8 * 8 * blocks
+    return 4 * 8 * max(merging.values(), default=0) + 8 * 8 * blocks
 
 
 #: what the writer holds while it stores a compressed Ξ read from the tile store (:class:`Concatenated`): a block
