@@ -429,15 +429,16 @@ def load_batches(tree, B, sets: list, posB: np.ndarray, budget: float = SWEEP_BU
     supernode."""
     from pmask.precompute import selinv
 
-    sets_ = [np.asarray(c) for c in sets]
+    members = np.concatenate([np.asarray(c, np.int64) for c in sets] + [np.zeros(0, np.int64)])
+    owner = np.repeat(np.arange(len(sets)), [len(c) for c in sets])  # each set member's supernode
     nnz_pos = np.sort(posB[np.repeat(np.arange(B.shape[1]), np.diff(B.indptr))])
 
     def peak(a, b):
-        size = np.array([np.searchsorted(c, b) - np.searchsorted(c, a) for c in sets_], np.int64)
+        size = np.bincount(owner[(members >= a) & (members < b)], minlength=len(sets))
         nnz = int(np.searchsorted(nnz_pos, b) - np.searchsorted(nnz_pos, a))
         return selinv.sweep_memory(tree, nnz, READ_BYTES, size=size)["peak"]
 
-    return _batches(B.shape[1], peak, 8 * (3 * B.shape[1] + 3 * tree.ns + sum(len(c) for c in sets_)), budget)
+    return _batches(B.shape[1], peak, 8 * (3 * B.shape[1] + 3 * tree.ns + len(members)), budget)
 
 
 def _batches(n: int, peak, index: int, budget: float) -> tuple[list, int]:

@@ -265,6 +265,29 @@ def sweep_memory(tree: _Tree, want: np.ndarray, emit_copy: int = 0, size: np.nda
     return {"peak": peak, "at": at}
 
 
+def _load_blocks(tree: _Tree, B, posB: np.ndarray, sets: list, within: tuple[int, int] | None = None):
+    """``alloc(t)``: supernode t's block of W_B = L⁻¹PB before its solve, its rows the columns of ``sets[t]``
+    (positions ``posB``, :func:`column_sets`), holding B's entries whose pivots are t's; ``within``: only the
+    columns at positions in that range (a batch)."""
+    B = sp.csc_matrix(B)
+    nz_piv = tree.iperm[B.indices]
+    col_of = np.repeat(np.arange(B.shape[1]), np.diff(B.indptr))
+    data = B.data
+    if within is not None:
+        keep = (posB[col_of] >= within[0]) & (posB[col_of] < within[1])
+        nz_piv, col_of, data = nz_piv[keep], col_of[keep], data[keep]
+    by = np.argsort(tree.snode[nz_piv], kind="stable")
+    split = np.searchsorted(tree.snode[nz_piv][by], np.arange(tree.ns + 1))
+
+    def alloc(t):
+        W = np.zeros((len(sets[t]), tree.ncol[t]), order="F")
+        i = by[split[t]:split[t + 1]]
+        np.add.at(W, (np.searchsorted(sets[t], posB[col_of[i]]), nz_piv[i] - tree.sup[t]), data[i])
+        return W
+
+    return alloc
+
+
 def load_sweep(tree: _Tree, B, sets: list, posB: np.ndarray, b0: int, b1: int, emit) -> dict:
     r"""W_B = L⁻¹ P B supernode by supernode for the columns of B at positions b0..b1 (:func:`column_sets`'s
     numbering, by lowest pivot), as :func:`forward_sweep` does for unit columns: ``emit(s, first, X_s)``
@@ -273,24 +296,9 @@ def load_sweep(tree: _Tree, B, sets: list, posB: np.ndarray, b0: int, b1: int, e
     of its turn.  With W_E from :func:`forward_sweep`, :math:`E^T A^{-1} B = W_E^T W_B` supernode by
     supernode (:func:`selected_columns` forms it in one pass; the compressed route stores both and forms it
     tile by tile).  Returns ``flops``."""
-    import scipy.sparse as sp
-
-    B = sp.csc_matrix(B)
-    nz_piv = tree.iperm[B.indices]
-    col_of = np.repeat(np.arange(B.shape[1]), np.diff(B.indptr))
-    keep = (posB[col_of] >= b0) & (posB[col_of] < b1)
-    nz_piv, col_of, data = nz_piv[keep], col_of[keep], B.data[keep]
     first = [int(np.searchsorted(c, b0)) for c in sets]
     part = [c[f:int(np.searchsorted(c, b1))] for c, f in zip(sets, first)]
-    by = np.argsort(tree.snode[nz_piv], kind="stable")
-    split = np.searchsorted(tree.snode[nz_piv][by], np.arange(tree.ns + 1))
-
-    def alloc(t):  # W_B[t] with B's entries whose pivots are t's
-        W = np.zeros((len(part[t]), tree.ncol[t]), order="F")
-        i = by[split[t]:split[t + 1]]
-        np.add.at(W, (np.searchsorted(part[t], posB[col_of[i]]), nz_piv[i] - tree.sup[t]), data[i])
-        return W
-
+    alloc = _load_blocks(tree, B, posB, part, (b0, b1))
     W = [None] * tree.ns
     flops = 0.0
     for s in range(tree.ns):
@@ -386,12 +394,8 @@ def selected_columns(L: dict, rows: np.ndarray, B) -> tuple[np.ndarray, dict]:
     pivE = tree.iperm[rows]
     loE, hiE, posE = tree.ranges(pivE)
     sets, posB = column_sets(tree, B)
-    nz_piv = tree.iperm[B.indices]
-    col_of = np.repeat(np.arange(k), np.diff(B.indptr))
-    byE = np.argsort(tree.snode[pivE], kind="stable")  # the rows' pivots and B's non-zeros by supernode
+    byE = np.argsort(tree.snode[pivE], kind="stable")  # the rows' pivots by supernode
     firstE = np.searchsorted(tree.snode[pivE][byE], np.arange(tree.ns + 1))
-    byB = np.argsort(tree.snode[nz_piv], kind="stable")
-    firstB = np.searchsorted(tree.snode[nz_piv][byB], np.arange(tree.ns + 1))
 
     def alloc_E(t):  # W_E[t] with its unit entries, on its first update or at its own turn (forward_sweep)
         W = np.zeros((hiE[t] - loE[t], tree.ncol[t]), order="F")
@@ -399,11 +403,7 @@ def selected_columns(L: dict, rows: np.ndarray, B) -> tuple[np.ndarray, dict]:
         W[posE[i] - loE[t], pivE[i] - tree.sup[t]] = 1.0
         return W
 
-    def alloc_B(t):  # W_B[t] with B's entries whose pivots are t's
-        W = np.zeros((len(sets[t]), tree.ncol[t]), order="F")
-        i = byB[firstB[t]:firstB[t + 1]]
-        np.add.at(W, (np.searchsorted(sets[t], posB[col_of[i]]), nz_piv[i] - tree.sup[t]), B.data[i])
-        return W
+    alloc_B = _load_blocks(tree, B, posB, sets)  # W_B[t] with B's entries whose pivots are t's
 
     # W_E and W_B held only from a supernode's first update to the end of its turn, as in forward_sweep
     # (allocating every block at the start held all of both)
