@@ -809,9 +809,9 @@ def test_cli_bad_inputs_are_one_line(tmp_path):
 def test_the_memory_check_counts_the_factor_where_it_is_held(monkeypatch):
     """stages.check_memory's guard follows where the factor lives (#27 item 3): the client never holds it (P1 and
     P2 alike), so with --scheduler nothing of it is counted on this machine, and locally the factor's worker (its
-    factor and the sweep) and the tiles are phases one after the other, the larger counted.  At 20,000 contact
-    vertices and P2's factor of the 20,427-vertex kidney (6.4 GiB, its size on the bench's 24 GiB machine) that
-    fits, where the route that sent the factor to every tile needed 28 GiB and was refused."""
+    factor and the sweep) and the tiles are phases one after the other, the larger counted.  With the 6.4 GiB P2
+    factor of the 20,427-vertex kidney the local need fits the share a LocalCluster of two workers gives each on
+    the bench's 24 GiB machine (11.8 GiB), where the route that sent the factor to every tile asked 28.3 GiB."""
     from pmask.pipeline import stages
     from pmask.precompute import elements, greens
 
@@ -831,7 +831,7 @@ def test_the_memory_check_counts_the_factor_where_it_is_held(monkeypatch):
     monkeypatch.setattr(elements.P2, "memory_estimate", lambda self, nv, nc: {"Xi": 0, "factor": 6.4 * 2**30,
                                                                               "total": 0})
     need = stages.check_memory(elements.get_element("P2"), nv, nc, Spec(model="kidney", compress=TOL, workers=2))
-    assert need["total"] < 12 * 2**30
+    assert need["total"] < 11.8 * 2**30  # (the factor's worker is the larger phase: 1.5x the factor)
 
 
 def test_memory_string_parsing():
