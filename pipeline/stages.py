@@ -856,10 +856,9 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         on_worker = bool(spec.compress)
         if on_worker:  # assembled, factorised and swept on a Dask worker (#27): the client holds neither
             from pmask.precompute import compress
-            from pmask.precompute.compress import FactorJob
 
             need = element.memory_estimate(len(mesh.points), len(surf.regions.contact))["factor"]
-            factor = FactorJob(functools.partial(factor_stage, spec, mesh, surf), ck, spec.solve_timeout,
+            factor = compress.FactorJob(functools.partial(factor_stage, spec, mesh, surf), ck, spec.solve_timeout,
                                element.name, compress.factor_phase_bytes(need))
             if st.bar is not None:
                 st.bar.update()
