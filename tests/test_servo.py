@@ -170,6 +170,120 @@ def test_a_deep_coupled_pair_freezes_and_pulls_the_same_way_in_both_engines(mode
     assert sum(all(s in (Status.CONTACT, Status.DEEP) for s in row) for row in statuses) > 0.2 * ticks
 
 
+def _coupled_trace(model, n, ticks=1500):
+    """n probes pressing and circling on the upper face, 8 mm apart (test_several_coupled_instruments)."""
+    top = model.contact[model.core]
+    order = np.argsort(-model.points[top, 2])
+    starts = [model.points[top[order[0]]]]
+    for i in order[1:]:
+        if all(np.linalg.norm(model.points[top[i]] - s) > 0.008 for s in starts):
+            starts.append(model.points[top[i]])
+        if len(starts) == n:
+            break
+    trace = []
+    for k in range(ticks):
+        d = 2e-3 * math.sin(math.pi * k / ticks) - 5e-4
+        trace.append([s + np.array([1.5e-3 * math.sin(0.01 * k + l), 1.5e-3 * math.cos(0.013 * k + l), -d])
+                      for l, s in enumerate(starts)])
+    return trace
+
+
+def _without_zeta(surface, monkeypatch):
+    """The native core on this surface's table without its ζ section (what a compressed artifact's surface has),
+    coupling through the surface's pair function; returns the list the counting pair function appends to
+    (the triangles, and the thread that asked)."""
+    import threading
+
+    table = servo.load_table(table_arrays(surface_sections(surface, zeta=False), surface.meta))
+    assert not table.counts()[2]
+    monkeypatch.setattr(servo, "_native_table", lambda srf, zeta: table)
+    calls, pair_blocks = [], surface.pair_blocks
+
+    def counted(ta, tb):
+        calls.append((ta, tb, threading.get_ident()))
+        return pair_blocks(ta, tb)
+
+    monkeypatch.setattr(surface, "pair_blocks", counted)
+    return calls
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.4])
+def test_a_pair_function_couples_as_the_zeta_table_does(model, surface, friction, monkeypatch):
+    """Coupled contacts without a ζ table (the hands issue's compressed artifacts, pm_servo_create_paired): the
+    core asks for a pair of mesh triangles' nine vertex-pair blocks when two contacts first land on them and
+    keeps them while both stay.  Given the blocks the surface's ζ table holds, three coupled instruments get the
+    ζ table's forces and statuses tick for tick (bit for bit: the same sums of the same numbers), and the pair
+    function is asked at most once per change of a pair's triangles (not per tick)."""
+    trace = _coupled_trace(model, 3)
+    opts = {"friction": friction, "dynamic_friction": 0.5 * friction}
+    ref = run(Contacts(surface, 3, engine="native", **opts), trace)
+    calls = _without_zeta(surface, monkeypatch)
+    paired = Contacts(surface, 3, engine="native", **opts)
+    assert paired._native.servo is not None and not paired._native.has_zeta
+    got, moves = [], 0
+    last = None
+    for probes in trace:
+        got.append(paired.step(probes))
+        tris = tuple(paired._native.state(k).tri for k in range(3))
+        moves += tris != last
+        last = tris
+    assert_same((np.array([f for f, _ in got], float), [s for _, s in got]), ref)
+    assert 0 < len(calls) <= 3 * moves < len(trace)  # three pairs; asked only when a triangle changes
+
+
+def test_the_servo_thread_asks_for_pairs_through_the_gil(model, surface, monkeypatch):
+    """Thread mode with a pair function: the servo's own thread takes the GIL to ask for a new pair's blocks
+    (the Python loop waits in exchange() without it), and the forces a tick-synchronous device loop reads are
+    the ζ table's step on the same trace, bit for bit."""
+    import threading
+
+    trace = _coupled_trace(model, 2, ticks=1200)
+    ref = run(Contacts(surface, 2, engine="native", friction=0.3), trace)
+    calls = _without_zeta(surface, monkeypatch)
+    c = Contacts(surface, 2, engine="native", friction=0.3)
+    c.start(1000.0, exchange=True)
+    try:
+        got = [c.exchange(p) for p in trace]
+        stats = c.tick_stats()
+    finally:
+        c.stop()
+    assert_same((np.array([f for f, _ in got], float), [s for _, s in got]), ref)
+    assert calls and threading.get_ident() not in {t for *_, t in calls}  # asked on the servo's thread
+    assert stats["ticks"] >= len(trace)
+
+
+def test_a_pair_function_s_mistakes_fail_the_step_loudly_or_hold_the_force(model, surface, monkeypatch, caplog):
+    """Our own pair function's bugs: a wrong count of numbers raises from the step (a traceback: the caller's
+    bug is not the user's); a non-finite block is refused by the core (INTERNAL_ERROR, the last force held,
+    logged), and the next good tick couples again.  Without a ζ table or a pair function coupled contacts are
+    refused at creation with the line that says what to give."""
+    from pmask.runtime.servo import _core
+
+    trace = _coupled_trace(model, 2, ticks=400)
+    _without_zeta(surface, monkeypatch)
+    good = surface.pair_blocks
+    monkeypatch.setattr(surface, "pair_blocks", lambda ta, tb: good(ta, tb)[:80])
+    c = Contacts(surface, 2, engine="native")
+    with pytest.raises(ValueError, match="81 numbers, got 80"):
+        for probes in trace:
+            c.step(probes)
+    bad = {"nan": True}
+    monkeypatch.setattr(surface, "pair_blocks",
+                        lambda ta, tb: [math.nan] * 81 if bad["nan"] else good(ta, tb))
+    c = Contacts(surface, 2, engine="native")
+    with caplog.at_level("ERROR"):
+        statuses = [c.step(p)[1] for p in trace[:250]]
+    assert any(Status.INTERNAL_ERROR in s for s in statuses)
+    assert any("internal error in the native haptic step" in r.message for r in caplog.records)
+    bad["nan"] = False
+    assert c.step(trace[250])[1] == [Status.CONTACT, Status.CONTACT]
+    table = servo.load_table(table_arrays(surface_sections(surface, zeta=False), surface.meta))
+    with pytest.raises(ValueError, match="zeta section .* or a pair function"):
+        _core.Servo(table, 2, (0.0, 0.0, 0.0, 0.0, 1e-3, 1000.0, 0.01, 0.9, 1.25, 50, 24, 1, 1), print)
+    with pytest.raises(TypeError, match="callable"):
+        _core.Servo(table, 2, (0.0, 0.0, 0.0, 0.0, 1e-3, 1000.0, 0.01, 0.9, 1.25, 50, 24, 1, 1), print, 3)
+
+
 samples = st.one_of(
     st.tuples(*[st.floats(allow_nan=True, allow_infinity=True, width=64)] * 3),
     st.tuples(*[st.floats(-0.06, 0.06)] * 3),

@@ -129,8 +129,12 @@ class NativeContacts:
         c = contacts
         options = (c.friction, c.dynamic_friction, c.damping, c.tool_radius, c.slip_length, float(c.device.rate),
                    c.max_jump, c.decay, c.proxy_speed, c.reset_after, c.max_walk, int(c.passivity), int(c.coupled))
+        # coupled without the table's ζ section (a compressed Ξ): the core asks the surface for a pair of
+        # triangles' blocks when two contacts first land on them (Ξ's near field and low-rank blocks, never a
+        # dense table; pm_servo_create_paired)
+        pairs = srf.pair_blocks if c.coupled and not self.table.counts()[2] and srf.greens else None
         try:
-            self.servo = _core.Servo(self.table, c.n, options, self._warn)
+            self.servo = _core.Servo(self.table, c.n, options, self._warn, pairs)
         except ValueError as exc:
             raise InputError(str(exc)) from None
         self.n = c.n

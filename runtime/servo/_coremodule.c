@@ -4,7 +4,9 @@
  * value that does not convert becomes NaN, a bad sample), calls pm_servo_step, and returns the same
  * objects the Python engine returns (tuples of floats, pmask.runtime.Status members).  The step runs
  * with the GIL held (it takes ~0.1-0.3 µs, less than releasing and taking the GIL back); the thread
- * mode's ticks never touch the GIL, and deformation and batch queries release it.
+ * mode's ticks never touch the GIL, and deformation and batch queries release it.  The one exception: a servo
+ * made with a Python pair function (coupled contacts on a compressed artifact, pm_servo_create_paired) calls it,
+ * taking the GIL on the servo's own thread, when a pair of contacts first lands on a pair of triangles.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -13,6 +15,12 @@
 #include <string.h>
 
 #include "pmask_servo.h"
+
+#if PY_VERSION_HEX >= 0x030D0000
+#define pm_py_finalizing Py_IsFinalizing
+#else
+#define pm_py_finalizing _Py_IsFinalizing
+#endif
 
 static PyObject *STATUS = NULL;   /* tuple of the 8 Status members, set by set_statuses */
 
@@ -374,6 +382,7 @@ typedef struct {
     pm_servo *servo;
     PyObject *table;   /* keeps the table alive */
     PyObject *warn;    /* warn(kind, x, y, z): 'far' once, 'internal' when an internal error begins */
+    PyObject *pairs;   /* pairs(ta, tb) -> 81 floats, or NULL (the table's ζ section, or no coupling) */
     int32_t n;
     int internal;
     double *probes, *forces;
@@ -390,30 +399,73 @@ static void Servo_dealloc(ServoObject *self)
     }
     Py_XDECREF(self->table);
     Py_XDECREF(self->warn);
+    Py_XDECREF(self->pairs);
     PyMem_Free(self->probes);
     PyMem_Free(self->forces);
     PyMem_Free(self->status);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
+/* The pair function (pm_pair_fn) of a servo given a Python one: pairs(ta, tb) -> 81 numbers.  From a step called
+ * from Python the GIL is held already, and an exception stays set for the step to raise; on the servo's own thread
+ * the call takes the GIL, and an exception is printed as unraisable (that tick holds its force, PM_INTERNAL_ERROR,
+ * and the next asks again). */
+static int python_pairs(void *user, int64_t ta, int64_t tb, double *P)
+{
+    ServoObject *self = user;
+    if (pm_py_finalizing()) return -1;  /* the interpreter is going: no Python to call */
+    const int held = PyGILState_Check();
+    PyGILState_STATE g = PyGILState_Ensure();
+    int rc = -1;
+    PyObject *r = PyObject_CallFunction(self->pairs, "LL", (long long)ta, (long long)tb);
+    PyObject *seq = r ? PySequence_Fast(r, "pairs() must return 81 numbers") : NULL;
+    if (seq && PySequence_Fast_GET_SIZE(seq) != 81)
+        PyErr_Format(PyExc_ValueError, "pairs() must return 81 numbers, got %zd", PySequence_Fast_GET_SIZE(seq));
+    else if (seq) {
+        rc = 0;
+        for (Py_ssize_t k = 0; k < 81 && rc == 0; k++) {
+            P[k] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(seq, k));
+            if (P[k] == -1.0 && PyErr_Occurred()) rc = -1;
+        }
+    }
+    Py_XDECREF(seq);
+    Py_XDECREF(r);
+    if (rc && !held) PyErr_WriteUnraisable(self->pairs);
+    PyGILState_Release(g);
+    return rc;
+}
+
 /* Servo(table, n, (friction, dynamic_friction, damping, tool_radius, slip_length, rate, max_jump, decay,
- *        proxy_speed, reset_after, max_walk, passivity, coupled), warn) */
+ *        proxy_speed, reset_after, max_walk, passivity, coupled), warn[, pairs]) */
 static int Servo_init(ServoObject *self, PyObject *args, PyObject *kw)
 {
-    PyObject *table, *warn;
+    PyObject *table, *warn, *pairs = Py_None;
     int n;
     pm_options o;
     int reset_after, max_walk, passivity, coupled;
-    if (!PyArg_ParseTuple(args, "O!i(dddddddddiiii)O", &TableType, &table, &n, &o.friction, &o.dynamic_friction,
+    if (!PyArg_ParseTuple(args, "O!i(dddddddddiiii)O|O", &TableType, &table, &n, &o.friction, &o.dynamic_friction,
                           &o.damping, &o.tool_radius, &o.slip_length, &o.rate, &o.max_jump, &o.decay, &o.proxy_speed,
-                          &reset_after, &max_walk, &passivity, &coupled, &warn))
+                          &reset_after, &max_walk, &passivity, &coupled, &warn, &pairs))
         return -1;
+    if (self->servo) {
+        PyErr_SetString(PyExc_RuntimeError, "Servo is already initialised");
+        return -1;
+    }
+    if (pairs != Py_None && !PyCallable_Check(pairs)) {
+        PyErr_SetString(PyExc_TypeError, "pairs must be callable or None");
+        return -1;
+    }
+    if (pairs != Py_None) {  /* set before the servo exists: the core keeps a pointer to self */
+        Py_INCREF(pairs);
+        self->pairs = pairs;
+    }
     o.reset_after = reset_after;
     o.max_walk = max_walk;
     o.passivity = passivity;
     o.coupled = coupled;
     char err[512] = "";
-    if (pm_servo_create(((TableObject *)table)->table, n, &o, &self->servo, err, sizeof err)) {
+    if (pm_servo_create_paired(((TableObject *)table)->table, n, &o, self->pairs ? python_pairs : NULL, self,
+                               &self->servo, err, sizeof err)) {
         PyErr_SetString(PyExc_ValueError, err);
         return -1;
     }
@@ -476,7 +528,7 @@ static PyObject *Servo_step(ServoObject *self, PyObject *probes)
 {
     probes_from(probes, self->n, self->probes);
     pm_servo_step(self->servo, self->probes, self->forces, self->status);
-    if (after_step(self)) return NULL;
+    if (PyErr_Occurred() || after_step(self)) return NULL;  /* the pair function's exception: our own bug */
     return results(self);
 }
 
@@ -485,7 +537,7 @@ static PyObject *Servo_step1(ServoObject *self, PyObject *probe)
 {
     sample_from(probe, self->probes);
     pm_servo_step(self->servo, self->probes, self->forces, self->status);
-    if (after_step(self)) return NULL;
+    if (PyErr_Occurred() || after_step(self)) return NULL;
     PyObject *f = triple(self->forces);
     if (!f) return NULL;
     return Py_BuildValue("(NN)", f, status_object(self->status[0]));

@@ -82,8 +82,8 @@ typedef struct {
     int32_t reset_after;      /* implausible samples in a row before tracking restarts */
     int32_t max_walk;         /* triangle steps per walk */
     int32_t passivity;        /* the passivity observer/controller */
-    int32_t coupled;          /* several contacts solved together (needs the ζ table); -1: when n > 1 and
-                                 the table has one */
+    int32_t coupled;          /* several contacts solved together (needs the ζ table, or a pair function:
+                                 pm_servo_create_paired); -1: when n > 1 and the table has one */
 } pm_options;
 
 /* One contact after a step (pmask.runtime.HapticContact's attributes). */
@@ -167,6 +167,17 @@ PM_API void pm_options_default(const pm_table *table, pm_options *options);
 /* A servo for n instruments: all memory the step needs is allocated here.  0 or a message. */
 PM_API int pm_servo_create(const pm_table *table, int32_t n, const pm_options *options, pm_servo **out,
                            char *err, size_t errlen);
+/* Coupled contacts without the table's ζ section (an artifact whose Ξ is compressed: its ζ table would be as
+ * large as dense Ξ).  `pairs(user, ta, tb, P)` fills P (81 doubles) with the nine vertex-pair blocks of mesh
+ * triangles ta and tb, for vertex x of ta and y of tb (x outer) P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) row-major, zero where
+ * either vertex has no row (pmask.runtime.contact.surface.ContactSurface.pair_blocks), and returns 0; anything
+ * else, or a non-finite block, fails that tick's step (PM_INTERNAL_ERROR, the last force held).  The core calls it
+ * on the step's thread, only when a pair of coupled contacts first lands on a pair of triangles (it keeps each
+ * pair's blocks while both stay there), so it may take longer than a tick: that tick is late by as much.  With a
+ * ζ section it is not called; NULL is pm_servo_create. */
+typedef int (*pm_pair_fn)(void *user, int64_t ta, int64_t tb, double *P);
+PM_API int pm_servo_create_paired(const pm_table *table, int32_t n, const pm_options *options, pm_pair_fn pairs,
+                                  void *user, pm_servo **out, char *err, size_t errlen);
 PM_API void pm_servo_free(pm_servo *servo);
 PM_API void pm_servo_reset(pm_servo *servo);
 /* One tick: probes (3n; a non-finite coordinate is a bad sample) -> forces on the users (3n), statuses (n).

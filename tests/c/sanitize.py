@@ -6,7 +6,8 @@ Builds, for each sanitizer, the servo core with
   in the library's callbacks),
 - ``tests/c/servo_threads.c`` (thread mode beside three application threads calling set_probes, read, state
   and deformation; then two threads exchanging a trace tick-synchronously; then a table over the file's own
-  sections, ``pm_table_from_sections``, stepped against the loaded one),
+  sections, ``pm_table_from_sections``, stepped against the loaded one; then those sections less the ζ table,
+  coupled through a pair function, ``pm_servo_create_paired``, stepped and exchanged against the loaded one),
 
 and the selected inversion with ``tests/c/selinv_driver.c`` (its page-fault helper thread, a cancel from a
 second thread, damaged factor arrays), over a runtime table exported from a small kidney artifact built here.

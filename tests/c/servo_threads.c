@@ -10,6 +10,9 @@
  *    second servo stepped on the same samples in the same order (bit for bit).
  * 3. A table over the file's own sections (pm_table_from_sections: borrowed, no copy) steps the trace as the
  *    loaded table does, bit for bit.
+ * 4. The same sections without "zeta" and "contact_row", coupled through a pair function
+ *    (pm_servo_create_paired) that reads the file's ζ section itself: the same steps as the loaded table, bit for
+ *    bit, stepped by the caller and in exchange mode (the pair function then runs on the servo's thread).
  * Prints one line per part; exits 1 on a failed check.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -130,6 +133,108 @@ static uint64_t le64(const unsigned char *p)
     return x;
 }
 
+/* part 4's pair function: the nine vertex-pair blocks of mesh triangles ta, tb from the file's own ζ section and
+ * contact rows, P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) (written here from the table format, not from the core's code) */
+typedef struct {
+    const double *zeta;
+    const int64_t *row, *tri;
+    int64_t n3;
+    int64_t calls;  /* atomic */
+} zeta_pairs;
+
+static int pairs_from_zeta(void *user, int64_t ta, int64_t tb, double *P)
+{
+    zeta_pairs *z = user;
+    __atomic_fetch_add(&z->calls, 1, __ATOMIC_RELAXED);
+    for (int x = 0; x < 3; x++)
+        for (int y = 0; y < 3; y++) {
+            const int64_t ri = z->row[z->tri[3 * ta + x]], rm = z->row[z->tri[3 * tb + y]];
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) {
+                    double v = 0.0;
+                    if (ri >= 0 && rm >= 0)  /* ζ_y(x)[r][c] is row 3 rm + c, column 3 ri + r of the section */
+                        v = 0.5 * (z->zeta[(3 * rm + c) * z->n3 + 3 * ri + r] + z->zeta[(3 * ri + r) * z->n3 + 3 * rm + c]);
+                    P[27 * x + 9 * y + 3 * r + c] = v;
+                }
+        }
+    return 0;
+}
+
+/* part 4: the loaded table's steps, stepped and exchanged, against a servo on the sections less the ζ table
+ * coupled through pairs_from_zeta */
+static int paired_steps_the_same(const pm_section *secs, uint32_t n, const pm_table *loaded, const shared *sh)
+{
+    pm_section *less = calloc(n, sizeof *less);
+    pm_table *t = NULL;
+    pm_servo *x = NULL, *y = NULL;
+    zeta_pairs z = {NULL, NULL, NULL, 0, 0};
+    uint32_t m = 0;
+    int rc = 1;
+    char err[512];
+    if (!less) return 1;
+    for (uint32_t i = 0; i < n; i++) {
+        if (!strcmp(secs[i].name, "zeta")) {
+            z.zeta = secs[i].data;
+            z.n3 = secs[i].cols;
+        } else if (!strcmp(secs[i].name, "contact_row")) {
+            z.row = secs[i].data;
+        } else {
+            if (!strcmp(secs[i].name, "mesh_triangles") || (!strcmp(secs[i].name, "triangles") && !z.tri))
+                z.tri = secs[i].data;  /* the mesh's triangles: mesh_triangles where the surface is subdivided */
+            less[m++] = secs[i];
+        }
+    }
+    static double forces[EXCHANGES][3 * N];
+    static int32_t status[EXCHANGES][N];
+    if (!z.zeta || !z.row || !z.tri) {
+        fprintf(stderr, "error: part 4 needs a table with its zeta section\n");
+        goto out;
+    }
+    pm_options o;
+    pm_options_default(loaded, &o);
+    o.friction = 0.3;
+    o.coupled = 1;
+    if (pm_table_from_sections(less, (int32_t)m, &t, err, sizeof err) || pm_table_has_zeta(t) ||
+        !pm_servo_create(t, N, &o, &y, err, sizeof err) ||  /* refused: coupled, no ζ, no pair function */
+        pm_servo_create(loaded, N, &o, &x, err, sizeof err) ||
+        pm_servo_create_paired(t, N, &o, pairs_from_zeta, &z, &y, err, sizeof err)) {
+        fprintf(stderr, "error: part 4: %s\n", err);
+        goto out;
+    }
+    int64_t differ = 0, differ_thread = 0;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], fx[3 * N], fy[3 * N];
+        int32_t sx[N], sy[N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        pm_servo_step(x, p, fx, sx);
+        pm_servo_step(y, p, fy, sy);
+        memcpy(forces[k], fx, sizeof fx);
+        memcpy(status[k], sx, sizeof sx);
+        if (memcmp(fx, fy, sizeof fx) != 0 || memcmp(sx, sy, sizeof sx) != 0) differ++;
+    }
+    const int64_t stepped = __atomic_load_n(&z.calls, __ATOMIC_RELAXED);
+    pm_servo_reset(y);
+    if (pm_servo_start_exchange(y, 1000.0, PM_SPIN_DEFAULT)) goto out;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], f[3 * N];
+        int32_t s[N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        if (pm_servo_exchange(y, p, f, s, 1.0) != 0 || memcmp(f, forces[k], sizeof f) != 0 ||
+            memcmp(s, status[k], sizeof s) != 0)
+            differ_thread++;
+    }
+    pm_servo_stop(y);
+    printf("a pair function in place of the zeta table: %d steps, %lld differ stepped, %lld in exchange mode; "
+           "%lld pairs asked for stepped\n", EXCHANGES, (long long)differ, (long long)differ_thread, (long long)stepped);
+    rc = differ != 0 || differ_thread != 0 || stepped < 1 || stepped > EXCHANGES / 4;
+out:
+    pm_servo_free(x);
+    pm_servo_free(y);
+    pm_table_free(t);
+    free(less);
+    return rc;
+}
+
 static int borrowed_table_steps_the_same(const char *path, const pm_table *loaded, const shared *sh)
 {
     FILE *f = fopen(path, "rb");
@@ -139,7 +244,7 @@ static int borrowed_table_steps_the_same(const char *path, const pm_table *loade
     fseek(f, 0, SEEK_SET);
     unsigned char *blob = malloc((size_t)size);
     int rc = 1;
-    pm_section *secs = NULL;
+    pm_section *secs = NULL, *secs_all = NULL;
     char (*names)[33] = NULL;
     pm_table *borrowed = NULL;
     pm_servo *x = NULL, *y = NULL;
@@ -147,8 +252,9 @@ static int borrowed_table_steps_the_same(const char *path, const pm_table *loade
     if (!blob || fread(blob, 1, (size_t)size, f) != (size_t)size) goto out;
     uint32_t n = (uint32_t)le64(blob + 32) & 0xFFFFFFFFu;
     secs = calloc(n, sizeof *secs);
+    secs_all = calloc(n, sizeof *secs_all);
     names = calloc(n, sizeof *names);
-    if (!secs || !names) goto out;
+    if (!secs || !secs_all || !names) goto out;
     for (uint32_t i = 0; i < n; i++) {
         const unsigned char *e = blob + 64 + 64 * (size_t)i;
         memcpy(names[i], e, 32);
@@ -159,6 +265,7 @@ static int borrowed_table_steps_the_same(const char *path, const pm_table *loade
         fprintf(stderr, "error: %s\n", err);
         goto out;
     }
+    memcpy(secs_all, secs, n * sizeof *secs);  /* for part 4 */
     free(secs);  /* the list may go; the arrays stay */
     secs = NULL;
     pm_options o;
@@ -178,11 +285,13 @@ static int borrowed_table_steps_the_same(const char *path, const pm_table *loade
     printf("a table over the file's sections: %d steps, %lld differ from the loaded table's\n", EXCHANGES,
            (long long)differ);
     rc = differ != 0;
+    if (paired_steps_the_same(secs_all, n, loaded, sh)) rc = 1;
 out:
     pm_servo_free(x);
     pm_servo_free(y);
     pm_table_free(borrowed);
     free(secs);
+    free(secs_all);
     free(names);
     free(blob);
     fclose(f);

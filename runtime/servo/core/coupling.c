@@ -61,10 +61,20 @@ static inline pm_v2 load2(const double *p)
     return v;
 }
 
+/* the pair function's blocks (pm_servo_create_paired), checked: 0, or -1 when it fails or gives a non-finite
+ * number (the sums below take P as finite) */
+static int pair_blocks_given(const pm_servo *S, int64_t ta, int64_t tbi, double *P)
+{
+    if (S->pairs(S->pairs_user, ta, tbi, P)) return -1;
+    for (int k = 0; k < 81; k++)
+        if (!isfinite(P[k])) return -1;
+    return 0;
+}
+
 /* C_lk for every pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks (those kept while both
  * contacts stay on the same triangles) (coupling.coupling_blocks); act ascending, so a < b is x < y, and only C_ab
- * is stored (C_ba = C_abᵀ is read transposed: less_coupling) */
-static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
+ * is stored (C_ba = C_abᵀ is read transposed: less_coupling).  0, or -1 when the pair function fails. */
+static int coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
 {
     const pm_table *tb = S->tab;
     const int32_t n = S->n;
@@ -85,7 +95,12 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
                 bb = mbb;
             }
             if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
-                pair_blocks(tb, ma, mb, P);
+                if (tb->zeta) {
+                    pair_blocks(tb, ma, mb, P);
+                } else if (pair_blocks_given(S, ma, mb, P)) {
+                    S->pair_tri[2 * ab] = -1;  /* asked again next tick */
+                    return -1;
+                }
                 S->pair_tri[2 * ab] = ta;
                 S->pair_tri[2 * ab + 1] = tbi;
             }
@@ -119,6 +134,7 @@ static void coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
             Sab[7] = s67[1];
             Sab[8] = s8;
         }
+    return 0;
 }
 
 /* x with A x = r, Gaussian elimination without pivoting (A s x s row-major, SPD), in place: 0, or -1 when a
@@ -308,7 +324,7 @@ static inline __attribute__((always_inline)) void less_coupling(const pm_servo *
 int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
 {
     const int coupled = S->o.coupled && na > 1;
-    if (coupled) coupling_blocks(S, act, na);
+    if (coupled && coupling_blocks(S, act, na)) return -1;
     int left = 0;  /* the pair's start also left each contact its ū' (res[l].ueff) */
     if (coupled && S->frictionless) {
         if (normal_start(S, act, na, &left)) return -1;

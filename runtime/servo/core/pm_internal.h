@@ -184,6 +184,8 @@ struct pm_servo {
     double *cpl;      /* n*n*9 coupling blocks */
     int64_t *pair_tri; /* n*n*2: the triangles each pair's kept vertex-pair blocks are for (-1: none) */
     double *pair_P;   /* n*n*81: those blocks (coupling.c) */
+    pm_pair_fn pairs;   /* those blocks without the table's ζ section (pm_servo_create_paired), and its user */
+    void *pairs_user;
     double *nA, *nr, *nx;  /* the frictionless start's normal system (n*n, n, n) */
     double *nW, *nwr, *nsol; /* its pressing contacts' system, eliminated in place, and solution (n*n, n, n) */
     int32_t *npress, *nidx; /* which contacts press; their indices (n, n) */

@@ -54,6 +54,12 @@ static int bad_option(char *err, size_t errlen, const char *name, double v, cons
 
 int pm_servo_create(const pm_table *t, int32_t n, const pm_options *opt, pm_servo **out, char *err, size_t errlen)
 {
+    return pm_servo_create_paired(t, n, opt, NULL, NULL, out, err, errlen);
+}
+
+int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, pm_pair_fn pairs, void *user,
+                           pm_servo **out, char *err, size_t errlen)
+{
     *out = NULL;
     pm_options o;
     if (opt) o = *opt; else pm_options_default(t, &o);
@@ -78,9 +84,11 @@ int pm_servo_create(const pm_table *t, int32_t n, const pm_options *opt, pm_serv
     if (o.reset_after < 1) return bad_option(err, errlen, "reset_after", o.reset_after, ">= 1");
     if (o.max_walk < 1) return bad_option(err, errlen, "max_walk", o.max_walk, ">= 1");
 #undef FIN
-    if (o.coupled < 0) o.coupled = (t->zeta != NULL && n > 1);
-    if (o.coupled && !t->zeta) {
-        if (err && errlen) snprintf(err, errlen, "coupled contacts need the table's zeta section (export it with the zeta table)");
+    if (o.coupled < 0) o.coupled = ((t->zeta != NULL || pairs != NULL) && n > 1);
+    if (o.coupled && !t->zeta && !pairs) {
+        if (err && errlen)
+            snprintf(err, errlen, "coupled contacts need the table's zeta section (export it with the zeta table) or "
+                     "a pair function (pm_servo_create_paired)");
         return -1;
     }
     pm_servo *s = calloc(1, sizeof *s);
@@ -92,6 +100,8 @@ int pm_servo_create(const pm_table *t, int32_t n, const pm_options *opt, pm_serv
     s->n = n;
     s->o = o;
     s->o.coupled = o.coupled ? 1 : 0;
+    s->pairs = t->zeta ? NULL : pairs;
+    s->pairs_user = user;
     s->o.passivity = o.passivity ? 1 : 0;
     s->frictionless = (o.friction == 0.0 && o.dynamic_friction == 0.0);
     s->margin = 2.0 * o.max_jump + o.tool_radius;
