@@ -378,3 +378,19 @@ def push_metrics(force, status, depth, speed: float = 0.01, rate: float = RATE) 
             "fall_at": int(i[np.argmax(falls)]) if len(m) and np.max(falls) > 0.0 else -1,
             "fall_contact": float(np.max(1.0 - mag[j] / mag[j - 1])) if len(j) else 0.0,
             "deep": bool(np.any(status[first:end + 1] == Status.DEEP)), "end": end, "first": first}
+
+
+def grasp_path(model, depth: float = 2.5e-3, slide: float = 3e-3, press: int = 400, hold: int = 300) -> np.ndarray:
+    """Two jaws squeezing a model's middle from above and below, (press + hold, 2, 3) probe positions: from 2 mm
+    outside to ``depth`` in along each jaw's vertex normal over ``press`` ticks, then held that deep while both
+    slide ``slide`` along x over ``hold`` ticks (so that friction acts and the contacts cross triangles).  The
+    jaws sit at the highest and lowest contact vertices within the middle 30 % of the model's x extent."""
+    from pmask.runtime.geometry import vertex_normals
+
+    P, free = model.points, model.contact[model.core]
+    middle = free[np.abs(P[free, 0]) < 0.3 * np.abs(P[free, 0]).max()]
+    n = vertex_normals(P, model.triangles)
+    jaws = [(P[v], n[v]) for v in (middle[np.argmax(P[middle, 2])], middle[np.argmin(P[middle, 2])])]
+    d = np.concatenate([np.linspace(-2e-3, depth, press), np.full(hold, depth)])
+    x = np.concatenate([np.zeros(press), np.linspace(0.0, slide, hold)])
+    return np.stack([p - d[:, None] * nv + x[:, None] * [1.0, 0.0, 0.0] for p, nv in jaws], axis=1)

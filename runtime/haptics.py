@@ -161,15 +161,6 @@ class Contacts:
         self._exchange = False
         if engine not in (None, "native", "python"):
             raise InputError(f"engine must be 'native', 'python' or None, got {engine!r}")
-        if engine != "python" and self.coupled and s.compressed:
-            # the C core couples contacts through the ζ table, which a compressed Ξ does not have (it is as
-            # large as Ξ): the Python engine couples them from Ξ's blocks instead
-            if engine == "native":
-                raise InputError("engine='native' couples contacts through a ζ table, and this artifact's Green's "
-                                 "functions are compressed (the table would be as large as dense Ξ): use "
-                                 "engine='python' (or None), coupled=False, or an artifact precomputed without "
-                                 "--compress")
-            engine = "python"
         if engine != "python":
             servo = _servo_module()
             if servo is not None and servo.available():
