@@ -111,9 +111,8 @@ def test_the_edge_of_a_contact_region_and_the_support(kidney_top):
     assert {Status.CONTACT, Status.REGION_EDGE} <= seen
 
 
-@pytest.mark.parametrize("n, friction", [(2, 0.0), (3, 0.4), (4, 0.0)])
-def test_several_coupled_instruments(model, surface, n, friction):
-    """n probes pressing and circling on the upper face, coupled through the ζ table."""
+def _coupled_trace(model, n, ticks=1500):
+    """n probes pressing and circling on the upper face, 8 mm apart."""
     top = model.contact[model.core]
     order = np.argsort(-model.points[top, 2])
     starts = [model.points[top[order[0]]]]
@@ -122,12 +121,19 @@ def test_several_coupled_instruments(model, surface, n, friction):
             starts.append(model.points[top[i]])
         if len(starts) == n:
             break
-    ticks = 1500
     trace = []
     for k in range(ticks):
         d = 2e-3 * math.sin(math.pi * k / ticks) - 5e-4
         trace.append([s + np.array([1.5e-3 * math.sin(0.01 * k + l), 1.5e-3 * math.cos(0.013 * k + l), -d])
                       for l, s in enumerate(starts)])
+    return trace
+
+
+@pytest.mark.parametrize("n, friction", [(2, 0.0), (3, 0.4), (4, 0.0)])
+def test_several_coupled_instruments(model, surface, n, friction):
+    """n probes pressing and circling on the upper face, coupled through the ζ table."""
+    ticks = 1500
+    trace = _coupled_trace(model, n, ticks)
     trace[700][1] = (math.nan, 0.0, 0.0)  # one instrument's bad sample while the others press on
     opts = {"friction": friction, "dynamic_friction": 0.5 * friction}
     py_contacts = Contacts(surface, n, engine="python", **opts)
@@ -168,24 +174,6 @@ def test_a_deep_coupled_pair_freezes_and_pulls_the_same_way_in_both_engines(mode
     assert_same((np.array(forces, float), statuses), c)
     assert frozen == {0, 1}  # both went past δ*: the frozen branch ran
     assert sum(all(s in (Status.CONTACT, Status.DEEP) for s in row) for row in statuses) > 0.2 * ticks
-
-
-def _coupled_trace(model, n, ticks=1500):
-    """n probes pressing and circling on the upper face, 8 mm apart (test_several_coupled_instruments)."""
-    top = model.contact[model.core]
-    order = np.argsort(-model.points[top, 2])
-    starts = [model.points[top[order[0]]]]
-    for i in order[1:]:
-        if all(np.linalg.norm(model.points[top[i]] - s) > 0.008 for s in starts):
-            starts.append(model.points[top[i]])
-        if len(starts) == n:
-            break
-    trace = []
-    for k in range(ticks):
-        d = 2e-3 * math.sin(math.pi * k / ticks) - 5e-4
-        trace.append([s + np.array([1.5e-3 * math.sin(0.01 * k + l), 1.5e-3 * math.cos(0.013 * k + l), -d])
-                      for l, s in enumerate(starts)])
-    return trace
 
 
 def _without_zeta(surface, monkeypatch):
