@@ -12,7 +12,9 @@
 
 Why the binding exists beside the Python engine: a Python step costs tens of µs, most of it the
 interpreter, and a Python tick shares the GIL with every other Python thread; the C step costs well
-under a µs, and in thread mode the tick never touches the GIL (``make bench`` measures both).
+under a µs, and in thread mode the tick never touches the GIL (``make bench`` measures both), but where coupled
+contacts on a compressed artifact land on a new pair of triangles: the core then asks the surface for their
+coupling blocks (``pm_servo_create_paired``), a Python call.
 """
 from __future__ import annotations
 

@@ -186,6 +186,10 @@ struct pm_servo {
     double *pair_P;   /* n*n*81: those blocks (coupling.c) */
     pm_pair_fn pairs;   /* those blocks without the table's ζ section (pm_servo_create_paired), and its user */
     void *pairs_user;
+    int64_t *given_tri; /* PM_PAIR_CACHE x 2: the triangle pairs the pair function gave last (-1: none) */
+    double *given_P;    /* PM_PAIR_CACHE x 81: their blocks (coupling.c: a contact that goes back and forth over
+                           an edge asks once; the function may take the GIL) */
+    int32_t given_next; /* the entry replaced next (round robin) */
     double *nA, *nr, *nx;  /* the frictionless start's normal system (n*n, n, n) */
     double *nW, *nwr, *nsol; /* its pressing contacts' system, eliminated in place, and solution (n*n, n, n) */
     int32_t *npress, *nidx; /* which contacts press; their indices (n, n) */
@@ -243,6 +247,7 @@ PM_HIDDEN int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom 
 PM_HIDDEN int pm__local_law(const pm_servo *S, const cstate *st, const geom *g, double ux, double uy, double uz,
                             lres *R);
 /* coupling.c (step 3) */
+#define PM_PAIR_CACHE 64
 PM_HIDDEN void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tbi, const double *bb,
                               double *C);
 PM_HIDDEN int pm__solve(pm_servo *S, const int32_t *act, int32_t na);

@@ -116,6 +116,11 @@ int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, 
     ALLOC(s->cpl, (size_t)n * n * 9);
     ALLOC(s->pair_tri, (size_t)n * n * 2);
     ALLOC(s->pair_P, (size_t)n * n * 81);
+    if (s->pairs) {
+        ALLOC(s->given_tri, 2 * PM_PAIR_CACHE);
+        ALLOC(s->given_P, 81 * PM_PAIR_CACHE);
+        for (int k = 0; k < 2 * PM_PAIR_CACHE; k++) s->given_tri[k] = -1;
+    }
     for (size_t k = 0; k < (size_t)n * n * 2; k++) s->pair_tri[k] = -1;
     ALLOC(s->nA, (size_t)n * n);
     ALLOC(s->nr, n);
@@ -185,6 +190,8 @@ void pm_servo_free(pm_servo *s)
     free(s->cpl);
     free(s->pair_tri);
     free(s->pair_P);
+    free(s->given_tri);
+    free(s->given_P);
     free(s->nA);
     free(s->nr);
     free(s->nx);
