@@ -61,6 +61,35 @@ def test_masks_normalised_and_compact_on_uneven_mesh(kind):
         assert m.single_vertex == int(np.sum(np.sum(d < r, axis=1) == 1))
 
 
+
+def test_masks_are_built_within_twice_their_own_size(monkeypatch):
+    """The masks grow like n² at a fixed radius (11.9 million pairs at 20,427 vertices with 10 mm masks, by hand:
+    about 1 GiB of indices and values at 47,467), and building them held twice that again on top (the runs, their
+    concatenation, then the normalisation's temporaries over all of it: the 47,467-vertex organ's every-K_i
+    process peaked at 3.5 GiB, the bench's organ row before this).  Normalised a run at a time, the peak is the runs and one of their concatenations at a time: 1.5x
+    the masks' own bytes (measured 1.51x; 3.0x before), held here to 2x (slack for a run's temporaries and the
+    arrays the size of the centres), with the neighbour search's runs made small so that its own temporaries (a
+    fixed budget, ~0.4 GB) do not hide the rest.  The same values as normalising the whole at once, to the bit."""
+    from functools import partial
+
+    from conftest import traced_peak
+    from pmask.runtime import masks as masks_module
+    from pmask.runtime.spatial import pairs_within
+
+    rng = np.random.default_rng(5)
+    pts = rng.random((12000, 3)) * 0.05  # a 5 cm cube: ~250 neighbours within 9 mm
+    areas = rng.random(len(pts)) + 0.5
+    monkeypatch.setattr(masks_module, "pairs_within", partial(pairs_within, candidates=1 << 16))
+    m, peak = traced_peak(pressure_masks, pts, areas, np.arange(len(pts)), "linear", 0.009)
+    own = m.indices.nbytes + m.values.nbytes
+    assert own > 30e6  # the pairs, not the run's temporaries, dominate
+    assert peak <= 2.0 * own, (peak / own)
+    rows = np.repeat(np.arange(len(pts)), np.diff(m.indptr))
+    d = np.linalg.norm(pts[rows] - pts[m.indices], axis=1)
+    w = 1.0 - d / 0.009
+    assert np.array_equal(m.values, w / np.repeat(np.add.reduceat(areas[m.indices] * w, m.indptr[:-1]),
+                                                 np.diff(m.indptr)))
+
 def test_pairs_within_a_radius_are_those_a_whole_scan_finds():
     """The masks' neighbour search (a grid of cells of edge at least r, spatial.pairs_within) finds exactly the
     pairs a scan of every vertex finds, columns ascending per centre, with |p_c − p_j|² to round-off: on points
