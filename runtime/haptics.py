@@ -218,8 +218,10 @@ class Contacts:
         the same samples (a tick with no sample waiting runs no step: ``tick_stats()["idle"]``).
 
         With the native core the thread is a native one (a real-time priority where the process may have one):
-        its ticks never take the GIL, so Python threads beside it (graphics, I/O) cannot delay them.  Without it,
-        a Python thread runs the Python step (the same API; its ticks share the GIL).  ``spin``: the thread
+        its ticks never take the GIL, so Python threads beside it (graphics, I/O) cannot delay them, except where
+        coupled contacts on a compressed artifact land on a new pair of triangles: that tick takes the GIL to read
+        their coupling blocks (the large-organs guide).  Without it, a Python thread runs the Python step (the same
+        API; its ticks share the GIL).  ``spin``: the thread
         sleeps to this many seconds before each tick and spins the rest (:data:`SPIN`; 0 sleeps only)."""
         rate = float(self.device.rate if rate is None else _num("rate", rate, lo=0.0, lo_open=True, hi=1e5))
         spin = _num("spin", spin, hi=0.01)
