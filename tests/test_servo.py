@@ -195,14 +195,17 @@ def _without_zeta(surface, monkeypatch):
     return calls
 
 
-@pytest.mark.parametrize("friction", [0.0, 0.4])
-def test_a_pair_function_couples_as_the_zeta_table_does(model, surface, friction, monkeypatch):
+@pytest.mark.parametrize("levels, friction", [(0, 0.0), (0, 0.4), (2, 0.4)])
+def test_a_pair_function_couples_as_the_zeta_table_does(model, stiff, surface, levels, friction, monkeypatch):
     """Coupled contacts without a ζ table (the hands issue's compressed artifacts, pm_servo_create_paired): the
     core asks for a pair of mesh triangles' nine vertex-pair blocks when two contacts first land on them and
     keeps them while both stay.  Given the blocks the surface's ζ table holds, three coupled instruments get the
-    ζ table's forces and statuses tick for tick (bit for bit: the same sums of the same numbers), and the pair
-    function is asked only when a pair's triangles change (not per tick), and never twice for the same pair
-    (the core keeps the last 64 it was given: contacts go back and forth over edges)."""
+    ζ table's forces and statuses tick for tick (bit for bit: the same sums of the same numbers), on the mesh and
+    on its subdivision surface (whose contact triangles the core maps to the mesh's before it asks); the pair
+    function is asked only when a pair's triangles change (not per tick), and not again while the pair is among
+    the last 64 the core keeps (contacts go back and forth over edges)."""
+    if levels:
+        surface = ContactSurface.of(stiff, levels=levels)
     trace = _coupled_trace(model, 3)
     opts = {"friction": friction, "dynamic_friction": 0.5 * friction}
     ref = run(Contacts(surface, 3, engine="native", **opts), trace)
