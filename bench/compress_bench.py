@@ -238,7 +238,6 @@ def haptic_step(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> 
     return out
 
 
-
 def coupled_step(dense: Path, compressed: Path, repeats: int = 3) -> dict:
     """Two coupled jaws (``strokes.grasp_path``: 2.5 mm in, then slid 10 mm, μ = 0.3) in the native core through the
     Python binding, on the organ-scale compressed artifact (the core asks the surface for a pair of triangles'
@@ -288,6 +287,7 @@ def coupled_step(dense: Path, compressed: Path, repeats: int = 3) -> dict:
     out["request_max_ms"] = [float(np.max(a) * 1e3) if a else None for a in requests]
     out["ratio"] = float(np.median(np.concatenate(runs["compressed"])) / np.median(np.concatenate(runs["dense"])))
     return out
+
 
 def eight_workers(size, work: Path) -> dict:
     """A simulated 8-worker cluster on this 2-core machine, each worker limited to 1 GiB: peak RSS per worker."""
