@@ -247,9 +247,9 @@ def test_the_servo_thread_asks_for_pairs_through_the_gil(model, surface, monkeyp
 
 
 def test_a_pair_function_s_mistakes_fail_the_step_loudly_or_hold_the_force(model, surface, monkeypatch, caplog):
-    """Our own pair function's bugs: a wrong count of numbers raises from the step (a traceback: the caller's
-    bug is not the user's); a non-finite block is refused by the core (INTERNAL_ERROR, the last force held,
-    logged), and the next good tick couples again.  Without a ζ table or a pair function coupled contacts are
+    """Our own pair function's bugs: a wrong count of numbers raises from the step (a traceback: our bug, not
+    the user's); a non-finite block is refused by the core (INTERNAL_ERROR, the last force held, logged), and
+    once the function gives good blocks again both contacts are back in contact at the next tick.  Without a ζ table or a pair function coupled contacts are
     refused at creation with the line that says what to give."""
     from pmask.runtime.servo import _core
 
