@@ -133,6 +133,24 @@ static uint64_t le64(const unsigned char *p)
     return x;
 }
 
+/* parts 3 and 4: servos x and y stepped on the trace side by side; the ticks whose forces or statuses differ
+ * (x's forces and statuses kept in forces/status when given) */
+static int64_t step_both(pm_servo *x, pm_servo *y, const shared *sh, double (*forces)[3 * N], int32_t (*status)[N])
+{
+    int64_t differ = 0;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], fx[3 * N], fy[3 * N];
+        int32_t sx[N], sy[N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        pm_servo_step(x, p, fx, sx);
+        pm_servo_step(y, p, fy, sy);
+        if (forces) memcpy(forces[k], fx, sizeof fx);
+        if (status) memcpy(status[k], sx, sizeof sx);
+        if (memcmp(fx, fy, sizeof fx) != 0 || memcmp(sx, sy, sizeof sx) != 0) differ++;
+    }
+    return differ;
+}
+
 /* part 4's pair function: the nine vertex-pair blocks of mesh triangles ta, tb from the file's own ζ section and
  * contact rows, P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) (written here from the table format, not from the core's code) */
 typedef struct {
@@ -201,17 +219,8 @@ static int paired_steps_the_same(const pm_section *secs, uint32_t n, const pm_ta
         fprintf(stderr, "error: part 4: %s\n", err);
         goto out;
     }
-    int64_t differ = 0, differ_thread = 0;
-    for (int64_t k = 0; k < EXCHANGES; k++) {
-        double p[3 * N], fx[3 * N], fy[3 * N];
-        int32_t sx[N], sy[N];
-        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
-        pm_servo_step(x, p, fx, sx);
-        pm_servo_step(y, p, fy, sy);
-        memcpy(forces[k], fx, sizeof fx);
-        memcpy(status[k], sx, sizeof sx);
-        if (memcmp(fx, fy, sizeof fx) != 0 || memcmp(sx, sy, sizeof sx) != 0) differ++;
-    }
+    const int64_t differ = step_both(x, y, sh, forces, status);
+    int64_t differ_thread = 0;
     const int64_t stepped = __atomic_load_n(&z.calls, __ATOMIC_RELAXED);
     pm_servo_reset(y);
     if (pm_servo_start_exchange(y, 1000.0, PM_SPIN_DEFAULT)) goto out;
@@ -273,15 +282,7 @@ static int borrowed_table_steps_the_same(const char *path, const pm_table *loade
     o.friction = 0.3;
     if (pm_servo_create(loaded, N, &o, &x, err, sizeof err) || pm_servo_create(borrowed, N, &o, &y, err, sizeof err))
         goto out;
-    int64_t differ = 0;
-    for (int64_t k = 0; k < EXCHANGES; k++) {
-        double p[3 * N], fx[3 * N], fy[3 * N];
-        int32_t sx[N], sy[N];
-        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
-        pm_servo_step(x, p, fx, sx);
-        pm_servo_step(y, p, fy, sy);
-        if (memcmp(fx, fy, sizeof fx) != 0 || memcmp(sx, sy, sizeof sx) != 0) differ++;
-    }
+    const int64_t differ = step_both(x, y, sh, NULL, NULL);
     printf("a table over the file's sections: %d steps, %lld differ from the loaded table's\n", EXCHANGES,
            (long long)differ);
     rc = differ != 0;
