@@ -375,6 +375,59 @@ class CompressedXi:
                    near_q=g["near_q"], near_scale=g["near_scale"])
 
 
+#: ζ_m(i) blocks a :class:`MaskedXi` keeps (9 floats each; a few contacts use tens)
+ZETA_BLOCK_CACHE = 65536
+
+
+class MaskedXi:
+    r"""Ξ seen through the core masks without the ζ table (as large as Ξ): what coupled contacts and the display
+    read from a compressed Ξ (either form works; a dense one has its ζ table instead).
+
+    ``mask_row(c)``: (columns, weights) of the mask centred at contact vertex c (contact indices), empty where it
+    has none.  :meth:`block` is ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) from Ξ's blocks of mask m's columns at row i (the
+    exact near field, or the far field's low-rank factors: work of the mask's size times the rank, whatever n),
+    kept in a bounded cache, since contacts stay on the same vertices for many ticks; :meth:`deformation_of` is
+    eq. 16 as one product Ξ x."""
+
+    def __init__(self, Xi, mask_row, cache: int = ZETA_BLOCK_CACHE):
+        self.Xi, self.mask_row, self.cache = Xi, mask_row, int(cache)
+        self._blocks = {}
+
+    def block(self, m: int, i: int) -> list:
+        """ζ_m(i)ᵀ for contact vertices m (the force's) and i (the displaced one), three lists of three (the block
+        function of :func:`pmask.runtime.stiffness.zeta_compliance`); zero where m has no mask (a zero row of the ζ
+        table too)."""
+        key = (m, i)
+        blk = self._blocks.get(key)
+        if blk is None:
+            cols, w = self.mask_row(m)
+            Z = np.einsum("j,jrc->rc", w, xi_blocks(self.Xi, np.full(len(cols), i), cols)) if len(cols) \
+                else np.zeros((3, 3))
+            blk = Z.T.tolist()
+            if len(self._blocks) >= self.cache:
+                self._blocks.clear()
+            self._blocks[key] = blk
+        return blk
+
+    def deformation_of(self, mesh_T, contact_row, loads) -> np.ndarray:
+        """eq. 16 summed over point loads ``[(mesh triangle, barycentrics, force), ...]``: one product Ξ x, x the
+        loads spread over each loaded vertex's mask, which touches only the blocks of the loaded columns.  The
+        displacement (len(contact_row), 3) of every mesh vertex, zero where ``contact_row`` is -1."""
+        x = np.zeros((self.Xi.n, 3))
+        for t, b, f in loads:
+            for vertex, phi in zip(mesh_T[t], b):
+                c = contact_row[vertex]
+                if phi != 0.0 and c >= 0:
+                    cols, w = self.mask_row(c)
+                    x[cols] += (phi * np.asarray(w))[:, None] * np.asarray(f, float)
+        v_contact = self.Xi.matvec(x.ravel()).reshape(-1, 3)
+        contact_row = np.asarray(contact_row)
+        v = np.zeros((len(contact_row), 3))
+        has = contact_row >= 0
+        v[has] = v_contact[contact_row[has]]
+        return v
+
+
 def xi_blocks(Xi, i, j) -> np.ndarray:
     """Ξ_ij (pairs, 3, 3) from either form: a dense (3n, 3n) array or :class:`CompressedXi`."""
     if isinstance(Xi, CompressedXi):

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from pmask.errors import InputError, PmaskError
-from pmask.runtime.compressed import CompressedXi, xi_blocks
+from pmask.runtime.compressed import CompressedXi, MaskedXi, xi_blocks
 from pmask.runtime.geometry import one_rings
 from pmask.runtime.masks import Masks
 from pmask.runtime.spatial import bounded_runs, concatenated_ranges
@@ -48,8 +48,6 @@ from pmask.runtime.spatial import bounded_runs, concatenated_ranges
 BARY_TOL = 1e-6
 #: Jacobi sweeps that relax the support's rendered stiffness (see ``Stiffness._blend_support``)
 SUPPORT_RELAX_SWEEPS = 20
-#: ζ_m(i) blocks :meth:`Stiffness.zeta_block` keeps (9 floats each; a few contacts use tens)
-ZETA_BLOCK_CACHE = 65536
 #: queries per piece in ``at_batch``: the gathered rows (27 floats each) stay in cache (measured:
 #: 1 M random queries 7 -> 14 M/s on 500 vertices, 4 -> 7 M/s on 50,000)
 BATCH_CHUNK = 32768
@@ -270,7 +268,7 @@ class Stiffness(SurfaceStiffness):
         self._contact_row = np.full(n_s, -1)
         self._contact_row[model.contact] = np.arange(len(model.contact))
         self._zeta_table = None
-        self._zeta_blocks = {}
+        self._masked = MaskedXi(model.Xi, self._mask_row)
         self._mask_of_contact = np.full(len(model.contact), -1)
         self._mask_of_contact[masks.centres] = np.arange(len(masks.centres))
 
@@ -396,18 +394,12 @@ class Stiffness(SurfaceStiffness):
         masks, which touches only the blocks of the loaded columns)."""
         if not self.compressed:
             return zeta_deformation(self.zeta_table(), self._contact_row, self.triangles, loads)
-        x = np.zeros((len(self.model.contact), 3))
-        for t, b, f in loads:
-            for vertex, phi in zip(self.triangles[t], b):
-                k = self._row_of_surface[vertex]
-                if phi != 0.0 and k >= 0:
-                    cols, w = self.masks.row(k)
-                    x[cols] += (phi * w)[:, None] * np.asarray(f, float)
-        v_contact = self.model.Xi.matvec(x.ravel()).reshape(-1, 3)
-        v = np.zeros((len(self._contact_row), 3))
-        has = self._contact_row >= 0
-        v[has] = v_contact[self._contact_row[has]]
-        return v
+        return self._masked.deformation_of(self.triangles, self._contact_row, loads)
+
+    def _mask_row(self, c: int):
+        """(columns, weights) of the core mask centred at contact vertex c, empty where it has none."""
+        k = self._mask_of_contact[c]
+        return self.masks.row(k) if k >= 0 else (np.zeros(0, np.int64), np.zeros(0))
 
     def compliance_between(self, t_l, b_l, t_k, b_k) -> np.ndarray:
         r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k
@@ -427,20 +419,7 @@ class Stiffness(SurfaceStiffness):
         if self._zeta_table is not None:
             Zt = self._zeta_table
             return Zt[3 * rm:3 * rm + 3, 3 * ri:3 * ri + 3].tolist()
-        key = (rm, ri)
-        blk = self._zeta_blocks.get(key)
-        if blk is None:
-            k = self._mask_of_contact[rm]
-            if k < 0:  # no mask at m (outside the core): a zero row in the ζ table too
-                blk = [[0.0] * 3 for _ in range(3)]
-            else:
-                cols, w = self.masks.row(k)
-                Z = np.einsum("j,jrc->rc", w, xi_blocks(self.model.Xi, np.full(len(cols), ri), cols))
-                blk = Z.T.tolist()
-            if len(self._zeta_blocks) >= ZETA_BLOCK_CACHE:
-                self._zeta_blocks.clear()
-            self._zeta_blocks[key] = blk
-        return blk
+        return self._masked.block(rm, ri)
 
     def coupled_forces(self, points, displacements) -> np.ndarray:
         r"""Forces at several contact points that impose the given displacements, solved together through the
