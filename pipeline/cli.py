@@ -418,7 +418,8 @@ def add_export_table(sub) -> None:
     p.add_argument("--normal-radius", type=float, help="crease-blending radius of the contact normals (default 3 mask radii)")
     add_levels(p)
     p.add_argument("--no-zeta", action="store_true",
-                   help="leave out the zeta table (3n_c x 3n_c doubles): single contacts only, no deformation")
+                   help="leave out the zeta table (3n_c x 3n_c doubles), or a compressed artifact's Green's functions: "
+                        "single and uncoupled contacts only, no deformation")
     p.set_defaults(func=cmd_export_table)
 
 
@@ -430,15 +431,13 @@ def cmd_export_table(args) -> int:
     model = Model.load(args.artifact)
     compressed = model.attrs.get("greens_form") == "hmatrix"
     out = export_table(model, Path(args.out), mask=args.mask, radius=args.radius, k_rigid=args.k_rigid,
-                       normal_radius=args.normal_radius, zeta=not args.no_zeta and not compressed,
-                       levels=levels_of(args))
+                       normal_radius=args.normal_radius, zeta=not args.no_zeta, levels=levels_of(args))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB)")
     if compressed and not args.no_zeta:
         n3 = 3 * len(model.contact)
-        print(f"  without the zeta table: this artifact's Green's functions are compressed, and the table would be a "
-              f"dense {n3} x {n3} array ({n3 * n3 * 8 / 2**30:.1f} GiB); the table renders single contacts (and "
-              "uncoupled ones); couple contacts and deform the surface from Python (pmask.runtime.Contacts), or "
-              "export from an artifact precomputed without --compress")
+        print(f"  with the compressed Green's functions in place of the zeta table (a dense {n3} x {n3} array, "
+              f"{n3 * n3 * 8 / 2**30:.1f} GiB): the C core couples contacts from them; the deformation "
+              "(pm_servo_deformation) needs the zeta table: deform the surface from Python (pmask.runtime.Contacts)")
     return 0
 
 

@@ -6,9 +6,10 @@ linear --radius R -o FILE``, or :func:`export_table`); the native servo core
 the rendered per-vertex stiffness K_i (eq. 12 with the support blend and the region taper of
 :mod:`pmask.runtime.stiffness`), so an application needs neither Ξ nor the masks.
 
-Format 1.3, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
+Format 1.4, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
 contact law needs, and a 1.0 table is refused with the advice to export it again; 1.2 the display surface; 1.3
-the subdivided contact surface's map to the mesh, ``mesh_triangles``, ``parent`` and ``corners``)::
+the subdivided contact surface's map to the mesh, ``mesh_triangles``, ``parent`` and ``corners``; 1.4 a
+compressed Ξ's own sections in place of the ζ table, ``xi_*`` and ``mask_*``)::
 
     header (64 bytes)   "PMASKTBL", u32 major, u32 minor, u64 file size, u64 directory offset (64),
                         u32 section count, u32 CRC-32 of the header (this field zero) and the directory,
@@ -37,7 +38,16 @@ bounds            2 x 3        bounding box (lower, upper corner)
 lengths           1 x 2        mean edge length, bounding-box diagonal
 zeta              3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ), for coupled contacts and
                                the deformation of eq. 16
-contact_row       n_m x 1      with zeta: each mesh vertex's row block, -1 for none
+contact_row       n_m x 1      with zeta or xi_info: each mesh vertex's row block (contact vertex), -1 for none
+xi_info           1 x 3        optional (1.4, a compressed artifact's table, in place of zeta): n_c, bytes of a
+                               factor's value (4 or 8), 1 when only the blocks on and above the diagonal are stored
+xi_*              ...          with xi_info: Ξ as :mod:`pmask.runtime.compressed` stores it (perm, leaves, scale,
+                               dense_index, near_index, near_exact, near_mask, near_q (int16 bytes),
+                               near_scale, lowrank_index, U and V (bytes)) and ``xi_owner`` (key, block,
+                               flipped: the lookup of a pair of leaves' block), :func:`greens_sections`
+mask_ptr          n_c+1 x 1    with xi_info: the core masks ρ^m by contact vertex m in compressed rows, ...
+mask_cols         · x 1        ... their columns (contact vertices) ...
+mask_weights      · x 1        ... and weights; the C core forms ζ_m(i) = Σ_j ρ^m_j Ξ_ij from them (eq. 13)
 mesh_triangles    n_mt x 3     optional (1.3): the mesh's surface triangles, where ζ and the display live
 parent            n_t x 1      with mesh_triangles: the mesh triangle each contact triangle lies in
 corners           n_t x 9      with mesh_triangles: the barycentrics there of its corners (row-major, corner k
@@ -71,7 +81,7 @@ from pmask.errors import InputError
 from pmask.runtime.files import atomic_write
 
 MAGIC = b"PMASKTBL"
-TABLE_MAJOR, TABLE_MINOR = 1, 3
+TABLE_MAJOR, TABLE_MINOR = 1, 4
 HEADER, ENTRY, NAME = 64, 64, 32
 F64, I64, BYTES = 1, 2, 3
 
@@ -82,7 +92,8 @@ class TableError(InputError):
 
 def surface_sections(surface, zeta: bool = True, display=None) -> dict:
     """The sections of a table for a :class:`pmask.runtime.contact.ContactSurface` (without ``meta``), with a
-    :class:`pmask.runtime.display.DisplaySurface` as the ``display_*`` sections (table 1.2)."""
+    :class:`pmask.runtime.display.DisplaySurface` as the ``display_*`` sections (table 1.2).  ``zeta``: the ζ
+    table, or for a compressed Ξ its own sections (:func:`greens_sections`, table 1.4)."""
     s = surface
     out = {
         "points": s.P, "triangles": s.T, "neighbours": s.neighbours, "frames": s.tri_geom,
@@ -98,10 +109,66 @@ def surface_sections(surface, zeta: bool = True, display=None) -> dict:
         Zt, row = coupling
         out["zeta"] = Zt
         out["contact_row"] = np.asarray(row, np.int64)[:, None]
+    elif zeta and s.compressed:
+        out.update(greens_sections(s.stiffness))
+        out["contact_row"] = np.asarray(s.stiffness._contact_row, np.int64)[:, None]
     if display is not None:
         out.update({"display_points": display.points, "display_triangles": display.triangles,
                     "display_vertices": display.vertices, "display_bary": display.bary, "display_lift": display.lift})
     return out
+
+
+def greens_sections(stiffness) -> dict:
+    r"""A compressed artifact's Green's functions as table sections (format 1.4, module docstring): Ξ's
+    H-matrix as the artifact stores it (:mod:`pmask.runtime.compressed`: the exact near field pair by pair with its
+    16-bit neighbours, the far field's low-rank factors, the lookup of a pair's block) and the core masks ρ^m by
+    contact vertex, from which the C core forms ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) for the vertices a pair of
+    coupled contacts touches, as :meth:`pmask.runtime.stiffness.Stiffness.zeta_block` does.  A dense block of a
+    format ≤ 1.5 artifact (stored whole) is written pair by pair, every pair exact.  Everything is read whole:
+    the table holds all of it (about the artifact's stored bytes)."""
+    Xi = stiffness.model.Xi
+    n = Xi.n
+    whole = lambda a, dt: np.ascontiguousarray(np.asarray(a[:] if len(a) else np.zeros(0)), dt)  # noqa: E731
+    di = Xi.dense_index.copy()
+    if Xi.packed:
+        ni, exact = Xi.near_index, whole(Xi.dense, np.float64)
+        mask, q, qscale = Xi.near_mask, whole(Xi.near_q, np.int16), Xi.near_scale
+    else:  # whole blocks (format <= 1.5): every pair exact, in pair order
+        pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])
+        nbytes = -(-pairs // 8)
+        exact = np.concatenate([Xi.dense_block(b).reshape(m, 3, -1, 3).transpose(0, 2, 1, 3).ravel()
+                                for b, m in enumerate(di[:, 1] - di[:, 0])] or [np.zeros(0)])
+        di[:, 4] = np.concatenate([[0], np.cumsum(9 * pairs)[:-1]]) if len(di) else di[:, 4]
+        ni = np.zeros((len(di), 3), np.int64)
+        ni[:, 1] = np.concatenate([[0], np.cumsum(nbytes)[:-1]]) if len(di) else 0
+        ni[:, 2] = np.concatenate([[0], np.cumsum(3 * (di[:, 3] - di[:, 2]))[:-1]]) if len(di) else 0
+        mask = np.concatenate([np.packbits(np.ones(k, bool)) for k in pairs] or [np.zeros(0, np.uint8)])
+        q, qscale = np.zeros(0, np.int16), np.zeros(int(np.sum(3 * (di[:, 3] - di[:, 2]))))
+    U, V = whole(Xi.U, Xi.U.dtype), whole(Xi.V, Xi.V.dtype)
+    if U.dtype not in (np.float32, np.float64) or V.dtype != U.dtype:
+        raise InputError("the compressed Green's functions' factors are neither float32 nor float64; recompute the "
+                         "artifact (pmask precompute --force)")
+    masks = stiffness.masks
+    lens = np.zeros(n, np.int64)
+    lens[masks.centres] = np.diff(masks.indptr)
+    ptr = np.concatenate([[0], np.cumsum(lens)])
+    order = np.argsort(masks.centres, kind="stable")  # the masks in contact order
+    cols = np.concatenate([masks.indices[masks.indptr[k]:masks.indptr[k + 1]] for k in order] or [np.zeros(0)])
+    w = np.concatenate([masks.values[masks.indptr[k]:masks.indptr[k + 1]] for k in order] or [np.zeros(0)])
+    col = lambda a, dt: np.ascontiguousarray(np.asarray(a, dt).reshape(-1, 1))  # noqa: E731
+    return {
+        "xi_info": np.array([[n, U.dtype.itemsize, int(Xi.symmetric)]], np.int64),
+        "xi_perm": col(Xi.perm, np.int64), "xi_leaves": col(Xi.leaves, np.int64),
+        "xi_scale": col(Xi.scale if Xi.symmetric else np.zeros(0), np.float64),
+        "xi_dense_index": np.asarray(di, np.int64).reshape(-1, 5),
+        "xi_near_index": np.asarray(ni, np.int64).reshape(-1, 3),
+        "xi_near_exact": col(exact, np.float64), "xi_near_mask": np.asarray(mask, np.uint8),
+        "xi_near_q": np.asarray(q, "<i2"), "xi_near_scale": col(qscale, np.float64),
+        "xi_lowrank_index": np.asarray(Xi.lowrank_index, np.int64).reshape(-1, 7),
+        "xi_U": U.astype(U.dtype.newbyteorder("<")), "xi_V": V.astype(V.dtype.newbyteorder("<")),
+        "xi_owner": np.stack([Xi._key, Xi._block, Xi._flip.astype(np.int64)], axis=1).astype(np.int64),
+        "mask_ptr": col(ptr, np.int64), "mask_cols": col(cols, np.int64), "mask_weights": col(w, np.float64),
+    }
 
 
 def table_arrays(sections: dict, meta: dict) -> dict:
@@ -128,6 +195,9 @@ def table_bytes(sections: dict, meta: dict) -> bytearray:
     for name, value in items:
         if isinstance(value, bytes):
             kind, rows, cols, a, nbytes = BYTES, len(value), 1, value, len(value)
+        elif isinstance(value, np.ndarray) and value.dtype.itemsize != 8:  # int16, float32, bytes: their raw bytes
+            a = np.ascontiguousarray(value).view(np.uint8).ravel()
+            kind, rows, cols, nbytes = BYTES, a.size, 1, a.size
         else:
             a = np.asarray(value)
             if a.ndim != 2:
@@ -143,7 +213,7 @@ def table_bytes(sections: dict, meta: dict) -> bytearray:
     directory = []
     for name, kind, rows, cols, a, off, nbytes in layout:
         if kind == BYTES:
-            out[off:off + nbytes] = a
+            out[off:off + nbytes] = a if isinstance(a, bytes) else a.data
         elif nbytes:
             np.frombuffer(out, "<i8" if kind == I64 else "<f8", a.size, off).reshape(a.shape)[...] = a
         directory.append(struct.pack("<32sIIQQQ", name.encode(), kind, zlib.crc32(view[off:off + nbytes]), off,
@@ -168,8 +238,9 @@ def write_table(path, surface, meta: dict, zeta: bool = True, display=None) -> P
 
 
 def read_table(source) -> dict:
-    """Read and check a table (a path or bytes): name -> array (2-D), ``meta`` -> dict.  Refuses what the
-    native loader refuses, with the same reasons (:class:`TableError`)."""
+    """Read and check a table (a path or bytes): name -> array (2-D) or bytes, ``meta`` -> dict, and with a
+    compressed Ξ's sections (1.4) ``greens`` -> :class:`pmask.runtime.compressed.MaskedXi` over them.  Refuses what
+    the native loader refuses, with the same reasons (:class:`TableError`)."""
     if isinstance(source, (bytes, bytearray, memoryview)):
         buf, where = bytes(source), "the runtime table"
     else:
@@ -273,19 +344,110 @@ def _check(t: dict, where: str) -> None:
             raise TableError(f"{where}: corrupt runtime table: the corners' barycentrics are not in [0, 1] "
                              "summing to 1")
         nm = int(mt.max()) + 1
+    nc = None
     if "zeta" in t:
         Z = t["zeta"]
         if Z.dtype.kind != "f" or Z.shape[0] != Z.shape[1] or Z.shape[0] % 3:
             raise TableError(f"{where}: corrupt runtime table: the zeta table is not square")
         if not np.all(np.isfinite(Z)):
             raise TableError(f"{where}: corrupt runtime table: a non-finite number in the zeta table")
+        nc = Z.shape[0] // 3
+    elif "xi_info" in t:
+        t["greens"] = table_greens(t, where)
+        nc = t["greens"].Xi.n
+    if nc is not None:
         row = t.get("contact_row")
         if row is None:
             raise TableError(f"{where}: not a complete runtime table: section 'contact_row' is missing (export it again)")
         if row.dtype.kind != "i" or row.shape != (nm, 1):
             raise TableError(f"{where}: corrupt runtime table: section 'contact_row' has the wrong type or shape {row.shape}")
-        if row.min() < -1 or row.max() >= Z.shape[0] // 3:
+        if row.min() < -1 or row.max() >= nc:
             raise TableError(f"{where}: corrupt runtime table: a contact row is out of range")
+
+
+#: the compressed Green's functions' sections (table 1.4) in the order both loaders check them: (type, columns);
+#: 'b' raw bytes
+GREENS = {"xi_info": ("i", 3), "xi_leaves": ("i", 1), "xi_scale": ("f", 1), "xi_dense_index": ("i", 5),
+          "xi_near_index": ("i", 3), "xi_near_exact": ("f", 1), "xi_near_mask": ("b", 1), "xi_near_q": ("b", 1),
+          "xi_near_scale": ("f", 1), "xi_lowrank_index": ("i", 7), "xi_U": ("b", 1), "xi_V": ("b", 1),
+          "xi_owner": ("i", 3), "mask_ptr": ("i", 1), "mask_cols": ("i", 1), "mask_weights": ("f", 1),
+          "xi_perm": ("i", 1)}
+
+
+def table_greens(t: dict, where: str = "the runtime table"):
+    """A table's compressed Green's functions (:func:`greens_sections`) as a
+    :class:`pmask.runtime.compressed.MaskedXi`, checked as the C loader checks them (``core/greens.c``: the same
+    checks in the same order, the same line when one fails)."""
+    from pmask.runtime.compressed import _ONES, CompressedXi, MaskedXi
+
+    def bad(what):
+        return TableError(f"{where}: corrupt runtime table: the compressed Green's functions {what} (export it again)")
+
+    for name, (kind, cols) in GREENS.items():
+        a = t.get(name)
+        if a is None:
+            raise TableError(f"{where}: not a complete runtime table: section '{name}' is missing (a table from an "
+                             "older pmask, or a damaged one: export it again with `pmask export-table`)")
+        if kind == "b" and not isinstance(a, (bytes, bytearray)) or kind != "b" and (
+                not isinstance(a, np.ndarray) or a.dtype.kind != kind or a.shape[1] != cols):
+            raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
+        if name == "xi_info":
+            if a.shape[0] != 1:
+                raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
+            n, item, symmetric = (int(x) for x in a[0])
+            if n < 1 or item not in (4, 8) or symmetric not in (0, 1):
+                raise bad("have a bad header")
+    rows = {"xi_scale": n if symmetric else 0, "xi_near_index": len(t["xi_dense_index"]), "mask_ptr": n + 1,
+            "mask_weights": len(t["mask_cols"]), "xi_perm": n}
+    for name, r in rows.items():
+        if len(t[name]) != r:
+            raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
+    if len(t["xi_U"]) % item or len(t["xi_V"]) % item:
+        raise bad("have a bad header")
+    perm, leaves = t["xi_perm"][:, 0], t["xi_leaves"][:, 0]
+    if perm.min() < 0 or perm.max() >= n or len(np.unique(perm)) != n:
+        raise bad("do not order their vertices")
+    if len(leaves) < 2 or leaves[0] != 0 or leaves[-1] != n or np.any(np.diff(leaves) <= 0):
+        raise bad("do not cluster their vertices")
+    di, ni, li = t["xi_dense_index"], t["xi_near_index"], t["xi_lowrank_index"]
+    box = np.vstack([di[:, :4], li[:, :4]])
+    if len(box) and (box[:, [0, 2]].min() < 0 or box[:, [1, 3]].max() > n or np.any(box[:, [1, 3]] <= box[:, [0, 2]])):
+        raise bad("have a block outside their vertices")
+    U, V = (np.frombuffer(t[k], "<f4" if item == 4 else "<f8") for k in ("xi_U", "xi_V"))
+    mask, exact, qscale = np.frombuffer(t["xi_near_mask"], np.uint8), t["xi_near_exact"][:, 0], t["xi_near_scale"][:, 0]
+    pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])
+    nbytes = -(-pairs // 8)
+    ok = not len(di) or (di[:, 4].min() >= 0 and ni.min() >= 0 and np.all(ni[:, 1] <= len(mask) - nbytes))
+    if ok and len(di):
+        before = np.concatenate([[0], np.cumsum(_ONES[mask])])
+        e = before[ni[:, 1] + nbytes] - before[ni[:, 1]]
+        ok = (np.all(e <= pairs) and np.all(di[:, 4] <= len(exact) - 9 * e)
+              and np.all(ni[:, 0] <= len(t["xi_near_q"]) // 2 - 9 * (pairs - e))
+              and np.all(ni[:, 2] <= len(qscale) - 3 * (di[:, 3] - di[:, 2])))
+    m, w, k = 3 * (li[:, 1] - li[:, 0]), 3 * (li[:, 3] - li[:, 2]), li[:, 4]
+    if not ok or (len(li) and (k.min() < 0 or li[:, 5:].min() < 0 or np.any(li[:, 5] + m * k > len(U))
+                                or np.any(li[:, 6] + w * k > len(V)))):
+        raise bad("do not match their index")
+    scale = t["xi_scale"][:, 0]
+    if not all(np.all(np.isfinite(a)) for a in (exact, qscale, t["mask_weights"], U, V)):
+        raise bad("hold a non-finite number")
+    if symmetric and not np.all(scale > 0):
+        raise bad("have a scale that is not positive")
+    ptr, cols, weights = t["mask_ptr"][:, 0], t["mask_cols"][:, 0], t["mask_weights"][:, 0]
+    if ptr[0] != 0 or ptr[-1] != len(cols) or np.any(np.diff(ptr) < 0) or (len(cols) and (cols.min() < 0
+                                                                                         or cols.max() >= n)):
+        raise bad("have masks that do not match")
+    try:
+        Xi = CompressedXi(perm, leaves, di, exact, li, U, V, tolerance=0.0,  # (the export's is in the metadata)
+                          scale=scale if symmetric else None, near_index=ni, near_mask=mask,
+                          near_q=np.frombuffer(t["xi_near_q"], "<i2"), near_scale=qscale)
+    except InputError:  # (the blocks do not tile the pairs: no lookup can match them)
+        raise bad("have a block lookup that does not match their blocks") from None
+    owner = t["xi_owner"]
+    if not (np.array_equal(owner[:, 0], Xi._key) and np.array_equal(owner[:, 1], Xi._block)
+            and np.array_equal(owner[:, 2], Xi._flip)):
+        raise bad("have a block lookup that does not match their blocks")
+    return MaskedXi(Xi, lambda c: (cols[ptr[c]:ptr[c + 1]], weights[ptr[c]:ptr[c + 1]]))
 
 
 def export_table(artifact, out, *, mask: str = "linear", radius: float | None = None, k_rigid: float | None = None,
@@ -293,7 +455,9 @@ def export_table(artifact, out, *, mask: str = "linear", radius: float | None = 
     """Export a runtime table from an artifact: :meth:`pmask.runtime.Model.stiffness` for the mask and
     radius, the contact surface of :class:`pmask.runtime.contact.ContactSurface`, and (``zeta``) the ζ table
     for several coupled contacts and the deformation (3n_c x 3n_c doubles: 150 MB at the default
-    kidney's 1,446 contact vertices).  radius : default :attr:`pmask.runtime.Model.default_radius`.  levels : the
+    kidney's 1,446 contact vertices), or for a compressed artifact Ξ's own sections and the masks
+    (:func:`greens_sections`: about the artifact's stored bytes).  radius : default
+    :attr:`pmask.runtime.Model.default_radius`.  levels : the
     contact surface's subdivision (:class:`pmask.runtime.Contacts`; 0 the mesh, "auto" the automatic choice)."""
     from pmask.runtime.contact import ContactSurface
     from pmask.runtime.model import Model

@@ -283,17 +283,131 @@ def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair):
     assert sc._zeta_table is None  # nothing formed the dense table
 
 
-def test_export_table_of_a_compressed_artifact_leaves_zeta_out_and_says_why(pair, tmp_path, capsys):
+def _triangle_pairs(model, seed=1, count=40):
+    """Pairs of mesh surface triangles at every distance a coupling block can span: within 5 mm (the exact near
+    field), 10-30 mm (dense blocks' 16-bit pairs and the nearest low-rank blocks) and beyond 30 mm (far field)."""
+    T = model.triangles
+    c = model.points[T].mean(axis=1)
+    rng = np.random.default_rng(seed)
+    out = []
+    for a in rng.integers(0, len(T), count):
+        d = np.linalg.norm(c - c[a], axis=1)
+        for lo, hi in ((0.0, 0.005), (0.01, 0.03), (0.03, np.inf)):
+            cand = np.flatnonzero((d >= lo) & (d < hi))
+            if len(cand):
+                out.append((int(a), int(rng.choice(cand))))
+    return out
+
+
+@both
+def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(which, request, tmp_path, capsys):
+    """The hands issue's item 8, for a C program: a table exported from a compressed artifact carries Ξ's
+    compressed sections and the masks in place of the ζ table (table 1.4), and the C core forms the coupling
+    blocks from them itself (no pair function from the application).  Its blocks equal the Python surface's on
+    the artifact to 1e-12 of each block (round-off: the C sums a mask's columns in order, numpy's einsum may
+    not), at every distance (exact near field, 16-bit pairs, low-rank blocks; P2 stores every block, P1 reads
+    those below the diagonal transposed).  A two-jaw grasp with friction in the C core on the table gives the
+    Python engine's forces on the artifact within 1e-12 of their size, the Python engine on the table the same
+    bit for bit, and both are within 1e-3 of the dense artifact's (the coupled-forces bound above).  The table is
+    a fraction of the dense ζ table it replaces."""
     from pmask.pipeline.cli import main
+    from pmask.runtime import Contacts, servo
+    from pmask.runtime.contact import ContactSurface
     from pmask.runtime.table import read_table
 
-    _, comp, _ = pair
+    dense, comp, _ = request.getfixturevalue(which)
     out = tmp_path / "c.tbl"
     assert main(["export-table", str(comp.path), "-o", str(out)]) == 0
     said = capsys.readouterr().out
-    assert "without the zeta table" in said and "compressed" in said
+    assert "compressed Green's functions in place of the zeta table" in said
     t = read_table(out)
-    assert "zeta" not in t and len(t["points"]) == len(comp.points)
+    assert "zeta" not in t and "xi_info" in t and len(t["points"]) == len(comp.points)
+    n3 = 3 * len(comp.contact)
+    assert out.stat().st_size < 0.25 * n3 * n3 * 8  # (this kidney's Ξ compresses ~10x at r_max = 10 mm)
+    sc = comp.stiffness("linear")
+    on_artifact = ContactSurface(sc)
+    worst = 0.0
+    if servo.available():
+        table = servo.load_table(out)
+        assert table.has_greens() and not table.counts()[2]
+        for a, b in _triangle_pairs(comp):
+            Pp = np.reshape(on_artifact.pair_blocks(a, b), (9, 9))
+            Pc = np.reshape(table.pair_blocks(a, b), (9, 9))
+            big = np.abs(Pp).max(axis=1)
+            assert np.array_equal(Pc[big == 0], Pp[big == 0])  # (a vertex without a row: zero both ways)
+            worst = max(worst, float(np.max(np.abs(Pc - Pp)[big > 0].max(axis=1) / big[big > 0], initial=0.0)))
+        assert worst <= 1e-12
+    path = grasp_path(dense)
+    run = {"artifact": Contacts(sc, 2, friction=0.3, dynamic_friction=0.3, engine="python"),
+           "table": Contacts(ContactSurface.from_table(out), 2, friction=0.3, dynamic_friction=0.3, engine="python"),
+           "dense": Contacts(dense.stiffness("linear"), 2, friction=0.3, dynamic_friction=0.3)}
+    if servo.available():
+        in_c = ContactSurface.from_table(out)
+        in_c.pair_blocks = lambda *a: pytest.fail("the C core asked Python for blocks its table holds")
+        run["C"] = Contacts(in_c, 2, friction=0.3, dynamic_friction=0.3, engine="native")
+    assert all(c.coupled for c in run.values())
+    F = {k: np.array([c.step(list(p))[0] for p in path]) for k, c in run.items()}
+    size = np.abs(F["artifact"]).max()
+    assert size > 0.05  # squeezing (N)
+    assert np.array_equal(F["table"], F["artifact"])
+    if "C" in F:
+        assert np.abs(F["C"] - F["artifact"]).max() <= 1e-12 * size
+    assert np.abs(F["table"] - F["dense"]).max() <= 1e-3 * size
+    v = {k: c.deformation() for k, c in run.items()}
+    assert np.array_equal(v["table"], v["artifact"])
+    assert np.linalg.norm(v["table"] - v["dense"]) <= 1e-3 * np.linalg.norm(v["dense"])
+
+
+def _greens_damaged(good: dict, case: str) -> dict:
+    """A compressed table's sections with one kind of damage (each re-signed, so that only the check can
+    catch it)."""
+    t = {k: v for k, v in good.items() if k not in ("meta", "greens")}
+    if case == "perm":
+        t["xi_perm"] = t["xi_perm"].copy()
+        t["xi_perm"][1] = t["xi_perm"][0]
+    elif case == "offset":
+        t["xi_lowrank_index"] = t["xi_lowrank_index"].copy()
+        t["xi_lowrank_index"][-1, 5] = len(t["xi_U"])
+    elif case == "nan":
+        item = int(t["xi_info"][0, 1])
+        U = bytearray(t["xi_U"])
+        U[:item] = np.array([np.nan], "<f4" if item == 4 else "<f8").tobytes()
+        t["xi_U"] = bytes(U)
+    elif case == "mask":
+        t["mask_cols"] = t["mask_cols"].copy()
+        t["mask_cols"][3] = len(t["xi_perm"])
+    elif case == "lookup":
+        t["xi_owner"] = t["xi_owner"].copy()
+        t["xi_owner"][[4, 5], 0] = t["xi_owner"][[5, 4], 0]
+    elif case == "missing":
+        del t["xi_near_q"]
+    return t
+
+
+@pytest.mark.parametrize("case, match", [
+    ("perm", "do not order their vertices"),
+    ("offset", "do not match their index"),
+    ("nan", "hold a non-finite number"),
+    ("mask", "have masks that do not match"),
+    ("lookup", "have a block lookup that does not match their blocks"),
+    ("missing", "section 'xi_near_q' is missing"),
+])
+def test_both_loaders_refuse_a_damaged_compressed_table_for_the_same_reason(pair_p1, tmp_path, case, match):
+    """Every check on a compressed table's sections runs at load in both loaders (the C core's pair lookups
+    then cannot land outside the block that holds a pair): a vertex order that is not a permutation, a
+    factor's offset beyond its array, a NaN among the float32 factors, a mask column outside the vertices,
+    a lookup out of order, a section missing: one line each, the same from both."""
+    from pmask.runtime import servo
+    from pmask.runtime.table import TableError, export_table, read_table, table_bytes
+
+    _, comp, _ = pair_p1
+    good = read_table(export_table(comp, tmp_path / "good.tbl"))
+    data = bytes(table_bytes(_greens_damaged(good, case), good["meta"]))
+    with pytest.raises(TableError, match=match):
+        read_table(data)
+    if servo.available():
+        with pytest.raises(TableError, match=match):
+            servo.load_table(data)
 
 
 def _tile_trace(path: str):

@@ -149,6 +149,9 @@ class ContactSurface:
             srf.table_source, srf.table_sections = str(table), frozenset(t)
         if "zeta" in t:
             srf._coupling = (t["zeta"], t["contact_row"][:, 0])
+        elif "greens" in t:  # a compressed Ξ's own sections (table 1.4): its blocks through the masks
+            srf._table_greens = t["greens"]
+            srf._block, srf._row = t["greens"].block, t["contact_row"][:, 0].tolist()
         return srf
 
     def _setup(self, P, T, frames, neighbours, normals, K, taper, k, gradient, shape, linear_depth, grid, lo, hi,
@@ -194,6 +197,7 @@ class ContactSurface:
         self._coupling = None
         self._row = None
         self._block = None
+        self._table_greens = None  # a table's compressed Green's functions (from_table)
 
     def coupling(self):
         """(ζ table, surface vertex -> its row in the table) for the coupled solve and the display;
@@ -213,7 +217,8 @@ class ContactSurface:
     def greens(self) -> bool:
         """Whether Green's functions are at hand (coupled contacts, the deformation): a ζ table (dense Ξ, or a
         runtime table exported with one), or a compressed Ξ read block by block."""
-        return self._coupling is not None or (self.stiffness is not None and hasattr(self.stiffness, "zeta_table"))
+        return (self._coupling is not None or self._table_greens is not None
+                or (self.stiffness is not None and hasattr(self.stiffness, "zeta_table")))
 
     def compliance(self, t_l, b_l, t_k, b_k) -> list:
         """C_lk (9 floats): :func:`pmask.runtime.stiffness.zeta_compliance` on this surface's ζ table, or on
@@ -269,6 +274,8 @@ class ContactSurface:
                  ((*self.mesh_point(t, *(float(x) for x in b)), f) for t, b, f in loads)]
         if self.compressed:  # no ζ table: Ξ's blocks of the loaded columns
             return self.stiffness.deformation_of(loads)
+        if self._table_greens is not None:  # (the same, from a table's sections)
+            return self._table_greens.deformation_of(self.mesh_T, self._row, loads)
         Zt, row = self.coupling()
         return zeta_deformation(Zt, row, self.mesh_T, loads)
 

@@ -103,7 +103,9 @@ def _native_table(surface, zeta: bool):
             stiff = getattr(surface, "stiffness", None)
             if zeta and hasattr(stiff, "zeta_table") and not surface.compressed:
                 stiff.zeta_table(rows=zeta_rows)  # kept by the stiffness: the C loop, 2-3x numpy's
-            cache[key] = load_table(table_arrays(surface_sections(surface, zeta), surface.meta))
+            # (a compressed Ξ is not handed over: the core asks the surface for its blocks, NativeContacts)
+            cache[key] = load_table(table_arrays(surface_sections(surface, zeta and not surface.compressed),
+                                                 surface.meta))
     return cache[key]
 
 
@@ -133,8 +135,9 @@ class NativeContacts:
                    c.max_jump, c.decay, c.proxy_speed, c.reset_after, c.max_walk, int(c.passivity), int(c.coupled))
         # coupled without the table's ζ section (a compressed Ξ): the core asks the surface for a pair of
         # triangles' blocks when two contacts first land on them (Ξ's near field and low-rank blocks, never a
-        # dense table; pm_servo_create_paired)
-        pairs = srf.pair_blocks if c.coupled and not self.table.counts()[2] and srf.greens else None
+        # dense table; pm_servo_create_paired), unless the table carries Ξ's compressed sections (an exported
+        # table 1.4), from which the core forms them itself
+        pairs = srf.pair_blocks if c.coupled and not self.table.has_greens() and srf.greens else None
         try:
             self.servo = _core.Servo(self.table, c.n, options, self._warn, pairs)
         except ValueError as exc:

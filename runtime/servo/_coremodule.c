@@ -286,6 +286,34 @@ static PyObject *Table_counts(TableObject *self, PyObject *unused)
                          (int)pm_table_has_zeta(self->table));
 }
 
+static PyObject *Table_has_greens(TableObject *self, PyObject *unused)
+{
+    return PyBool_FromLong(pm_table_has_greens(self->table));
+}
+
+static PyObject *Table_pair_blocks(TableObject *self, PyObject *args)
+{
+    long long ta, tb;
+    if (!PyArg_ParseTuple(args, "LL", &ta, &tb)) return NULL;
+    double P[81];
+    if (pm_table_pair_blocks(self->table, (int64_t)ta, (int64_t)tb, P)) {
+        PyErr_SetString(PyExc_ValueError, "no coupling blocks: the table has neither a zeta table nor a compressed "
+                        "Xi, or a triangle is out of range");
+        return NULL;
+    }
+    PyObject *out = PyList_New(81);
+    if (!out) return NULL;
+    for (int k = 0; k < 81; k++) {
+        PyObject *v = PyFloat_FromDouble(P[k]);
+        if (!v) {
+            Py_DECREF(out);
+            return NULL;
+        }
+        PyList_SET_ITEM(out, k, v);
+    }
+    return out;
+}
+
 static PyObject *Table_meta(TableObject *self, PyObject *unused)
 {
     return PyUnicode_FromString(pm_table_meta(self->table));
@@ -356,6 +384,10 @@ static PyObject *Table_display_counts(TableObject *self, PyObject *unused)
 
 static PyMethodDef Table_methods[] = {
     {"counts", (PyCFunction)Table_counts, METH_NOARGS, "(vertices, triangles, has_zeta)"},
+    {"pair_blocks", (PyCFunction)Table_pair_blocks, METH_VARARGS,
+     "pair_blocks(ta, tb): the coupling blocks of two mesh triangles, 81 floats (pm_table_pair_blocks)"},
+    {"has_greens", (PyCFunction)Table_has_greens, METH_NOARGS,
+     "whether the table couples contacts itself: a zeta table, or a compressed Xi's sections (table 1.4)"},
     {"display_counts", (PyCFunction)Table_display_counts, METH_NOARGS, "(display vertices, display triangles)"},
     {"display_deform", (PyCFunction)Table_display_deform, METH_VARARGS,
      "the display surface deformed: (u bytes, contacts bytes, radius, out buffer)"},

@@ -48,7 +48,7 @@ extern "C" {
 #endif
 
 #define PM_TABLE_MAJOR 1
-#define PM_TABLE_MINOR 1
+#define PM_TABLE_MINOR 4
 
 /* contact statuses (the values of pmask.runtime.Status) */
 enum {
@@ -114,7 +114,8 @@ PM_API int pm_table_load(const char *path, pm_table **out, char *err, size_t err
 PM_API int pm_table_from_memory(const void *data, size_t size, pm_table **out, char *err, size_t errlen);
 /* A table over arrays the caller owns (no copy, no file: how an application that computes its own stiffness,
  * or the Python binding, hands its arrays to the core).  The sections are those a table file holds, by name
- * ("points", "triangles", ..., optionally "zeta" and "contact_row", "display_*", "meta"; pmask/runtime/table.py),
+ * ("points", "triangles", ..., optionally "zeta" or "xi_*" and "contact_row", "display_*", "meta";
+ * pmask/runtime/table.py),
  * each row-major and C-contiguous, doubles and int64 aligned to 8 bytes.  The same checks as a file apart from
  * checksums (types, shapes, indices in range, finite numbers, positive definite stiffness).  The arrays must stay
  * alive and unchanged until pm_table_free; the section list itself may be freed on return. */
@@ -133,6 +134,13 @@ PM_API void pm_table_free(pm_table *table);
 PM_API int64_t pm_table_vertices(const pm_table *table);
 PM_API int64_t pm_table_triangles(const pm_table *table);
 PM_API int32_t pm_table_has_zeta(const pm_table *table);
+/* Whether the table can couple contacts: its ζ table, or (table 1.4, exported from a compressed artifact) Ξ's
+ * compressed sections, from which the core forms the blocks of the vertices a pair of contacts touches. */
+PM_API int32_t pm_table_has_greens(const pm_table *table);
+/* The coupling blocks of mesh triangles ta and tb as the servo reads them (pm_servo_create_paired's P: 81 doubles),
+ * from the ζ table or formed from Ξ's compressed sections.  0, or -1 for a table without either or a triangle
+ * out of range. */
+PM_API int pm_table_pair_blocks(const pm_table *table, int64_t ta, int64_t tb, double *P);
 /* The model's bounding box (lower and upper corner). */
 PM_API void pm_table_bounds(const pm_table *table, double *lo, double *hi);
 /* The table's metadata: a JSON object (mask, radius, k_rigid, units, source artifact). */
@@ -168,7 +176,8 @@ PM_API void pm_options_default(const pm_table *table, pm_options *options);
 PM_API int pm_servo_create(const pm_table *table, int32_t n, const pm_options *options, pm_servo **out,
                            char *err, size_t errlen);
 /* Coupled contacts without the table's ζ section (an artifact whose Ξ is compressed: its ζ table would be as
- * large as dense Ξ).  `pairs(user, ta, tb, P)` fills P (81 doubles) with the nine vertex-pair blocks of mesh
+ * large as dense Ξ; a table exported from one carries Ξ's compressed sections, from which pm_servo_create forms
+ * the blocks itself).  `pairs(user, ta, tb, P)` fills P (81 doubles) with the nine vertex-pair blocks of mesh
  * triangles ta and tb, for vertex x of ta and y of tb (x outer) P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) row-major, zero where
  * either vertex has no row (pmask.runtime.contact.surface.ContactSurface.pair_blocks), and returns 0; anything
  * else, or a non-finite block, fails that tick's step (PM_INTERNAL_ERROR, the last force held).  The core calls it

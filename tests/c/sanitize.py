@@ -7,7 +7,9 @@ Builds, for each sanitizer, the servo core with
 - ``tests/c/servo_threads.c`` (thread mode beside three application threads calling set_probes, read, state
   and deformation; then two threads exchanging a trace tick-synchronously; then a table over the file's own
   sections, ``pm_table_from_sections``, stepped against the loaded one; then those sections less the ζ table,
-  coupled through a pair function, ``pm_servo_create_paired``, stepped and exchanged against the loaded one),
+  coupled through a pair function, ``pm_servo_create_paired``, stepped and exchanged against the loaded one;
+  then a table exported from a compressed artifact of the same kidney, whose contacts the core couples from Ξ's
+  compressed sections, against the ζ table's),
 
 and the selected inversion with ``tests/c/selinv_driver.c`` (its page-fault helper thread, a cancel from a
 second thread, damaged factor arrays), over a runtime table exported from a small kidney artifact built here.
@@ -45,13 +47,18 @@ def main() -> int:
     try:
         art, table = work / "kidney.h5", work / "kidney.tbl"
         pmask = [sys.executable, "-m", "pmask.pipeline"]
-        subprocess.run([*pmask, "-q", "precompute", "kidney", "--size", "0.009", "-o", str(art)], check=True,
-                       stdout=subprocess.DEVNULL)
+        # (the same r_max for both: the contact region's taper follows it, and part 5 compares their forces)
+        subprocess.run([*pmask, "-q", "precompute", "kidney", "--size", "0.009", "--r-max", "0.01", "-o", str(art)],
+                       check=True, stdout=subprocess.DEVNULL)
         subprocess.run([*pmask, "export-table", str(art), "-o", str(table)], check=True, stdout=subprocess.DEVNULL)
+        comp, ctable = work / "kidney-compressed.h5", work / "kidney-compressed.tbl"
+        subprocess.run([*pmask, "-q", "precompute", "kidney", "--size", "0.009", "--r-max", "0.01", "--compress",
+                        "--workers", "2", "-o", str(comp)], check=True, stdout=subprocess.DEVNULL)
+        subprocess.run([*pmask, "export-table", str(comp), "-o", str(ctable)], check=True, stdout=subprocess.DEVNULL)
         programs = {
             "haptic_loop": ([str(ROOT / "examples/c/haptic_loop.c"), *core], [f"-I{servo}"], [], [[str(table)],
                                                                                               [str(table), "--thread"]]),
-            "servo_threads": ([str(HERE / "servo_threads.c"), *core], [f"-I{servo}"], [], [[str(table)]]),
+            "servo_threads": ([str(HERE / "servo_threads.c"), *core], [f"-I{servo}"], [], [[str(table), str(ctable)]]),
             "selinv_driver": ([str(HERE / "selinv_driver.c"), str(ROOT / "precompute/_selected_inverse.c")],
                               [f"-I{suitesparse}"], ["-lcholmod", "-llapack", "-lblas"], [[]]),
         }

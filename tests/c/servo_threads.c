@@ -1,6 +1,6 @@
 /* The servo core's threads under the sanitizers (make sanitize; CI fails on any report).
  *
- *   servo_threads TABLE
+ *   servo_threads TABLE [COMPRESSED]
  *
  * 1. Thread mode: the servo's thread runs at 1 kHz for two contacts while three threads of the application
  *    call pm_servo_set_probes (a scripted press and circle), pm_servo_read / pm_servo_state, and
@@ -13,6 +13,11 @@
  * 4. The same sections without "zeta" and "contact_row", coupled through a pair function
  *    (pm_servo_create_paired) that reads the file's ζ section itself: the same steps as the loaded table, bit for
  *    bit, stepped by the caller and in exchange mode (the pair function then runs on the servo's thread).
+ * 5. (servo_threads TABLE COMPRESSED: a table exported from a compressed artifact of the same model, table 1.4)
+ *    Contacts coupled from Ξ's compressed sections by the core itself: stepped, then in exchange mode (the blocks
+ *    then formed on the servo's thread) bit for bit the same, every force within 1e-3 of the largest of the ζ
+ *    table's (the compression's bound on coupled forces), and the blocks of a pair of triangles read both ways
+ *    transposes of each other, bit for bit.
  * Prints one line per part; exits 1 on a failed check.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -299,10 +304,82 @@ out:
     return rc;
 }
 
+/* part 5: coupled contacts on a compressed artifact's table against the loaded one's ζ table */
+static int compressed_couples(const char *path, const pm_table *loaded, const shared *sh)
+{
+    pm_table *c = NULL;
+    pm_servo *x = NULL, *y = NULL;
+    char err[512];
+    int rc = 1;
+    static double forces[EXCHANGES][3 * N];
+    static int32_t status[EXCHANGES][N];
+    if (pm_table_load(path, &c, err, sizeof err) || !pm_table_has_greens(c) || pm_table_has_zeta(c)) {
+        fprintf(stderr, "error: part 5 needs a table with a compressed Xi: %s\n", err);
+        goto out;
+    }
+    pm_options o;
+    pm_options_default(loaded, &o);
+    o.friction = 0.3;
+    o.coupled = 1;
+    if (pm_servo_create(loaded, N, &o, &x, err, sizeof err) || pm_servo_create(c, N, &o, &y, err, sizeof err)) {
+        fprintf(stderr, "error: part 5: %s\n", err);
+        goto out;
+    }
+    double worst = 0.0, largest = 0.0;
+    int64_t touching = 0;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], fx[3 * N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        pm_servo_step(x, p, fx, NULL);
+        pm_servo_step(y, p, forces[k], status[k]);
+        touching += status[k][0] == PM_CONTACT && status[k][1] == PM_CONTACT;
+        for (int i = 0; i < 3 * N; i++) {
+            worst = fmax(worst, fabs(forces[k][i] - fx[i]));
+            largest = fmax(largest, fabs(fx[i]));
+        }
+    }
+    int64_t differ_thread = 0;
+    pm_servo_reset(y);
+    if (pm_servo_start_exchange(y, 1000.0, PM_SPIN_DEFAULT)) goto out;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], f[3 * N];
+        int32_t s[N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        if (pm_servo_exchange(y, p, f, s, 1.0) != 0 || memcmp(f, forces[k], sizeof f) != 0 ||
+            memcmp(s, status[k], sizeof s) != 0)
+            differ_thread++;
+    }
+    pm_servo_stop(y);
+    int64_t asymmetric = 0;
+    const int64_t nt = pm_table_triangles(c);
+    for (int64_t k = 0; k < 200; k++) {
+        const int64_t ta = (k * 7919) % nt, tb = (k * 104729 + 13) % nt;
+        double P[81], Q[81];
+        if (pm_table_pair_blocks(c, ta, tb, P) || pm_table_pair_blocks(c, tb, ta, Q)) {
+            asymmetric++;
+            continue;
+        }
+        for (int a = 0; a < 3; a++)
+            for (int b = 0; b < 3; b++)
+                for (int r = 0; r < 3; r++)
+                    for (int q = 0; q < 3; q++)
+                        asymmetric += P[27 * a + 9 * b + 3 * r + q] != Q[27 * b + 9 * a + 3 * q + r];
+    }
+    printf("a compressed Xi in place of the zeta table: %d steps (%lld both touching), forces within %.2e of the "
+           "largest, %lld differ in exchange mode, %lld asymmetric block entries\n", EXCHANGES, (long long)touching,
+           largest > 0 ? worst / largest : 0.0, (long long)differ_thread, (long long)asymmetric);
+    rc = !(largest > 0) || worst > 1e-3 * largest || touching < EXCHANGES / 2 || differ_thread || asymmetric;
+out:
+    pm_servo_free(x);
+    pm_servo_free(y);
+    pm_table_free(c);
+    return rc;
+}
+
 int main(int argc, char **argv)
 {
-    if (argc != 2) {
-        fprintf(stderr, "usage: %s TABLE\n", argv[0]);
+    if (argc != 2 && argc != 3) {
+        fprintf(stderr, "usage: %s TABLE [COMPRESSED]\n", argv[0]);
         return 2;
     }
     char err[512];
@@ -387,6 +464,8 @@ int main(int argc, char **argv)
     /* 3. a table over arrays the application owns (pm_table_from_sections, no copy): the file's own sections
      *    from its directory; the same steps as the loaded table, bit for bit */
     if (borrowed_table_steps_the_same(argv[1], table, &sh)) rc = 1;
+    /* 5. a compressed artifact's table: the core couples from Ξ's compressed sections */
+    if (argc == 3 && compressed_couples(argv[2], table, &sh)) rc = 1;
 done:
     pm_servo_free(a);
     pm_servo_free(b);

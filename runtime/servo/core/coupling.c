@@ -30,8 +30,8 @@ void pm__compliance(const pm_table *tb, int64_t ta, const double *ba_in, int64_t
 }
 
 /* the nine vertex-pair blocks of mesh triangles ta, tb (81 doubles, x of ta outer): P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ),
- * zero where either vertex has no row (ContactSurface.pair_blocks) */
-static void pair_blocks(const pm_table *tb, int64_t ta, int64_t tbi, double *P)
+ * zero where either vertex has no row (ContactSurface.pair_blocks), from the ζ table */
+void pm__zeta_pairs(const pm_table *tb, int64_t ta, int64_t tbi, double *P)
 {
     const int64_t n3 = 3 * tb->nc;
     const int64_t *ia = tb->mT + 3 * ta, *ib = tb->mT + 3 * tbi;
@@ -108,7 +108,7 @@ static int coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
             }
             if (S->pair_tri[2 * ab] != ta || S->pair_tri[2 * ab + 1] != tbi) {
                 if (tb->zeta) {
-                    pair_blocks(tb, ma, mb, P);
+                    pm__zeta_pairs(tb, ma, mb, P);
                 } else if (pair_blocks_given(S, ma, mb, P)) {
                     S->pair_tri[2 * ab] = -1;  /* asked again next tick */
                     return -1;

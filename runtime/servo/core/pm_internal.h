@@ -5,7 +5,8 @@
  *   tracking.c  step 1: the probe's projection and the proxy law.c       step 2: the contact law at the proxy
  *   coupling.c  step 3: several contacts solved together   output.c    step 4: zero-order hold, damping, passivity
  *   servo.c     a servo's state, the tick, publishing       thread.c    thread mode, exchange, the clock
- *   display.c   the deformation of eq. 16 for a display
+ *   display.c   the deformation of eq. 16 for a display     zeta.c      the ζ table's rows (pm_zeta_rows)
+ *   greens.c    a compressed Ξ's sections (table 1.4) and the coupling blocks formed from them
  *
  * Written operation for operation like the Python (the same expressions in the same order, Python's min/max
  * as PYMIN/PYMAX, and the divisions that raise ZeroDivisionError in Python turned into the same
@@ -64,7 +65,21 @@
 #define PYMAX(a, b) ((b) > (a) ? (b) : (a))
 #define PYMIN(a, b) ((b) < (a) ? (b) : (a))
 
-/* ------------------------------------------------------------------ the table (table.c, bvh.c) */
+/* ------------------------------------------------------------------ the table (table.c, bvh.c, greens.c) */
+/* Ξ compressed as the artifact stores it (pmask.runtime.compressed; the table's xi_* and mask_* sections,
+ * pmask.runtime.table.greens_sections): positions in cluster order, blocks over pairs of leaf clusters, dense ones
+ * pair by pair (exact, or 16 bits with a scale per column), low-rank ones as U Vᵀ, and the core masks by contact
+ * vertex, from which the coupling blocks are formed when contacts land on new triangles (pm__greens_pairs) */
+typedef struct {
+    int64_t n, nleaves, nd, nl, nowner, item;  /* contact vertices, leaves, dense and low-rank blocks, lookup
+                                                  entries, bytes of a factor's value (4 or 8) */
+    int symmetric;                             /* only the blocks on and above the diagonal are stored */
+    const int64_t *leaves, *dense_index, *near_index, *lowrank_index, *owner, *mask_ptr, *mask_cols;
+    const double *scale, *exact, *qscale, *mask_w;
+    const unsigned char *mask, *q, *U, *V;     /* bits, int16 and float32/64 values, little-endian */
+    int64_t *position, *leaf_of;               /* made at load: contact index -> position -> leaf */
+} pm_greens;
+
 struct pm_table {
     int64_t nv, nt, nc;           /* surface vertices, triangles, contact vertices (ζ table rows / 3) */
     const double *P, *frames, *N, *K, *taper, *grad;
@@ -85,6 +100,7 @@ struct pm_table {
     const double *corners;
     const int64_t *row;           /* mesh vertex -> contact row, -1 (NULL without ζ) */
     const double *zeta;           /* (3 nc, 3 nc): rows 3m..3m+2 = ζ_mᵀ (NULL without) */
+    pm_greens xi;                 /* a compressed Ξ's own sections (table 1.4; n = 0 without) */
     int64_t nd, ndt;              /* display surface: vertices, triangles (0 without) */
     const double *dP, *dbary, *dlift;  /* its points, embedding weights, lifts (nd x 3 each) */
     const int64_t *dT, *dV;       /* its triangles (ndt x 3), its vertices' simulation vertices (nd x 3) */
@@ -112,6 +128,23 @@ static inline int64_t pm__mesh_point(const pm_table *tb, int64_t t, const double
 
 PM_HIDDEN int pm__build_bvh(pm_table *t);
 PM_HIDDEN void pm__free_bvh(pm_table *t);
+/* a section of a table being loaded (table.c) */
+typedef struct {
+    const unsigned char *data;
+    uint64_t rows, cols;
+    uint32_t dtype;
+    int found;
+} section;
+/* a required (or, with optional, possibly absent) section of the given type and shape; rows < 0: any */
+PM_HIDDEN int pm__want(const pm_section *secs, int32_t nsec, const char *name, uint32_t dtype, int64_t rows,
+                       int64_t cols, int optional, section *s, char *err, size_t errlen);
+/* the xi_* sections, checked (0: absent or read; -1: a message in err), and what they own */
+PM_HIDDEN int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *err, size_t errlen);
+PM_HIDDEN void pm__greens_free(pm_table *t);
+/* the nine vertex-pair blocks of two mesh triangles from the ζ table (coupling.c) */
+PM_HIDDEN void pm__zeta_pairs(const pm_table *tb, int64_t ta, int64_t tbi, double *P);
+/* a pm_pair_fn over the table's compressed Ξ (user: the table) */
+PM_HIDDEN int pm__greens_pairs(void *user, int64_t ta, int64_t tb, double *P);
 
 /* ------------------------------------------------------------------ a contact's state (servo.c) */
 typedef struct {

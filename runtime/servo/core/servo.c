@@ -84,6 +84,10 @@ int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, 
     if (o.reset_after < 1) return bad_option(err, errlen, "reset_after", o.reset_after, ">= 1");
     if (o.max_walk < 1) return bad_option(err, errlen, "max_walk", o.max_walk, ">= 1");
 #undef FIN
+    if (!t->zeta && !pairs && t->xi.n) {  /* a compressed Ξ's sections: the core forms the blocks itself */
+        pairs = pm__greens_pairs;
+        user = (void *)t;
+    }
     if (o.coupled < 0) o.coupled = ((t->zeta != NULL || pairs != NULL) && n > 1);
     if (o.coupled && !t->zeta && !pairs) {
         if (err && errlen)

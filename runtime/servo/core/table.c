@@ -48,13 +48,6 @@ enum { DT_F64 = PM_SECTION_F64, DT_I64 = PM_SECTION_I64, DT_BYTES = PM_SECTION_B
 #define ENTRY_SIZE 64
 #define NAME_SIZE 32
 
-typedef struct {
-    const unsigned char *data;
-    uint64_t rows, cols;
-    uint32_t dtype;
-    int found;
-} section;
-
 static int find_section(const pm_section *secs, int32_t nsec, const char *name, section *out)
 {
     memset(out, 0, sizeof *out);
@@ -72,8 +65,8 @@ static int find_section(const pm_section *secs, int32_t nsec, const char *name, 
 }
 
 /* a required (or, with optional, possibly absent) section of the given type and shape; rows < 0: any */
-static int want(const pm_section *secs, int32_t nsec, const char *name, uint32_t dtype, int64_t rows,
-                int64_t cols, int optional, section *s, char *err, size_t errlen)
+int pm__want(const pm_section *secs, int32_t nsec, const char *name, uint32_t dtype, int64_t rows, int64_t cols,
+             int optional, section *s, char *err, size_t errlen)
 {
     if (!find_section(secs, nsec, name, s)) {
         if (optional) return 0;
@@ -232,7 +225,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
     t->blob = blob;
     t->size = size;
 #define NEED(name, dt, r, cl, opt) \
-    if (want(secs, nsec, name, dt, r, cl, opt, &s, err, errlen)) goto bad
+    if (pm__want(secs, nsec, name, dt, r, cl, opt, &s, err, errlen)) goto bad
     NEED("points", DT_F64, -1, 3, 0);
     t->nv = (int64_t)s.rows;
     t->P = (const double *)s.data;
@@ -300,7 +293,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
     t->nm = t->nv;
     t->nmt = t->nt;
     t->mT = t->T;
-    if (want(secs, nsec, "mesh_triangles", DT_I64, -1, 3, 1, &s, err, errlen)) goto bad;
+    if (pm__want(secs, nsec, "mesh_triangles", DT_I64, -1, 3, 1, &s, err, errlen)) goto bad;
     if (s.found) {  /* a subdivided contact surface: its map to the mesh, checked */
         t->nmt = (int64_t)s.rows;
         t->mT = (const int64_t *)s.data;
@@ -333,7 +326,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
     } else {
         for (int i = 0; i < 2; i++) {
             const char *name = i ? "corners" : "parent";
-            if (want(secs, nsec, name, i ? DT_F64 : DT_I64, -1, -1, 1, &s, err, errlen)) goto bad;
+            if (pm__want(secs, nsec, name, i ? DT_F64 : DT_I64, -1, -1, 1, &s, err, errlen)) goto bad;
             if (s.found) {
                 fmt(err, errlen, "not a complete runtime table: 'mesh_triangles', 'parent' and 'corners' go "
                     "together (export it again)", NULL, 0, 0);
@@ -341,7 +334,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
             }
         }
     }
-    if (want(secs, nsec, "zeta", DT_F64, -1, -1, 1, &s, err, errlen)) goto bad;
+    if (pm__want(secs, nsec, "zeta", DT_F64, -1, -1, 1, &s, err, errlen)) goto bad;
     if (s.found) {
         if (s.rows != s.cols || s.rows % 3 != 0) {
             fmt(err, errlen, "corrupt runtime table: the zeta table is not square", NULL, 0, 0);
@@ -353,6 +346,11 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
             fmt(err, errlen, "corrupt runtime table: a non-finite number in the zeta table", NULL, 0, 0);
             goto bad;
         }
+    } else {  /* a compressed Ξ's own sections instead (table 1.4), when present */
+        if (pm__greens_assign(t, secs, nsec, err, errlen)) goto bad;
+        t->nc = t->xi.n;
+    }
+    if (t->zeta || t->xi.n) {
         NEED("contact_row", DT_I64, t->nm, 1, 0);
         t->row = (const int64_t *)s.data;
         if (!in_range(t->row, (uint64_t)t->nm, -1, t->nc)) {
@@ -360,7 +358,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
             goto bad;
         }
     }
-    if (want(secs, nsec, "display_points", DT_F64, -1, 3, 1, &s, err, errlen)) goto bad;
+    if (pm__want(secs, nsec, "display_points", DT_F64, -1, 3, 1, &s, err, errlen)) goto bad;
     if (s.found) {  /* the display surface (optional): all five sections, checked */
         t->nd = (int64_t)s.rows;
         t->dP = (const double *)s.data;
@@ -383,7 +381,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
             goto bad;
         }
     }
-    if (want(secs, nsec, "meta", DT_BYTES, -1, 1, 1, &s, err, errlen)) goto bad;
+    if (pm__want(secs, nsec, "meta", DT_BYTES, -1, 1, 1, &s, err, errlen)) goto bad;
     t->meta = malloc(s.found ? (size_t)s.rows + 1 : 3);
     if (!t->meta) {
         fmt(err, errlen, "out of memory loading the runtime table", NULL, 0, 0);
@@ -405,6 +403,7 @@ static int assign(const pm_section *secs, int32_t nsec, unsigned char *blob, siz
 bad:
     t->blob = NULL;  /* the caller frees the blob */
     pm__free_bvh(t);
+    pm__greens_free(t);
     free(t->meta);
     free(t);
     return -1;
@@ -513,6 +512,7 @@ void pm_table_free(pm_table *t)
 {
     if (!t) return;
     pm__free_bvh(t);
+    pm__greens_free(t);
     free(t->blob);
     free(t->meta);
     free(t);
@@ -521,6 +521,7 @@ void pm_table_free(pm_table *t)
 int64_t pm_table_vertices(const pm_table *t) { return t->nm; }
 int64_t pm_table_triangles(const pm_table *t) { return t->nmt; }
 int32_t pm_table_has_zeta(const pm_table *t) { return t->zeta != NULL; }
+int32_t pm_table_has_greens(const pm_table *t) { return t->zeta != NULL || t->xi.n > 0; }
 int64_t pm_display_vertices(const pm_table *t) { return t->nd; }
 int64_t pm_display_triangles(const pm_table *t) { return t->ndt; }
 const double *pm_display_points(const pm_table *t) { return t->dP; }
