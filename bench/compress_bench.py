@@ -289,6 +289,43 @@ def coupled_step(dense: Path, compressed: Path, repeats: int = 3) -> dict:
     return out
 
 
+def coupled_step_c(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> dict:
+    """The same two jaws in C (servo_bench, tight), on tables exported from each artifact: the dense one's with its
+    ζ table, the organ-scale compressed one's with Ξ's compressed sections (table 1.4), from which the core forms a
+    pair of triangles' blocks itself when the jaws land on them; alternated ``repeats`` times, each run a fresh
+    process (a cold cache of blocks).  The median and the longest tick of each run, the empty timer's median beside
+    them (the noise reference), the tables' sizes, and the ratio of the medians (the hands issue asks ≤ 2x)."""
+    import runtime_bench
+
+    from pmask.pipeline.strokes import grasp_path
+    from pmask.runtime import Model
+    from pmask.runtime.contact import ContactSurface
+    from pmask.runtime.table import write_table
+
+    exe = runtime_bench.build_servo_bench(work)
+    tables, traces, out = {}, {}, {}
+    for name, path in (("dense", dense), ("compressed", compressed)):
+        m = Model.load(path)
+        srf = ContactSurface.of(m.stiffness("linear", 2.0 * m.mean_edge_length))
+        tables[name] = write_table(work / f"grasp_{name}.tbl", srf, {"bench": f"grasp {name}"}, zeta=True)
+        P = grasp_path(m, slide=0.01, press=400, hold=1000)
+        traces[name] = runtime_bench.write_trace(work / f"grasp_{name}.bin", np.reshape(P, (len(P), 6)))
+        out[f"{name}_vertices"] = len(m.points)
+        out[f"{name}_table_mib"] = tables[name].stat().st_size / 2**20
+        del m, srf
+    runs = {name: [] for name in tables}
+    for _ in range(repeats):
+        for name, table in tables.items():
+            runs[name].append(runtime_bench.c_bench(exe, table, traces[name], 2, paced=0, friction=0.3))
+    for name, r in runs.items():
+        out[f"{name}_median_us"] = [x["tight"]["median_us"] for x in r]
+        out[f"{name}_max_us"] = [x["tight"]["max_us"] for x in r]
+        out[f"{name}_empty_us"] = [x["empty_tight"]["median_us"] for x in r]
+    out["ticks"] = runs["dense"][0]["ticks"]
+    out["ratio"] = float(np.median(out["compressed_median_us"]) / np.median(out["dense_median_us"]))
+    return out
+
+
 def eight_workers(size, work: Path) -> dict:
     """A simulated 8-worker cluster on this 2-core machine, each worker limited to 1 GiB: peak RSS per worker."""
     from distributed import Client, LocalCluster
@@ -332,6 +369,9 @@ def main(out: Path) -> dict:
         print("two coupled contacts on the organ-scale compressed artifact ...", flush=True)
         res["coupled_step"] = coupled_step(tmp / "dense.h5", tmp / "large.h5")
         print(json.dumps(res["coupled_step"]), flush=True)
+        print("two coupled contacts in C on the organ-scale compressed artifact's table ...", flush=True)
+        res["coupled_step_c"] = coupled_step_c(tmp / "dense.h5", tmp / "large.h5", tmp)
+        print(json.dumps(res["coupled_step_c"]), flush=True)
         print("8 memory-limited workers ...", flush=True)
         res["eight_workers"] = eight_workers(0.005, tmp)
         print(json.dumps(res["eight_workers"]), flush=True)
@@ -612,6 +652,19 @@ def markdown(res: dict) -> str:
                   f"(the longest tick {c['compressed_max_ms'][0]:.1f} ms: a tick that asks is late by that much), "
                   f"at most {max(c['request_max_ms'][1:] or [0.0]):.2f} ms once the stiffness's cache of blocks is "
                   f"warm."]
+    c = res.get("coupled_step_c")
+    if g and c:
+        L += ["", f"The same grasp in C (`servo_bench`, tight, μ = 0.3, a fresh process each run) on the tables "
+                  f"`pmask export-table` writes: the organ-scale compressed artifact's ({c['compressed_table_mib']:,.0f} "
+                  f"MiB, Ξ's compressed sections in place of the ζ table; the core forms a pair of triangles' blocks "
+                  f"when the jaws land on them) and the dense {c['dense_vertices']:,}-vertex one's "
+                  f"({c['dense_table_mib']:,.0f} MiB with its ζ table): median tick "
+                  f"{', '.join(f'{x:.3f}' for x in c['compressed_median_us'])} µs against "
+                  f"{', '.join(f'{x:.3f}' for x in c['dense_median_us'])} µs, alternated in this run "
+                  f"({c['ratio']:.2f}x; the hands issue asks ≤ 2x); the longest tick "
+                  f"{', '.join(f'{x / 1e3:.2f}' for x in c['compressed_max_us'])} ms against "
+                  f"{', '.join(f'{x / 1e3:.2f}' for x in c['dense_max_us'])} ms (a tick that forms blocks is late by "
+                  f"that much); the empty timer {np.median(c['compressed_empty_us'] + c['dense_empty_us']):.3f} µs."]
     if g and "near_bytes" in g:
         L += ["", extrapolation(res)]
     e = res["eight_workers"]

@@ -106,11 +106,13 @@ def write_trace(path: Path, probes: np.ndarray) -> Path:
 
 
 def c_bench(exe: Path, table: Path, trace: Path, n: int = 1, paced: int = PACED_TICKS, batch: int = 0,
-            reacquire: int = 0, uncoupled: bool = False, ratio: int = 0) -> dict:
+            reacquire: int = 0, uncoupled: bool = False, ratio: int = 0, friction: float = 0.0) -> dict:
     import os
 
     env = dict(os.environ, **({"PMASK_BENCH_UNCOUPLED": "1"} if uncoupled else {}))
     args = [str(exe), str(table), str(trace), str(n), "--paced", str(paced)]
+    if friction:
+        args += ["--friction", repr(float(friction))]
     if batch:
         args += ["--batch", str(batch)]
     if reacquire:
