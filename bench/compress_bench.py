@@ -323,6 +323,21 @@ def coupled_step_c(dense: Path, compressed: Path, work: Path, repeats: int = 3) 
         out[f"{name}_empty_us"] = [x["empty_tight"]["median_us"] for x in r]
     out["ticks"] = runs["dense"][0]["ticks"]
     out["ratio"] = float(np.median(out["compressed_median_us"]) / np.median(out["dense_median_us"]))
+    # the displayed deformation the C core computes on each table at the grasp's last tick (pm_servo_deformation
+    # through the binding: the display forces, then the ζ table's rows or one product with Ξ's blocks)
+    from pmask.runtime import Contacts
+
+    for name, table in tables.items():
+        c = Contacts(ContactSurface.from_table(table), 2, friction=0.3, engine="native")
+        for probes in np.reshape(np.fromfile(traces[name], "<f8", offset=8), (-1, 6)):
+            c.step(list(probes))
+        ts = []
+        for _ in range(20):
+            t0 = time.perf_counter()
+            c.deformation()
+            ts.append(time.perf_counter() - t0)
+        out[f"{name}_deformation_ms"] = float(np.median(ts) * 1e3)
+        del c
     return out
 
 
@@ -664,7 +679,10 @@ def markdown(res: dict) -> str:
                   f"({c['ratio']:.2f}x; the hands issue asks ≤ 2x); the longest tick "
                   f"{', '.join(f'{x / 1e3:.2f}' for x in c['compressed_max_us'])} ms against "
                   f"{', '.join(f'{x / 1e3:.2f}' for x in c['dense_max_us'])} ms (a tick that forms blocks is late by "
-                  f"that much); the empty timer {np.median(c['compressed_empty_us'] + c['dense_empty_us']):.3f} µs."]
+                  f"that much); the empty timer {np.median(c['compressed_empty_us'] + c['dense_empty_us']):.3f} µs.  "
+                  f"The displayed deformation the C core computes at the grasp's last tick (`pm_servo_deformation` "
+                  f"through the binding, median of 20): {c['compressed_deformation_ms']:.2f} ms from Ξ's compressed "
+                  f"sections against {c['dense_deformation_ms']:.2f} ms from the dense one's ζ table."]
     if g and "near_bytes" in g:
         L += ["", extrapolation(res)]
     e = res["eight_workers"]

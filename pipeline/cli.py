@@ -436,8 +436,7 @@ def cmd_export_table(args) -> int:
     if compressed and not args.no_zeta:
         n3 = 3 * len(model.contact)
         print(f"  with the compressed Green's functions in place of the zeta table (a dense {n3} x {n3} array, "
-              f"{n3 * n3 * 8 / 2**30:.1f} GiB): the C core couples contacts from them; the deformation "
-              "(pm_servo_deformation) needs the zeta table: deform the surface from Python (pmask.runtime.Contacts)")
+              f"{n3 * n3 * 8 / 2**30:.1f} GiB): the C core couples contacts and deforms the surface from them")
     return 0
 
 

@@ -341,7 +341,7 @@ class Contacts:
         if not self.surface.greens:
             raise InputError("deformation needs Green's functions (a Stiffness from Model.stiffness, or a "
                              "runtime table exported with its zeta table)")
-        if self._native is not None and self._native.has_zeta:
+        if self._native is not None and self._native.has_greens:
             return self._native.deformation()
         loads = self.display_loads()
         return self.surface.deformation_of(loads) if loads else np.zeros((self.surface.n_mesh, 3))

@@ -211,7 +211,7 @@ def test_a_pair_function_couples_as_the_zeta_table_does(model, stiff, surface, l
     ref = run(Contacts(surface, 3, engine="native", **opts), trace)
     calls = _without_zeta(surface, monkeypatch)
     paired = Contacts(surface, 3, engine="native", **opts)
-    assert paired._native.servo is not None and not paired._native.has_zeta
+    assert paired._native.servo is not None and not paired._native.has_greens
     got, moves = [], 0
     last = None
     for probes in trace:

@@ -146,7 +146,7 @@ class NativeContacts:
         self.step = self.servo.step
         self.step1 = self.servo.step1
         self.reset = self.servo.reset
-        self.has_zeta = bool(self.table.counts()[2])
+        self.has_greens = self.table.has_greens()  # (the ζ table, or a table's compressed Ξ: the deformation)
         self._diag = srf.diag
 
     @staticmethod
@@ -161,8 +161,9 @@ class NativeContacts:
         return NativeState(self.servo.state(k))
 
     def deformation(self) -> np.ndarray | None:
-        """eq. 16 with the display forces, computed by the C core (None without its ζ table)."""
-        if not self.has_zeta:
+        """eq. 16 with the display forces, computed by the C core (None without its ζ table or a table's
+        compressed Ξ)."""
+        if not self.has_greens:
             return None
         out = np.empty((self.surface.n_mesh, 3))
         self.servo.deformation(out)

@@ -16,8 +16,8 @@
  * 5. (servo_threads TABLE COMPRESSED: a table exported from a compressed artifact of the same model, table 1.4)
  *    Contacts coupled from Ξ's compressed sections by the core itself: stepped, then in exchange mode (the blocks
  *    then formed on the servo's thread) bit for bit the same, every force within 1e-3 of the largest of the ζ
- *    table's (the compression's bound on coupled forces), and the blocks of a pair of triangles read both ways
- *    transposes of each other, bit for bit.
+ *    table's and the displayed deformation within 1e-3 of its (the compression's bound), and the blocks of a
+ *    pair of triangles read both ways transposes of each other, bit for bit.
  * Prints one line per part; exits 1 on a failed check.
  */
 #define _POSIX_C_SOURCE 200809L
@@ -350,6 +350,22 @@ static int compressed_couples(const char *path, const pm_table *loaded, const sh
             differ_thread++;
     }
     pm_servo_stop(y);
+    /* the displayed deformation after the last tick, from Ξ's compressed sections and from the ζ table */
+    const int64_t nv = pm_table_vertices(loaded);
+    double *ux = malloc((size_t)nv * 3 * sizeof *ux), *uy = malloc((size_t)nv * 3 * sizeof *uy);
+    double du = 0.0, un = 0.0;
+    if (!ux || !uy || pm_table_vertices(c) != nv || pm_servo_deformation(x, ux) || pm_servo_deformation(y, uy)) {
+        free(ux);
+        free(uy);
+        fprintf(stderr, "error: part 5: no deformation\n");
+        goto out;
+    }
+    for (int64_t i = 0; i < 3 * nv; i++) {
+        du += (uy[i] - ux[i]) * (uy[i] - ux[i]);
+        un += ux[i] * ux[i];
+    }
+    free(ux);
+    free(uy);
     int64_t asymmetric = 0;
     const int64_t nt = pm_table_triangles(c);
     for (int64_t k = 0; k < 200; k++) {
@@ -366,9 +382,11 @@ static int compressed_couples(const char *path, const pm_table *loaded, const sh
                         asymmetric += P[27 * a + 9 * b + 3 * r + q] != Q[27 * b + 9 * a + 3 * q + r];
     }
     printf("a compressed Xi in place of the zeta table: %d steps (%lld both touching), forces within %.2e of the "
-           "largest, %lld differ in exchange mode, %lld asymmetric block entries\n", EXCHANGES, (long long)touching,
-           largest > 0 ? worst / largest : 0.0, (long long)differ_thread, (long long)asymmetric);
-    rc = !(largest > 0) || worst > 1e-3 * largest || touching < EXCHANGES / 2 || differ_thread || asymmetric;
+           "largest, the deformation within %.2e, %lld differ in exchange mode, %lld asymmetric block entries\n",
+           EXCHANGES, (long long)touching, largest > 0 ? worst / largest : 0.0, un > 0 ? sqrt(du / un) : 0.0,
+           (long long)differ_thread, (long long)asymmetric);
+    rc = !(largest > 0) || worst > 1e-3 * largest || !(un > 0) || du > 1e-6 * un || touching < EXCHANGES / 2 ||
+         differ_thread || asymmetric;
 out:
     pm_servo_free(x);
     pm_servo_free(y);

@@ -22,6 +22,12 @@ void pm__compliance(const pm_table *tb, int64_t ta, const double *ba_in, int64_t
             int64_t rm = tb->row[ib[y]];
             if (pm == 0.0 || rm < 0) continue;
             double w = pi * pm;
+            if (!tb->zeta) {  /* a compressed Ξ's sections: ζ_m(i) from its blocks */
+                double Z[9];
+                pm__greens_zeta(&tb->xi, rm, ri, Z);
+                for (int k = 0; k < 9; k++) C[k] += w * Z[k];
+                continue;
+            }
             const double *blk = tb->zeta + 3 * rm * n3 + 3 * ri;   /* blk[c][r] = blk[c * n3 + r] */
             for (int r = 0; r < 3; r++)
                 for (int c = 0; c < 3; c++) C[3 * r + c] += w * blk[c * n3 + r];

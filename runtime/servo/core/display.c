@@ -5,7 +5,7 @@
 static int deformation(pm_servo *s, double *out)
 {
     const pm_table *tb = s->tab;
-    if (!tb->zeta) return -1;
+    if (!tb->zeta && !tb->xi.n) return -1;
     const int32_t n = s->n;
     /* one consistent snapshot of the published contacts */
     pm_contact_state *snap = s->dsnap;
@@ -81,6 +81,29 @@ static int deformation(pm_servo *s, double *out)
     int64_t mt[64];
     double mb[64][3];
     for (int32_t i = 0; i < na; i++) mt[i] = pm__mesh_point(tb, tri[i], b[i], mb[i]);
+    if (!tb->zeta) {  /* a compressed Ξ: the loads spread over their masks, then one product Ξ x (MaskedXi) */
+        const pm_greens *g = &tb->xi;
+        for (int64_t i = 0; i < n3; i++) s->dx[i] = 0.0;
+        for (int32_t i = 0; i < na; i++) {
+            const int64_t *tv = tb->mT + 3 * mt[i];
+            for (int k = 0; k < 3; k++) {
+                const int64_t rm = tb->row[tv[k]];
+                const double phi = mb[i][k];
+                if (phi == 0.0 || rm < 0) continue;
+                for (int64_t e = g->mask_ptr[rm]; e < g->mask_ptr[rm + 1]; e++) {
+                    const double w = phi * g->mask_w[e];
+                    double *dx = s->dx + 3 * g->mask_cols[e];
+                    for (int a = 0; a < 3; a++) dx[a] += w * x[3 * i + a];
+                }
+            }
+        }
+        pm__greens_matvec(tb, s->dx, s->dy, &s->gw);
+        for (int64_t v = 0; v < nv; v++) {
+            const int64_t rv = tb->row[v];
+            for (int a = 0; a < 3; a++) out[3 * v + a] = rv < 0 ? 0.0 : s->dy[3 * rv + a];
+        }
+        return 0;
+    }
     for (int64_t v = 0; v < nv; v++) {
         int64_t rv = tb->row[v];
         if (rv < 0) continue;

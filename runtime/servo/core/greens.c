@@ -155,6 +155,7 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
             if (e > pairs || k[4] > nexact - 9 * e || ni[0] > nq - 9 * (pairs - e) || ni[2] > nqscale - 3 * w)
                 return bad(err, errlen, "do not match their index");
         } else {
+            if (k[4] > x->maxrank) x->maxrank = k[4];
             if (k[4] < 0 || k[5] < 0 || k[6] < 0 || k[5] > nU || k[6] > nV ||
                 (k[4] > 0 && (3 * m > (nU - k[5]) / k[4] || 3 * w > (nV - k[6]) / k[4])))
                 return bad(err, errlen, "do not match their index");
@@ -267,7 +268,7 @@ static void xi_block(const pm_greens *x, int64_t i, int64_t j, double *out)
 }
 
 /* ζ_m(i) = Σ_j ρ^m_j Ξ_ij (3x3, row-major; MaskedXi.block's transpose), zero where m has no mask */
-static void zeta_of(const pm_greens *x, int64_t m, int64_t i, double *Z)
+void pm__greens_zeta(const pm_greens *x, int64_t m, int64_t i, double *Z)
 {
     for (int k = 0; k < 9; k++) Z[k] = 0.0;
     double B[9];
@@ -291,8 +292,8 @@ int pm__greens_pairs(void *user, int64_t ta, int64_t tb, double *P)
             const int64_t rm = t->row[ib[b]];
             if (ri < 0 || rm < 0) continue;
             double z1[9], z2[9];  /* ζ_y(x) and ζ_x(y) */
-            zeta_of(x, rm, ri, z1);
-            zeta_of(x, ri, rm, z2);
+            pm__greens_zeta(x, rm, ri, z1);
+            pm__greens_zeta(x, ri, rm, z2);
             double *o = P + 27 * a + 9 * b;
             for (int r = 0; r < 3; r++)
                 for (int c = 0; c < 3; c++) o[3 * r + c] = 0.5 * (z1[3 * r + c] + z2[3 * c + r]);
@@ -309,4 +310,101 @@ int pm_table_pair_blocks(const pm_table *t, int64_t ta, int64_t tb, double *P)
         return 0;
     }
     return t->xi.n ? pm__greens_pairs((void *)t, ta, tb, P) : -1;
+}
+
+/* y += B v for a 3x3 block B (row-major), and y += (Bᵀ v) s */
+static inline void add_block(const double *B, const double *v, double *y)
+{
+    for (int r = 0; r < 3; r++) y[r] += B[3 * r] * v[0] + B[3 * r + 1] * v[1] + B[3 * r + 2] * v[2];
+}
+
+static inline void add_block_t(const double *B, const double *v, double s, double *y)
+{
+    for (int c = 0; c < 3; c++) y[c] += (B[c] * v[0] + B[3 + c] * v[1] + B[6 + c] * v[2]) * s;
+}
+
+/* stored block b's product with the loaded part of xs (cluster order) into ys: forward (Ξ_IJ x_J) where its
+ * columns hold load, and (symmetric, off the diagonal) the block below, Ξ_JI x_I = diag(a_J)⁻¹ Ξ_IJᵀ diag(a_I) x_I,
+ * where its rows do (CompressedXi.matvec, pair by pair) */
+static void block_product(const pm_greens *x, int64_t b, const double *xs, const int64_t *nz, const double *as,
+                          double *tk, double *ys)
+{
+    const int64_t *k = b < x->nd ? x->dense_index + 5 * b : x->lowrank_index + 7 * (b - x->nd);
+    const int64_t r0 = k[0], r1 = k[1], c0 = k[2], c1 = k[3];
+    const int fwd = nz[c1] > nz[c0], back = x->symmetric && r0 != c0 && nz[r1] > nz[r0];
+    if (!fwd && !back) return;
+    if (b < x->nd) {  /* pair by pair in the stored order: exact where the mask's bit is set, else 16 bits */
+        const int64_t *ni = x->near_index + 3 * b, w = c1 - c0;
+        const double *ex = x->exact + k[4];
+        int64_t e = 0, qn = 0, t = 0;
+        for (int64_t p = r0; p < r1; p++)
+            for (int64_t q = c0; q < c1; q++, t++) {
+                const int64_t g = 8 * ni[1] + t;
+                const int exact = (x->mask[g >> 3] >> (7 - (g & 7))) & 1;
+                const int use_f = fwd && nz[q + 1] > nz[q], use_b = back && nz[p + 1] > nz[p];
+                if (use_f || use_b) {
+                    double B[9];
+                    if (exact) {
+                        memcpy(B, ex + 9 * e, sizeof B);
+                    } else {
+                        const int64_t at = ni[0] + 9 * qn;
+                        const double *sc = x->qscale + ni[2] + 3 * (q - c0);
+                        for (int r = 0; r < 3; r++)
+                            for (int c = 0; c < 3; c++) B[3 * r + c] = (double)q16(x->q, at + 3 * r + c) * sc[c];
+                    }
+                    if (use_f) add_block(B, xs + 3 * q, ys + 3 * p);
+                    if (use_b) add_block_t(B, xs + 3 * p, as[p] / as[q], ys + 3 * q);
+                }
+                if (exact) e++; else qn++;
+            }
+        (void)w;
+        return;
+    }
+    const int64_t rank = k[4], m = 3 * (r1 - r0), w = 3 * (c1 - c0);
+    if (fwd) {  /* U (Vᵀ x_J) */
+        for (int64_t j = 0; j < rank; j++) tk[j] = 0.0;
+        for (int64_t c = 0; c < w; c++) {
+            const double v = xs[3 * c0 + c];
+            if (v != 0.0)
+                for (int64_t j = 0; j < rank; j++) tk[j] += factor(x, x->V, k[6] + c * rank + j) * v;
+        }
+        for (int64_t r = 0; r < m; r++) {
+            double acc = 0.0;
+            for (int64_t j = 0; j < rank; j++) acc += factor(x, x->U, k[5] + r * rank + j) * tk[j];
+            ys[3 * r0 + r] += acc;
+        }
+    }
+    if (back) {  /* diag(a_J)⁻¹ V (Uᵀ diag(a_I) x_I) */
+        for (int64_t j = 0; j < rank; j++) tk[j] = 0.0;
+        for (int64_t r = 0; r < m; r++) {
+            const double v = xs[3 * r0 + r] * as[r0 + r / 3];
+            if (v != 0.0)
+                for (int64_t j = 0; j < rank; j++) tk[j] += factor(x, x->U, k[5] + r * rank + j) * v;
+        }
+        for (int64_t c = 0; c < w; c++) {
+            double acc = 0.0;
+            for (int64_t j = 0; j < rank; j++) acc += factor(x, x->V, k[6] + c * rank + j) * tk[j];
+            ys[3 * c0 + c] += acc / as[c0 + c / 3];
+        }
+    }
+}
+
+void pm__greens_matvec(const pm_table *t, const double *x, double *y, pm_greens_work *wk)
+{
+    const pm_greens *g = &t->xi;
+    const int64_t n = g->n;
+    for (int64_t i = 0; i < n; i++) {
+        const int64_t p = g->position[i];
+        for (int a = 0; a < 3; a++) wk->xs[3 * p + a] = x[3 * i + a];
+        wk->as[p] = g->symmetric ? g->scale[i] : 1.0;
+    }
+    wk->nz[0] = 0;
+    for (int64_t p = 0; p < n; p++)
+        wk->nz[p + 1] = wk->nz[p] + (wk->xs[3 * p] != 0.0 || wk->xs[3 * p + 1] != 0.0 || wk->xs[3 * p + 2] != 0.0);
+    for (int64_t i = 0; i < 3 * n; i++) wk->ys[i] = 0.0;
+    for (int64_t b = 0; b < g->nd + g->nl; b++) block_product(g, b, wk->xs, wk->nz, wk->as, wk->tk, wk->ys);
+    for (int64_t i = 0; i < n; i++) {
+        const int64_t p = g->position[i];
+        for (int a = 0; a < 3; a++) y[3 * i + a] = wk->ys[3 * p + a];
+    }
 }

@@ -73,6 +73,7 @@
 typedef struct {
     int64_t n, nleaves, nd, nl, nowner, item;  /* contact vertices, leaves, dense and low-rank blocks, lookup
                                                   entries, bytes of a factor's value (4 or 8) */
+    int64_t maxrank;                           /* the largest rank of a low-rank block */
     int symmetric;                             /* only the blocks on and above the diagonal are stored */
     const int64_t *leaves, *dense_index, *near_index, *lowrank_index, *owner, *mask_ptr, *mask_cols;
     const double *scale, *exact, *qscale, *mask_w;
@@ -145,6 +146,17 @@ PM_HIDDEN void pm__greens_free(pm_table *t);
 PM_HIDDEN void pm__zeta_pairs(const pm_table *tb, int64_t ta, int64_t tbi, double *P);
 /* a pm_pair_fn over the table's compressed Ξ (user: the table) */
 PM_HIDDEN int pm__greens_pairs(void *user, int64_t ta, int64_t tb, double *P);
+/* ζ_m(i) (3x3, row-major) for contact vertices m, i */
+PM_HIDDEN void pm__greens_zeta(const pm_greens *x, int64_t m, int64_t i, double *Z);
+/* the deformation's workspace on a compressed Ξ (allocated with the servo): x and y in cluster order (3 n_c
+ * each), each vertex's scale a, loaded vertices before each position (n_c + 1), a low-rank product (max rank) */
+typedef struct {
+    double *xs, *ys, *as, *tk;
+    int64_t *nz;
+} pm_greens_work;
+/* y = Ξ x (3 n_c, contact order; x loaded on a few vertices): the blocks whose columns (or, below a symmetric
+ * form's diagonal, rows) hold load (CompressedXi.matvec) */
+PM_HIDDEN void pm__greens_matvec(const pm_table *t, const double *x, double *y, pm_greens_work *wk);
 
 /* ------------------------------------------------------------------ a contact's state (servo.c) */
 typedef struct {
@@ -228,6 +240,8 @@ struct pm_servo {
     int32_t *npress, *nidx; /* which contacts press; their indices (n, n) */
     /* display solve */
     double *dC, *du;
+    double *dx, *dy;              /* a compressed Ξ's deformation: the masked loads and Ξ x (3 n_c each) */
+    pm_greens_work gw;
     int32_t *dact;
     pm_contact_state *dsnap;
     /* the published results */

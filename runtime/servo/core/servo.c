@@ -138,6 +138,15 @@ int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, 
     ALLOC(s->du, 3 * n);
     ALLOC(s->dact, n);
     ALLOC(s->dsnap, n);
+    if (t->xi.n) {  /* the deformation from a compressed Ξ's sections */
+        ALLOC(s->dx, 3 * t->xi.n);
+        ALLOC(s->dy, 3 * t->xi.n);
+        ALLOC(s->gw.xs, 3 * t->xi.n);
+        ALLOC(s->gw.ys, 3 * t->xi.n);
+        ALLOC(s->gw.as, t->xi.n);
+        ALLOC(s->gw.tk, t->xi.maxrank);
+        ALLOC(s->gw.nz, t->xi.n + 1);
+    }
     s->pub.nwords = sizeof(pm_tick_stats) / 8 + 3 * (size_t)n + ((size_t)n + 1) / 2 + (size_t)n * PUB_STATE_WORDS;
     ALLOC(s->pub.words, s->pub.nwords);
     ALLOC(s->pub.stage, s->pub.nwords);
@@ -208,6 +217,13 @@ void pm_servo_free(pm_servo *s)
     free(s->du);
     free(s->dact);
     free(s->dsnap);
+    free(s->dx);
+    free(s->dy);
+    free(s->gw.xs);
+    free(s->gw.ys);
+    free(s->gw.as);
+    free(s->gw.tk);
+    free(s->gw.nz);
     free(s->pub.words);
     free(s->pub.stage);
     free(s->tb);
