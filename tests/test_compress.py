@@ -356,6 +356,7 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
         assert np.abs(F["C"] - F["artifact"]).max() <= 1e-12 * size
     assert np.abs(F["table"] - F["dense"]).max() <= 1e-3 * size
     v = {k: c.deformation() for k, c in run.items()}
+    assert np.linalg.norm(v["artifact"], axis=1).max() > 1e-3  # the jaws still 2.5 mm in (m)
     assert np.array_equal(v["table"], v["artifact"])
     if "C" in v:  # the C core's own (pm_servo_deformation: display forces, then one product with Ξ's blocks)
         assert np.linalg.norm(v["C"] - v["artifact"]) <= 1e-12 * np.linalg.norm(v["artifact"])
