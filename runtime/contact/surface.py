@@ -130,7 +130,9 @@ class ContactSurface:
 
     @classmethod
     def from_table(cls, table) -> "ContactSurface":
-        """A contact surface from a runtime table (:func:`pmask.runtime.table.read_table`'s result or a path)."""
+        """A contact surface from a runtime table (:func:`pmask.runtime.table.read_table`'s result or a path); its
+        Green's functions, when the table has them, from the ζ table or (table 1.4) a compressed Ξ's sections
+        (:func:`pmask.runtime.table.table_greens`), for coupled contacts and the deformation."""
         from pmask.runtime.table import read_table
 
         t = table if isinstance(table, dict) else read_table(table)
