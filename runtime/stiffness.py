@@ -227,6 +227,18 @@ class SurfaceStiffness:
         return self.at(triangle, bary) @ u
 
 
+def core_mask_rows(masks, mask_of_contact):
+    """c -> (columns, weights) of the core mask centred at contact vertex c, empty where it has none (the
+    ``mask_row`` of :class:`pmask.runtime.compressed.MaskedXi`)."""
+    none = (np.zeros(0, np.int64), np.zeros(0))
+
+    def row(c: int):
+        k = mask_of_contact[c]
+        return masks.row(k) if k >= 0 else none
+
+    return row
+
+
 class Stiffness(SurfaceStiffness):
     """Surface stiffness built from Green's functions and pressure masks, with deformation (eq. 16).
 
@@ -268,9 +280,11 @@ class Stiffness(SurfaceStiffness):
         self._contact_row = np.full(n_s, -1)
         self._contact_row[model.contact] = np.arange(len(model.contact))
         self._zeta_table = None
-        self._masked = MaskedXi(model.Xi, self._mask_row)
         self._mask_of_contact = np.full(len(model.contact), -1)
         self._mask_of_contact[masks.centres] = np.arange(len(masks.centres))
+        # (a closure over the masks, not a bound method: a stiffness that held itself through its MaskedXi would
+        # wait for the cyclic garbage collector, its ζ table and the model's Ξ with it)
+        self._masked = MaskedXi(model.Xi, core_mask_rows(masks, self._mask_of_contact))
 
     def _fill_unknown_free(self, Kv: np.ndarray, known: np.ndarray) -> None:
         """Free vertices outside Ξ (λ = 0 there): the nearest known vertex's K, so that K(x) stays
@@ -395,11 +409,6 @@ class Stiffness(SurfaceStiffness):
         if not self.compressed:
             return zeta_deformation(self.zeta_table(), self._contact_row, self.triangles, loads)
         return self._masked.deformation_of(self.triangles, self._contact_row, loads)
-
-    def _mask_row(self, c: int):
-        """(columns, weights) of the core mask centred at contact vertex c, empty where it has none."""
-        k = self._mask_of_contact[c]
-        return self.masks.row(k) if k >= 0 else (np.zeros(0, np.int64), np.zeros(0))
 
     def compliance_between(self, t_l, b_l, t_k, b_k) -> np.ndarray:
         r"""C_lk (3x3): displacement at point l (interpolated, eq. 16) per unit force at point k
