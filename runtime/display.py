@@ -34,11 +34,12 @@ class DisplaySurface:
             raise InputError("display surface: the embedding's arrays do not match its points")
 
     @classmethod
-    def from_artifact(cls, path) -> "DisplaySurface | None":
-        """The artifact's display surface, or None when it has none (a model, a --volume mesh, --no-display)."""
+    def from_artifact(cls, path, verify: bool = True) -> "DisplaySurface | None":
+        """The artifact's display surface, or None when it has none (a model, a --volume mesh, --no-display);
+        ``verify`` as :meth:`pmask.runtime.Model.load`'s."""
         from pmask.runtime.artifact import DISPLAY, read_artifact
 
-        d = read_artifact(path, datasets=DISPLAY)
+        d = read_artifact(path, datasets=DISPLAY, verify=verify)
         if d.get("display/points") is None:
             return None
         return cls(*(d[k] for k in DISPLAY))

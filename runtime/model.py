@@ -134,7 +134,7 @@ class Model:
         demand; None when the artifact has none (a built-in model, a --volume mesh, --no-display)."""
         from pmask.runtime.display import DisplaySurface
 
-        return DisplaySurface.from_artifact(self.path) if self.path else None
+        return DisplaySurface.from_artifact(self.path, getattr(self, "verify", True)) if self.path else None
 
     def reactions(self) -> np.ndarray | None:
         """Support reactions (3 n_u, 3 n_c), per unit traction at each contact dof; None if the

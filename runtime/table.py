@@ -471,6 +471,8 @@ def export_table(artifact, out, *, mask: str = "linear", radius: float | None = 
             "units": {"length": "model units (as the artifact)", "stiffness": "N/m"},
             "source": str(getattr(model, "path", "")), "source_digest": str(model.attrs.get("metadata_sha256", "")),
             "pmask_version": _version()}
+    if zeta and surface.compressed:  # (table 1.4: what a user computes from it is within this of the dense Ξ's)
+        meta["greens"] = {"form": "hmatrix", "tolerance": model.Xi.tolerance}
     return write_table(out, surface, meta, zeta, display=model.display())
 
 

@@ -126,7 +126,8 @@ def test_dense_blocks_are_stored_pair_by_pair(which, request):
 def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path):
     """A file of format 1.5 stores every dense block whole (``dense``) and has no near_* datasets: it is read as
     before (the same file with its blocks decoded and written whole reads the same Ξ: the packed reader's blocks
-    against the whole ones' to the bit), and a file with neither form of the near field is one line."""
+    against the whole ones' to the bit), its exported table gives the same coupling blocks as the 1.6 file's (to
+    the bit), and a file with neither form of the near field is one line."""
     import shutil
 
     import h5py
@@ -151,6 +152,18 @@ def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path
     assert np.array_equal(W.blocks(i, j), C.blocks(i, j))
     x = np.random.default_rng(3).standard_normal(3 * n)
     assert np.allclose(W.matvec(x), C.matvec(x), rtol=0, atol=1e-14 * np.abs(C.matvec(x)).max())
+    # exported, its whole blocks are written pair by pair, every pair exact: the same blocks as the 1.6 file's
+    from pmask.runtime import servo
+    from pmask.runtime.table import export_table, read_table
+
+    tables = [export_table(m, tmp_path / f"{k}.tbl") for k, m in (("w", Model.load(old, verify=False)), ("c", comp))]
+    greens = [read_table(t)["greens"] for t in tables]
+    for a, b in zip(i[:200], j[:200]):
+        assert greens[0].block(int(a), int(b)) == greens[1].block(int(a), int(b))
+    if servo.available():
+        native = [servo.load_table(t) for t in tables]
+        for ta, tb in _triangle_pairs(comp, count=10):
+            assert native[0].pair_blocks(ta, tb) == native[1].pair_blocks(ta, tb)
     with h5py.File(old, "r+") as f:
         del f["greens/hmatrix/dense"]
     with pytest.raises(InputError, match="near field is missing") as err:
@@ -324,6 +337,7 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
     assert "compressed Green's functions in place of the zeta table" in said
     t = read_table(out)
     assert "zeta" not in t and "xi_info" in t and len(t["points"]) == len(comp.points)
+    assert t["meta"]["greens"] == {"form": "hmatrix", "tolerance": TOL}
     n3 = 3 * len(comp.contact)
     assert out.stat().st_size < 0.25 * n3 * n3 * 8  # (this kidney's Ξ compresses ~10x at r_max = 10 mm)
     sc = comp.stiffness("linear")
