@@ -156,6 +156,25 @@ static int64_t step_both(pm_servo *x, pm_servo *y, const shared *sh, double (*fo
     return differ;
 }
 
+/* parts 4 and 5: servo y from reset in exchange mode on the trace; the samples whose answers differ from the
+ * stepped forces and statuses, or -1 when the thread does not start */
+static int64_t exchange_differs(pm_servo *y, const shared *sh, double (*forces)[3 * N], int32_t (*status)[N])
+{
+    int64_t differ = 0;
+    pm_servo_reset(y);
+    if (pm_servo_start_exchange(y, 1000.0, PM_SPIN_DEFAULT)) return -1;
+    for (int64_t k = 0; k < EXCHANGES; k++) {
+        double p[3 * N], f[3 * N];
+        int32_t s[N];
+        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
+        if (pm_servo_exchange(y, p, f, s, 1.0) != 0 || memcmp(f, forces[k], sizeof f) != 0 ||
+            memcmp(s, status[k], sizeof s) != 0)
+            differ++;
+    }
+    pm_servo_stop(y);
+    return differ;
+}
+
 /* part 4's pair function: the nine vertex-pair blocks of mesh triangles ta, tb from the file's own ζ section and
  * contact rows, P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ) (written here from the table format, not from the core's code) */
 typedef struct {
@@ -225,19 +244,9 @@ static int paired_steps_the_same(const pm_section *secs, uint32_t n, const pm_ta
         goto out;
     }
     const int64_t differ = step_both(x, y, sh, forces, status);
-    int64_t differ_thread = 0;
     const int64_t stepped = __atomic_load_n(&z.calls, __ATOMIC_RELAXED);
-    pm_servo_reset(y);
-    if (pm_servo_start_exchange(y, 1000.0, PM_SPIN_DEFAULT)) goto out;
-    for (int64_t k = 0; k < EXCHANGES; k++) {
-        double p[3 * N], f[3 * N];
-        int32_t s[N];
-        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
-        if (pm_servo_exchange(y, p, f, s, 1.0) != 0 || memcmp(f, forces[k], sizeof f) != 0 ||
-            memcmp(s, status[k], sizeof s) != 0)
-            differ_thread++;
-    }
-    pm_servo_stop(y);
+    const int64_t differ_thread = exchange_differs(y, sh, forces, status);
+    if (differ_thread < 0) goto out;
     printf("a pair function in place of the zeta table: %d steps, %lld differ stepped, %lld in exchange mode; "
            "%lld pairs asked for stepped\n", EXCHANGES, (long long)differ, (long long)differ_thread, (long long)stepped);
     rc = differ != 0 || differ_thread != 0 || stepped < 1 || stepped > EXCHANGES / 4;
@@ -338,18 +347,8 @@ static int compressed_couples(const char *path, const pm_table *loaded, const sh
             largest = fmax(largest, fabs(fx[i]));
         }
     }
-    int64_t differ_thread = 0;
-    pm_servo_reset(y);
-    if (pm_servo_start_exchange(y, 1000.0, PM_SPIN_DEFAULT)) goto out;
-    for (int64_t k = 0; k < EXCHANGES; k++) {
-        double p[3 * N], f[3 * N];
-        int32_t s[N];
-        for (int w = 0; w < N; w++) probe_at(sh, k, w, p + 3 * w);
-        if (pm_servo_exchange(y, p, f, s, 1.0) != 0 || memcmp(f, forces[k], sizeof f) != 0 ||
-            memcmp(s, status[k], sizeof s) != 0)
-            differ_thread++;
-    }
-    pm_servo_stop(y);
+    const int64_t differ_thread = exchange_differs(y, sh, forces, status);
+    if (differ_thread < 0) goto out;
     /* the displayed deformation after the last tick, from Ξ's compressed sections and from the ζ table */
     const int64_t nv = pm_table_vertices(loaded);
     double *ux = malloc((size_t)nv * 3 * sizeof *ux), *uy = malloc((size_t)nv * 3 * sizeof *uy);
