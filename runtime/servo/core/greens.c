@@ -334,7 +334,7 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
     const int fwd = nz[c1] > nz[c0], back = x->symmetric && r0 != c0 && nz[r1] > nz[r0];
     if (!fwd && !back) return;
     if (b < x->nd) {  /* pair by pair in the stored order: exact where the mask's bit is set, else 16 bits */
-        const int64_t *ni = x->near_index + 3 * b, w = c1 - c0;
+        const int64_t *ni = x->near_index + 3 * b;
         const double *ex = x->exact + k[4];
         int64_t e = 0, qn = 0, t = 0;
         for (int64_t p = r0; p < r1; p++)
@@ -357,7 +357,6 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
                 }
                 if (exact) e++; else qn++;
             }
-        (void)w;
         return;
     }
     const int64_t rank = k[4], m = 3 * (r1 - r0), w = 3 * (c1 - c0);
