@@ -165,7 +165,8 @@ def greens_sections(stiffness) -> dict:
         "xi_near_exact": col(exact, np.float64), "xi_near_mask": np.asarray(mask, np.uint8),
         "xi_near_q": np.asarray(q, "<i2"), "xi_near_scale": col(qscale, np.float64),
         "xi_lowrank_index": np.asarray(Xi.lowrank_index, np.int64).reshape(-1, 7),
-        "xi_U": U.astype(U.dtype.newbyteorder("<")), "xi_V": V.astype(V.dtype.newbyteorder("<")),
+        "xi_U": U.astype(U.dtype.newbyteorder("<"), copy=False),  # (no copy on a little-endian host)
+        "xi_V": V.astype(V.dtype.newbyteorder("<"), copy=False),
         "xi_owner": np.stack([Xi._key, Xi._block, Xi._flip.astype(np.int64)], axis=1).astype(np.int64),
         "mask_ptr": col(ptr, np.int64), "mask_cols": col(cols, np.int64), "mask_weights": col(w, np.float64),
     }
