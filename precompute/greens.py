@@ -41,6 +41,7 @@ import scipy.sparse as sp
 
 from pmask.errors import InputError
 from pmask.precompute import selinv
+from pmask.runtime.memory import available_memory, parse_bytes  # noqa: F401 (callers read them here too)
 from pmask.precompute.elasticity import dofs
 
 log = logging.getLogger(__name__)
@@ -181,36 +182,6 @@ def amd_order(graph: sp.spmatrix) -> np.ndarray:
     g = graph.tocoo()
     A = cvxopt.spmatrix(1.0, cvxopt.matrix(g.row.astype(np.int64)), cvxopt.matrix(g.col.astype(np.int64)), g.shape)
     return np.array(cvxopt.amd.order(A), dtype=np.int64).ravel()
-
-
-def available_memory() -> int | None:
-    """Bytes this process can still allocate without swapping (Linux: MemAvailable), None if unknown;
-    at most ``PMASK_MAX_MEMORY`` (bytes, or with a K/M/G suffix) where that is set, to keep a precompute
-    within a share of a shared machine."""
-    avail = None
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    avail = int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    cap = os.environ.get("PMASK_MAX_MEMORY", "").strip()
-    if cap:
-        limit = parse_bytes(cap, "PMASK_MAX_MEMORY")
-        avail = limit if avail is None else min(avail, limit)
-    return avail
-
-
-def parse_bytes(text, what: str) -> int:
-    """Bytes from '4G', '512M', '2.5GiB' or a plain number (K, M, G, T: powers of 1024); ``what`` names the
-    setting in the one-line error (``PMASK_MAX_MEMORY``, ``--worker-memory``)."""
-    s = str(text).strip().upper().removesuffix("IB").removesuffix("B")
-    try:
-        unit = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}.get(s[-1:], 1)
-        return int(float(s[:-1] if unit > 1 else s) * unit)
-    except ValueError:
-        raise InputError(f"{what} must be bytes or a number with K, M or G (e.g. 4G), got {text!r}") from None
 
 
 def cholmod_backend(prefer: str | None = None) -> str:
