@@ -174,13 +174,17 @@ def greens_sections(stiffness) -> dict:
 
 def table_arrays(sections: dict, meta: dict) -> dict:
     """The sections as the native core borrows them (:func:`pmask.runtime.servo.load_table` of a dict, C
-    ``pm_table_from_sections``): C-contiguous 2-D float64/int64 arrays (no copy when they already are) and the
-    metadata as JSON bytes.  A viewer that rebuilds its 150 MB ζ table on every change of the mask radius
-    hands it over this way instead of serialising it (:func:`table_bytes`) for the loader to copy again."""
+    ``pm_table_from_sections``): C-contiguous 2-D float64/int64 arrays (no copy when they already are), a
+    compressed Ξ's byte sections (:data:`GREENS`) as their raw bytes (a uint8 view, little-endian as
+    :func:`greens_sections` makes them) and the metadata as JSON bytes.  A viewer that rebuilds its 150 MB ζ table
+    on every change of the mask radius hands it over this way instead of serialising it (:func:`table_bytes`) for the loader to copy again."""
     out = {}
     for name, value in sections.items():
         a = np.asarray(value)
-        out[name] = np.ascontiguousarray(a, np.int64 if np.issubdtype(a.dtype, np.integer) else np.float64)
+        if GREENS.get(name, ("",))[0] == "b":  # raw bytes (16-bit pairs, float32 factors), as table_bytes writes them
+            out[name] = np.ascontiguousarray(a).view(np.uint8).reshape(-1)
+        else:
+            out[name] = np.ascontiguousarray(a, np.int64 if np.issubdtype(a.dtype, np.integer) else np.float64)
     out["meta"] = json.dumps(meta, sort_keys=True).encode()
     return out
 
@@ -196,7 +200,8 @@ def table_bytes(sections: dict, meta: dict) -> bytearray:
     for name, value in items:
         if isinstance(value, bytes):
             kind, rows, cols, a, nbytes = BYTES, len(value), 1, value, len(value)
-        elif isinstance(value, np.ndarray) and value.dtype.itemsize != 8:  # int16, float32, bytes: their raw bytes
+        elif isinstance(value, np.ndarray) and (value.dtype.itemsize != 8 or GREENS.get(name, ("",))[0] == "b"):
+            # int16, float32, bytes, and a compressed Ξ's factors in float64 too: their raw bytes
             a = np.ascontiguousarray(value).view(np.uint8).ravel()
             kind, rows, cols, nbytes = BYTES, a.size, 1, a.size
         else:

@@ -254,16 +254,20 @@ def test_the_zeta_table_is_refused_with_a_line_that_says_what_to_use(pair):
         comp.stiffness("linear", R_MAX).zeta_table()
 
 
-def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair):
+def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair, monkeypatch, caplog):
     """The hands issue's item 8: a compressed artifact in the haptic loop without its ζ table (as large as
     Ξ: 28 GiB at 20k vertices).  One contact reads only K_i (the exact near field): the same forces as the
     dense artifact's, native engine on both, to 1e-9 (K_i agree to 1e-10, test above).  Two coupled jaws
-    with friction couple through ζ_m(i) blocks read from Ξ's blocks when they land on new triangles, in both
-    engines (the native core asks the surface for them: pm_servo_create_paired): the two engines agree bit for
-    bit (the same blocks, the same sums), and their forces and the displayed deformation are within 1e-3 of the
-    dense artifact's (the far field's per-block 1e-4 summed over the mask; the coupled-forces bound above)."""
-    from pmask.runtime import Contacts, HapticContact
-    from pmask.runtime import servo
+    with friction couple through ζ_m(i) blocks formed from Ξ's blocks when they land on new triangles, in both
+    engines: the native core from Ξ's compressed sections handed to it in memory (its thread never asks Python:
+    the surface's pair function fails the test if it is called), within 1e-12 of the Python engine's forces and
+    deformation (the C core sums a mask's columns in order, numpy's einsum may not); where they would take more
+    than GREENS_MEMORY_SHARE of the memory available (here made so), the core asks the surface for them
+    (pm_servo_create_paired), with a line that says so, and then agrees with the Python engine bit for bit (the
+    same blocks, the same sums).  All are within 1e-3 of the dense artifact's forces and displayed deformation
+    (the far field's per-block 1e-4 summed over the mask; the coupled-forces bound above)."""
+    from pmask.runtime import Contacts, HapticContact, memory, servo
+    from pmask.runtime.contact import ContactSurface
 
     dense, comp, _ = pair
     sd, sc = dense.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
@@ -276,23 +280,33 @@ def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair):
         worst = max(worst, float(np.linalg.norm(np.subtract(fc, fd))) / max(float(np.linalg.norm(fd)), 1e-3))
     assert worst <= 1e-9
     assert np.linalg.norm(one[1].deformation() - one[0].deformation()) <= 1e-3 * np.linalg.norm(one[0].deformation())
-    engines = ["python"] + (["native"] if servo.available() else [])
-    grasp = {e: [Contacts(s, 2, friction=0.3, dynamic_friction=0.3, engine=e) for s in (sd, sc)] for e in engines}
+    opts = {"friction": 0.3, "dynamic_friction": 0.3}
+    grasp = {"dense": Contacts(sd, 2, **opts), "python": Contacts(ContactSurface(sc), 2, engine="python", **opts)}
+    if servo.available():
+        held = ContactSurface(sc)
+        held.pair_blocks = lambda *a: pytest.fail("the native core asked Python for blocks it holds")
+        grasp["native"] = Contacts(held, 2, engine="native", **opts)
+        assert grasp["native"]._native.has_greens
+        monkeypatch.setattr(servo, "GREENS_MEMORY_SHARE", 0.01)
+        monkeypatch.setattr(memory, "available_memory", lambda: comp.Xi.nbytes)
+        with caplog.at_level("INFO", logger="pmask.runtime.haptics"):
+            grasp["asked"] = Contacts(ContactSurface(sc), 2, engine="native", **opts)
+        assert not grasp["asked"]._native.has_greens
+        assert "coupled contacts in the native core ask Python for their blocks" in caplog.text
     auto = Contacts(sc, 2, friction=0.3)
-    assert auto.coupled and auto.engine == engines[-1]  # the C core where built, coupling without a ζ table
-    worst, apart = 0.0, 0.0
-    for probes in path:
-        out = {e: [np.array(c.step(list(probes))[0]) for c in cs] for e, cs in grasp.items()}
-        for e in engines:
-            Fd, Fc = out[e]
-            worst = max(worst, float(np.linalg.norm(Fc - Fd)) / max(float(np.linalg.norm(Fd)), 1e-3))
-        apart = max(apart, float(np.abs(out["python"][1] - out[engines[-1]][1]).max()))
-    assert np.linalg.norm(Fd) > 0.05  # still squeezing at the end (N)
-    assert worst <= 1e-3
-    assert apart == 0.0
-    for cs in grasp.values():
-        vd, vc = cs[0].deformation(), cs[1].deformation()
-        assert np.linalg.norm(vc - vd) <= 1e-3 * np.linalg.norm(vd)
+    assert auto.coupled and auto.engine == ("native" if servo.available() else "python")
+    F = {k: np.array([c.step(list(p))[0] for p in path]) for k, c in grasp.items()}
+    size = np.abs(F["dense"]).max()
+    assert np.linalg.norm(F["dense"][-1]) > 0.05  # still squeezing at the end (N)
+    for k in F:
+        assert np.abs(F[k] - F["dense"]).max() <= 1e-3 * size
+    v = {k: c.deformation() for k, c in grasp.items()}
+    for k in v:
+        assert np.linalg.norm(v[k] - v["dense"]) <= 1e-3 * np.linalg.norm(v["dense"])
+    if servo.available():
+        assert np.abs(F["native"] - F["python"]).max() <= 1e-12 * size
+        assert np.linalg.norm(v["native"] - v["python"]) <= 1e-12 * np.linalg.norm(v["python"])
+        assert np.array_equal(F["asked"], F["python"])
     assert sc._zeta_table is None  # nothing formed the dense table
 
 
@@ -375,6 +389,40 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
     if "C" in v:  # the C core's own (pm_servo_deformation: display forces, then one product with Ξ's blocks)
         assert np.linalg.norm(v["C"] - v["artifact"]) <= 1e-12 * np.linalg.norm(v["artifact"])
     assert np.linalg.norm(v["table"] - v["dense"]) <= 1e-3 * np.linalg.norm(v["dense"])
+
+
+def test_a_table_carries_float64_factors_and_hands_them_to_the_core_in_memory(pair_p1, tmp_path):
+    """Below FLOAT32_TOLERANCE (``--compress 1e-6``) the far field's factors stay float64: the table writes them
+    as the raw bytes its format names (export-table failed on them, "section xi_U must be 2-D": found this stop),
+    and the sections handed to the C core in memory (table_arrays: the 16-bit pairs and the factors as uint8
+    views, no copy) are the file's.  Here the P1 artifact's float32 factors widened to float64 (the same
+    numbers, so the blocks must agree to round-off): the C core's blocks from the file and from memory equal
+    the Python surface's to 1e-12 of each block, the file's and memory's bit for bit."""
+    from pmask.runtime import servo
+    from pmask.runtime.contact import ContactSurface
+    from pmask.runtime.table import export_table, read_table, surface_sections, table_arrays
+
+    _, comp, _ = pair_p1
+    wide = Model.load(comp.path)
+    wide.Xi.U, wide.Xi.V = (np.asarray(a[:], np.float64) for a in (wide.Xi.U, wide.Xi.V))
+    out = export_table(wide, tmp_path / "f64.tbl")
+    t = read_table(out)
+    assert t["xi_info"][0, 1] == 8 and len(t["xi_U"]) == 8 * len(wide.Xi.U)
+    if not servo.available():
+        return
+    srf = ContactSurface(wide.stiffness("linear"))
+    arrays = table_arrays(surface_sections(srf), srf.meta)
+    assert arrays["xi_U"].dtype == np.uint8 and np.shares_memory(arrays["xi_U"], wide.Xi.U)
+    tables = [servo.load_table(out), servo.load_table(arrays)]
+    assert all(tb.has_greens() for tb in tables)
+    worst = 0.0
+    for a, b in _triangle_pairs(wide):
+        Pp = np.reshape(srf.pair_blocks(a, b), (9, 9))
+        Pf, Pm = (np.reshape(tb.pair_blocks(a, b), (9, 9)) for tb in tables)
+        assert np.array_equal(Pf, Pm)
+        big = np.abs(Pp).max(axis=1)
+        worst = max(worst, float(np.max(np.abs(Pf - Pp)[big > 0].max(axis=1) / big[big > 0], initial=0.0)))
+    assert worst <= 1e-12
 
 
 def _greens_damaged(good: dict, case: str) -> dict:

@@ -13,8 +13,9 @@
 Why the binding exists beside the Python engine: a Python step costs tens of µs, most of it the
 interpreter, and a Python tick shares the GIL with every other Python thread; the C step costs well
 under a µs, and in thread mode the tick never touches the GIL (``make bench`` measures both), but where coupled
-contacts on a compressed artifact land on a new pair of triangles: the core then asks the surface for their
-coupling blocks (``pm_servo_create_paired``), a Python call.
+contacts on a compressed artifact too large for the core's memory (:data:`GREENS_MEMORY_SHARE`) land on a new
+pair of triangles: the core then asks the surface for their coupling blocks (``pm_servo_create_paired``), a
+Python call.
 """
 from __future__ import annotations
 
@@ -89,8 +90,17 @@ def zeta_rows(xi_rows: np.ndarray, masks, out: np.ndarray) -> None:
                     i64(masks.indptr), i64(masks.indices), np.ascontiguousarray(masks.values, dtype=float), out)
 
 
+#: the share of the memory still available (:func:`pmask.runtime.memory.available_memory`) a compressed artifact's
+#: Green's functions may take in the native core when coupled contacts need them (:func:`_native_table`)
+GREENS_MEMORY_SHARE = 0.5
+
+
 def _native_table(surface, zeta: bool):
-    """The surface's table in the C core, made once per surface (with or without the ζ table)."""
+    """The surface's table in the C core, made once per surface (with or without the ζ table).  On a compressed
+    artifact ``zeta`` hands over Ξ's compressed sections instead (:func:`pmask.runtime.table.greens_sections`,
+    about the artifact's stored bytes, read whole), from which the core forms coupling blocks itself, so that
+    its thread never takes the GIL, when they fit in :data:`GREENS_MEMORY_SHARE` of the memory available;
+    otherwise none, and the core asks the surface for blocks (:class:`NativeContacts`)."""
     cache = surface.__dict__.setdefault("_native_tables", {})
     key = bool(zeta)
     if key not in cache:
@@ -103,10 +113,23 @@ def _native_table(surface, zeta: bool):
             stiff = getattr(surface, "stiffness", None)
             if zeta and hasattr(stiff, "zeta_table") and not surface.compressed:
                 stiff.zeta_table(rows=zeta_rows)  # kept by the stiffness: the C loop, 2-3x numpy's
-            # (a compressed Ξ is not handed over: the core asks the surface for its blocks, NativeContacts)
-            cache[key] = load_table(table_arrays(surface_sections(surface, zeta and not surface.compressed),
-                                                 surface.meta))
+            if zeta and surface.compressed and not _greens_fit(stiff):
+                zeta = False
+            cache[key] = load_table(table_arrays(surface_sections(surface, zeta), surface.meta))
     return cache[key]
+
+
+def _greens_fit(stiff) -> bool:
+    """Whether a compressed artifact's Green's functions fit in the native core (:data:`GREENS_MEMORY_SHARE`)."""
+    from pmask.runtime.memory import available_memory
+
+    need, avail = stiff.model.Xi.nbytes, available_memory()
+    if avail is None or need <= GREENS_MEMORY_SHARE * avail:
+        return True
+    log.info("the compressed Green's functions (%.2f GiB) exceed %g of the memory available (%.2f GiB): coupled "
+             "contacts in the native core ask Python for their blocks, a tick that asks taking the GIL",
+             need / 2**30, GREENS_MEMORY_SHARE, avail / 2**30)
+    return False
 
 
 class NativeState:
@@ -133,10 +156,10 @@ class NativeContacts:
         c = contacts
         options = (c.friction, c.dynamic_friction, c.damping, c.tool_radius, c.slip_length, float(c.device.rate),
                    c.max_jump, c.decay, c.proxy_speed, c.reset_after, c.max_walk, int(c.passivity), int(c.coupled))
-        # coupled without the table's ζ section (a compressed Ξ): the core asks the surface for a pair of
-        # triangles' blocks when two contacts first land on them (Ξ's near field and low-rank blocks, never a
-        # dense table; pm_servo_create_paired), unless the table carries Ξ's compressed sections (an exported
-        # table 1.4), from which the core forms them itself
+        # coupled without the table's ζ section or Ξ's compressed sections (a compressed Ξ too large for the
+        # core's memory, _native_table): the core asks the surface for a pair of triangles' blocks when two
+        # contacts first land on them (Ξ's near field and low-rank blocks, never a dense table;
+        # pm_servo_create_paired); with either it forms them itself
         pairs = srf.pair_blocks if c.coupled and not self.table.has_greens() and srf.greens else None
         try:
             self.servo = _core.Servo(self.table, c.n, options, self._warn, pairs)

@@ -173,8 +173,8 @@ static void Table_dealloc(TableObject *self)
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* Table({name: array}): the sections as C-contiguous 2-D float64/int64 buffers (bytes for "meta"), borrowed
- * (pm_table_from_sections) */
+/* Table({name: array}): the sections as C-contiguous 2-D float64/int64 buffers, or raw bytes (bytes, or a 1-D
+ * uint8 array: "meta", a compressed Xi's 16-bit and float32 sections), borrowed (pm_table_from_sections) */
 static int table_from_sections_dict(TableObject *self, PyObject *dict, char *err, size_t errlen)
 {
     Py_ssize_t n = PyDict_Size(dict), pos = 0, i = 0;
@@ -213,10 +213,17 @@ static int table_from_sections_dict(TableObject *self, PyObject *dict, char *err
             s->cols = 1;
             continue;
         }
+        if (v->ndim == 1 && v->itemsize == 1 && v->format && !strcmp(v->format, "B")) {  /* uint8: raw bytes */
+            s->dtype = PM_SECTION_BYTES;
+            s->rows = (int64_t)v->len;
+            s->cols = 1;
+            continue;
+        }
         int f64 = is_double_format(v->format) && v->itemsize == 8, i64 = is_int64_format(v->format, v->itemsize);
         if (v->ndim != 2 || !(f64 || i64)) {
             PyMem_Free(secs);
-            PyErr_Format(PyExc_ValueError, "section '%s' must be a 2-D float64 or int64 array", name);
+            PyErr_Format(PyExc_ValueError, "section '%s' must be a 2-D float64 or int64 array or 1-D uint8 bytes",
+                         name);
             return -2;
         }
         s->dtype = f64 ? PM_SECTION_F64 : PM_SECTION_I64;
