@@ -78,7 +78,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
-from pmask.runtime.files import atomic_write
+from pmask.runtime.files import atomic_write, check_interrupt
 
 MAGIC = b"PMASKTBL"
 TABLE_MAJOR, TABLE_MINOR = 1, 4
@@ -181,7 +181,8 @@ def table_arrays(sections: dict, meta: dict) -> dict:
     out = {}
     for name, value in sections.items():
         a = np.asarray(value)
-        if GREENS.get(name, ("",))[0] == "b":  # raw bytes (16-bit pairs, float32 factors), as table_bytes writes them
+        if isinstance(value, (bytes, memoryview)) or GREENS.get(name, ("",))[0] == "b":
+            # raw bytes (16-bit pairs, float32 factors, a table's own bytes sections), as table_bytes writes them
             out[name] = np.ascontiguousarray(a).view(np.uint8).reshape(-1)
         else:
             out[name] = np.ascontiguousarray(a, np.int64 if np.issubdtype(a.dtype, np.integer) else np.float64)
@@ -189,62 +190,92 @@ def table_arrays(sections: dict, meta: dict) -> dict:
     return out
 
 
-def table_bytes(sections: dict, meta: dict) -> bytearray:
-    """Serialise sections (name -> 2-D float64/int64 array) and the metadata into a table.  Each array is
-    copied once, straight into its place (a viewer rebuilds a 150 MB table on every change of the mask
-    radius: bytes of each array, then the whole, then a final bytes() made three copies)."""
+def _layout(sections: dict, meta: dict) -> tuple[list, int]:
+    """Where each section goes in a table: [(name, kind, rows, cols, its little-endian bytes (uint8 view or
+    bytes), offset, nbytes)] in order, each 64-byte aligned after the header and directory, and the table's
+    size.  Only a section not yet contiguous little-endian 8-byte values is copied (rare: an int32 array)."""
     items = list(sections.items()) + [("meta", json.dumps(meta, sort_keys=True).encode())]
-    n = len(items)
-    offset = HEADER + n * ENTRY
+    offset = HEADER + len(items) * ENTRY
     layout = []
     for name, value in items:
-        if isinstance(value, bytes):
-            kind, rows, cols, a, nbytes = BYTES, len(value), 1, value, len(value)
+        if isinstance(value, (bytes, bytearray, memoryview)):
+            raw = memoryview(value).cast("B")
+            kind, rows, cols = BYTES, len(raw), 1
         elif isinstance(value, np.ndarray) and (value.dtype.itemsize != 8 or GREENS.get(name, ("",))[0] == "b"):
             # int16, float32, bytes, and a compressed Ξ's factors in float64 too: their raw bytes
-            a = np.ascontiguousarray(value).view(np.uint8).ravel()
-            kind, rows, cols, nbytes = BYTES, a.size, 1, a.size
+            raw = np.ascontiguousarray(value).view(np.uint8).reshape(-1)
+            kind, rows, cols = BYTES, raw.size, 1
         else:
             a = np.asarray(value)
             if a.ndim != 2:
                 raise ValueError(f"section {name} must be 2-D, got {a.shape}")
             kind = I64 if np.issubdtype(a.dtype, np.integer) else F64
-            (rows, cols), nbytes = a.shape, 8 * a.size
+            rows, cols = a.shape
+            raw = np.ascontiguousarray(a, "<i8" if kind == I64 else "<f8").view(np.uint8).reshape(-1)
         offset = -(-offset // 64) * 64
-        layout.append((name, kind, rows, cols, a, offset, nbytes))
-        offset += nbytes
-    size = offset
+        layout.append((name, kind, rows, cols, raw, offset, len(raw)))
+        offset += len(raw)
+    return layout, offset
+
+
+def _head(layout: list, size: int, crcs: list) -> bytes:
+    """The header and directory of a table laid out by :func:`_layout`, given each section's CRC-32."""
+    directory = b"".join(struct.pack("<32sIIQQQ", name.encode(), kind, crc, off, rows, cols)
+                         for (name, kind, rows, cols, _, off, _), crc in zip(layout, crcs))
+    head = struct.pack("<8sIIQQII24x", MAGIC, TABLE_MAJOR, TABLE_MINOR, size, HEADER, len(layout), 0)
+    crc = zlib.crc32(directory, zlib.crc32(head))
+    return head[:36] + struct.pack("<I", crc) + head[40:] + directory
+
+
+def table_bytes(sections: dict, meta: dict) -> bytearray:
+    """Serialise sections (name -> 2-D float64/int64 array, or raw bytes) and the metadata into a table in
+    memory.  Each array is copied once, straight into its place (a viewer rebuilds a 150 MB table on every change
+    of the mask radius: bytes of each array, then the whole, then a final bytes() made three copies);
+    :func:`write_table` writes a file without holding the whole."""
+    layout, size = _layout(sections, meta)
     out = bytearray(size)
-    view = memoryview(out)
-    directory = []
-    for name, kind, rows, cols, a, off, nbytes in layout:
-        if kind == BYTES:
-            out[off:off + nbytes] = a if isinstance(a, bytes) else a.data
-        elif nbytes:
-            np.frombuffer(out, "<i8" if kind == I64 else "<f8", a.size, off).reshape(a.shape)[...] = a
-        directory.append(struct.pack("<32sIIQQQ", name.encode(), kind, zlib.crc32(view[off:off + nbytes]), off,
-                                     rows, cols))
-    head = struct.pack("<8sIIQQII24x", MAGIC, TABLE_MAJOR, TABLE_MINOR, size, HEADER, n, 0)
-    d = b"".join(directory)
-    crc = zlib.crc32(d, zlib.crc32(head))
-    head = head[:36] + struct.pack("<I", crc) + head[40:]
-    out[:HEADER] = head
-    out[HEADER:HEADER + len(d)] = d
-    view.release()
+    for *_, raw, off, nbytes in layout:
+        out[off:off + nbytes] = memoryview(raw)
+    head = _head(layout, size, [zlib.crc32(raw) for *_, raw, _, _ in layout])
+    out[:len(head)] = head
     return out
 
 
+#: the bytes written (and checksummed) at a time by :func:`write_table`
+WRITE_CHUNK = 64 << 20
+
+
 def write_table(path, surface, meta: dict, zeta: bool = True, display=None) -> Path:
-    """Write a table for ``surface`` atomically (a killed export leaves no partial file)."""
-    data = table_bytes(surface_sections(surface, zeta, display), meta)
+    """Write a table for ``surface`` atomically (a killed export leaves no partial file), a section at a time
+    straight from its array: the export of a large organ's compressed Ξ holds its sections once, not the
+    sections and the table's bytes (3 GB each at 47,000 vertices)."""
     path = Path(path)
     if not path.parent.is_dir():
         raise InputError(f"the folder {path.parent} does not exist; create it or write the table elsewhere (-o)")
-    return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+    layout, size = _layout(surface_sections(surface, zeta, display), meta)
+
+    def write(tmp):
+        crcs = []
+        with open(tmp, "wb") as f:
+            f.truncate(size)  # (the gaps between sections: zeros, as table_bytes leaves them)
+            for *_, raw, off, nbytes in layout:
+                f.seek(off)
+                view, crc = memoryview(raw), 0
+                for k in range(0, nbytes, WRITE_CHUNK):
+                    chunk = view[k:k + WRITE_CHUNK]
+                    f.write(chunk)
+                    crc = zlib.crc32(chunk, crc)
+                crcs.append(crc)
+                check_interrupt()
+            f.seek(0)
+            f.write(_head(layout, size, crcs))
+
+    return atomic_write(path, write)
 
 
 def read_table(source) -> dict:
-    """Read and check a table (a path or bytes): name -> array (2-D) or bytes, ``meta`` -> dict, and with a
+    """Read and check a table (a path or bytes): name -> array (2-D) or bytes (a memoryview: every section a view
+    of the file's bytes, read once), ``meta`` -> dict, and with a
     compressed Ξ's sections (1.4) ``greens`` -> :class:`pmask.runtime.compressed.MaskedXi` over them.  Refuses what
     the native loader refuses, with the same reasons (:class:`TableError`)."""
     if isinstance(source, (bytes, bytearray, memoryview)):
@@ -270,7 +301,7 @@ def read_table(source) -> dict:
     head = buf[:36] + b"\0\0\0\0" + buf[40:HEADER]
     if zlib.crc32(buf[HEADER:HEADER + n * ENTRY], zlib.crc32(head)) != crc:
         raise TableError(f"{where}: corrupt runtime table: the header's checksum does not match")
-    out = {}
+    out, whole = {}, memoryview(buf)  # the sections are views of the file's bytes, not copies
     for i in range(n):
         name, kind, scrc, off, rows, cols = struct.unpack_from("<32sIIQQQ", buf, HEADER + i * ENTRY)
         name = name.rstrip(b"\0").decode("utf-8", "replace")
@@ -278,7 +309,7 @@ def read_table(source) -> dict:
         nbytes = rows * cols * item
         if off % 8 or off > size or nbytes > size - off:
             raise TableError(f"{where}: corrupt runtime table: section '{name}' lies outside the file")
-        data = buf[off:off + nbytes]
+        data = whole[off:off + nbytes]
         if zlib.crc32(data) != scrc:
             raise TableError(f"{where}: corrupt runtime table: section '{name}' fails its checksum")
         if kind == BYTES:
@@ -288,7 +319,7 @@ def read_table(source) -> dict:
         # a type this version does not know: a newer minor's addition, ignored
     _check(out, where)
     try:
-        out["meta"] = json.loads(out.get("meta", b"{}").decode())
+        out["meta"] = json.loads(bytes(out.get("meta", b"{}")).decode())
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise TableError(f"{where}: corrupt runtime table: its metadata is not JSON") from None
     return out
@@ -394,7 +425,7 @@ def table_greens(t: dict, where: str = "the runtime table"):
         if a is None:
             raise TableError(f"{where}: not a complete runtime table: section '{name}' is missing (a table from an "
                              "older pmask, or a damaged one: export it again with `pmask export-table`)")
-        if kind == "b" and not isinstance(a, (bytes, bytearray)) or kind != "b" and (
+        if kind == "b" and not isinstance(a, (bytes, bytearray, memoryview)) or kind != "b" and (
                 not isinstance(a, np.ndarray) or a.dtype.kind != kind or a.shape[1] != cols):
             raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
         if name == "xi_info":

@@ -346,6 +346,41 @@ def test_a_table_round_trips_and_both_loaders_read_the_same(table_path, surface)
     assert np.abs(out - ref).max() <= 1e-14 * np.abs(ref).max()
 
 
+def test_a_table_written_a_chunk_at_a_time_is_the_one_made_in_memory(surface, tmp_path, monkeypatch):
+    """write_table streams each section to the file in chunks (a large organ's export holds its sections once,
+    not the table's bytes too), its CRC-32 carried from chunk to chunk: with chunks of an odd size, so that they
+    straddle sections' ends, the file is byte for byte the table table_bytes makes in memory, and both loaders
+    accept its checksums."""
+    from pmask.runtime import table
+
+    monkeypatch.setattr(table, "WRITE_CHUNK", 4099)
+    meta = {"mask": "linear"}
+    path = write_table(tmp_path / "chunked.tbl", surface, meta)
+    assert path.read_bytes() == bytes(table_bytes(surface_sections(surface), meta))
+    assert read_table(path)["meta"] == meta
+    if servo.available():
+        assert servo.load_table(path).counts()[2] == 1
+
+
+def test_a_surface_from_a_table_hands_its_own_arrays_to_the_core(model, table_path, tmp_path):
+    """ContactSurface.from_table reads the file once: its sections are views of the file's bytes, and the native
+    core borrows those same arrays rather than loading the file again (a 674 MiB table was held three times:
+    the file's bytes, their copies, the C loader's).  So the file may go once the surface is made: two coupled
+    contacts made after it is deleted step as on the surface of a fresh read, bit for bit."""
+    if not servo.available():
+        pytest.skip("the native core is not built")
+    copy = tmp_path / "gone.tbl"
+    copy.write_bytes(table_path.read_bytes())
+    srf = ContactSurface.from_table(copy)
+    t = srf.table
+    assert t["zeta"].base is not None and not t["zeta"].flags.owndata  # a view of the file's bytes
+    copy.unlink()
+    trace = _coupled_trace(model, 2, ticks=400)
+    got = run(Contacts(srf, 2, engine="native", friction=0.3), trace)
+    ref = run(Contacts(ContactSurface.from_table(table_path), 2, engine="native", friction=0.3), trace)
+    assert_same(got, ref)
+
+
 def test_the_native_grid_finds_the_nearest_triangle(table_path, surface):
     """C grid, Python grid and a scan over every triangle agree, ties included, inside and outside the box."""
     native = servo.load_table(table_path)

@@ -147,8 +147,7 @@ class ContactSurface:
         srf.levels = int(t["meta"].get("levels", 1 if "parent" in t else 0))
         srf.stiffness = None
         srf.meta = t["meta"]
-        if not isinstance(table, (dict, bytes, bytearray, memoryview)):  # the native core loads the same file
-            srf.table_source, srf.table_sections = str(table), frozenset(t)
+        srf.table = t  # the native core borrows the same arrays (pmask.runtime.servo: no second read, no copy)
         if "zeta" in t:
             srf._coupling = (t["zeta"], t["contact_row"][:, 0])
         elif "greens" in t:  # a compressed Ξ's own sections (table 1.4): its blocks through the masks

@@ -104,9 +104,12 @@ def _native_table(surface, zeta: bool):
     cache = surface.__dict__.setdefault("_native_tables", {})
     key = bool(zeta)
     if key not in cache:
-        src = getattr(surface, "table_source", None)
-        if src is not None and (zeta or "zeta" not in getattr(surface, "table_sections", ())):
-            cache[key] = load_table(src)
+        t = getattr(surface, "table", None)
+        if t is not None:  # a surface from a table (ContactSurface.from_table): its own arrays, borrowed
+            from pmask.runtime.table import table_arrays
+
+            cache[key] = load_table(table_arrays({k: v for k, v in t.items() if k not in ("meta", "greens") and
+                                                  (zeta or k != "zeta")}, t["meta"]))
         else:
             from pmask.runtime.table import surface_sections, table_arrays
 
