@@ -240,52 +240,67 @@ def haptic_step(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> 
 
 def coupled_step(dense: Path, compressed: Path, repeats: int = 3) -> dict:
     """Two coupled jaws (``strokes.grasp_path``: 2.5 mm in, then slid 10 mm, μ = 0.3) in the native core through the
-    Python binding, on the organ-scale compressed artifact (the core asks the surface for a pair of triangles'
-    blocks, from Ξ's near field and low-rank blocks, when the jaws land on them) and on the dense 3,882-vertex one
-    (its ζ table), alternated ``repeats`` times in this run, each tick timed by the caller: the median tick of
-    each run, and per run on the compressed artifact the requests for blocks and what they took (the first run's
-    from a cold cache, the stiffness's bounded cache of ζ_m(i) blocks warm after it)."""
+    Python binding, on the organ-scale compressed artifact and on the dense 3,882-vertex one (its ζ table),
+    alternated ``repeats`` times in this run, each tick timed by the caller.  The compressed artifact both ways:
+    "held", the default, Ξ's compressed sections handed to the core in memory (read once, when the first
+    contacts are made: timed), from which it forms a pair of triangles' blocks itself; and "asked", as when they
+    would not fit (:data:`pmask.runtime.servo.GREENS_MEMORY_SHARE` set to 0), the core asking the surface for
+    the blocks when the jaws land on them: per run the requests and what they took (the first run's from a cold
+    cache, the stiffness's bounded cache of ζ_m(i) blocks warm after it).  The median tick of each run."""
     from pmask.pipeline.strokes import grasp_path
-    from pmask.runtime import Contacts, Model
+    from pmask.runtime import Contacts, Model, servo
     from pmask.runtime.contact import ContactSurface
 
-    setups = {}
-    for name, path in (("dense", dense), ("compressed", compressed)):
-        m = Model.load(path)
-        setups[name] = (ContactSurface.of(m.stiffness("linear", 2.0 * m.mean_edge_length)),
-                        grasp_path(m, slide=0.01, press=400, hold=1000), len(m.points))
-    out = {f"{name}_vertices": v for name, (_, _, v) in setups.items()}
+    md, mc = Model.load(dense), Model.load(compressed)
+    sc = mc.stiffness("linear", 2.0 * mc.mean_edge_length)
+    setups = {"dense": ContactSurface.of(md.stiffness("linear", 2.0 * md.mean_edge_length)),
+              "held": ContactSurface.of(sc), "asked": ContactSurface(sc)}
+    paths = {"dense": grasp_path(md, slide=0.01, press=400, hold=1000),
+             "held": grasp_path(mc, slide=0.01, press=400, hold=1000)}
+    paths["asked"] = paths["held"]
+    out = {"dense_vertices": len(md.points), "compressed_vertices": len(mc.points),
+           "held_greens_mib": mc.Xi.nbytes / 2**20}
     runs = {name: [] for name in setups}
     requests = []
+    share = servo.GREENS_MEMORY_SHARE
     for _ in range(repeats):
-        for name, (srf, path, _) in setups.items():
+        for name, srf in setups.items():
             asked = []
-            if name == "compressed":
-                pair_blocks = srf.pair_blocks
+            pair_blocks = srf.pair_blocks
 
-                def timed(ta, tb, pair_blocks=pair_blocks, asked=asked):
-                    t0 = time.perf_counter()
-                    blocks = pair_blocks(ta, tb)
-                    asked.append(time.perf_counter() - t0)
-                    return blocks
+            def timed(ta, tb, pair_blocks=pair_blocks, asked=asked):
+                t0 = time.perf_counter()
+                blocks = pair_blocks(ta, tb)
+                asked.append(time.perf_counter() - t0)
+                return blocks
 
-                srf.pair_blocks = timed  # what the servo made below asks
-                requests.append(asked)
+            srf.pair_blocks = timed  # what the servo made below asks
+            servo.GREENS_MEMORY_SHARE = 0.0 if name == "asked" else share
+            t0 = time.perf_counter()
             c = Contacts(srf, 2, friction=0.3, engine="native")
-            ticks = np.empty(len(path))
-            for k, probes in enumerate(path):
+            if name == "held" and "held_load_s" not in out:
+                out["held_load_s"] = time.perf_counter() - t0  # the sections read whole into the core
+            servo.GREENS_MEMORY_SHARE = share
+            ticks = np.empty(len(paths[name]))
+            for k, probes in enumerate(paths[name]):
                 t0 = time.perf_counter()
                 c.step(probes)
                 ticks[k] = time.perf_counter() - t0
             srf.__dict__.pop("pair_blocks", None)
+            if name == "asked":
+                requests.append(asked)
+            elif asked:
+                raise RuntimeError(f"the native core asked Python for blocks on the {name} route")
             runs[name].append(ticks)
     out.update({f"{name}_median_us": [float(np.median(t) * 1e6) for t in r] for name, r in runs.items()})
-    out["compressed_max_ms"] = [float(t.max() * 1e3) for t in runs["compressed"]]
+    out.update({f"{name}_max_ms": [float(t.max() * 1e3) for t in r] for name, r in runs.items()})
     out["ticks"] = len(runs["dense"][0])
     out["requests"] = [len(a) for a in requests]
     out["request_median_ms"] = [float(np.median(a) * 1e3) if a else None for a in requests]
     out["request_max_ms"] = [float(np.max(a) * 1e3) if a else None for a in requests]
-    out["ratio"] = float(np.median(np.concatenate(runs["compressed"])) / np.median(np.concatenate(runs["dense"])))
+    dense_median = np.median(np.concatenate(runs["dense"]))
+    for name in ("held", "asked"):
+        out[f"{name}_ratio"] = float(np.median(np.concatenate(runs[name])) / dense_median)
     return out
 
 
@@ -659,16 +674,23 @@ def markdown(res: dict) -> str:
                   f"{h['dense_vertices']:,}-vertex one, alternated in this run: {h['ratio']:.2f}x (the hands issue "
                   f"asks ≤ 2x)."]
     c = res.get("coupled_step")
-    if g and c:
+    if g and c and "held_median_us" in c:
         L += ["", f"Two coupled jaws in the native core (a grasp 2.5 mm deep slid 10 mm, μ = 0.3, {c['ticks']:,} ticks, "
-                  f"each timed through the Python binding) on the organ-scale compressed artifact, the core asking "
-                  f"for a pair of triangles' blocks from Ξ's near field and low-rank blocks when the jaws land on "
-                  f"them: median tick {', '.join(f'{x:.2f}' for x in c['compressed_median_us'])} µs against "
-                  f"{', '.join(f'{x:.2f}' for x in c['dense_median_us'])} µs on the dense "
-                  f"{c['dense_vertices']:,}-vertex one's ζ table, alternated in this run ({c['ratio']:.2f}x); "
+                  f"each timed through the Python binding) on the organ-scale compressed artifact, by default with Ξ's "
+                  f"compressed sections held by the core ({c['held_greens_mib']:,.0f} MiB, read in "
+                  f"{c['held_load_s']:.1f} s when the first contacts are made), which forms a pair of triangles' "
+                  f"blocks itself when the jaws land on them: median tick "
+                  f"{', '.join(f'{x:.2f}' for x in c['held_median_us'])} µs (longest "
+                  f"{', '.join(f'{x:.2f}' for x in c['held_max_ms'])} ms) against "
+                  f"{', '.join(f'{x:.2f}' for x in c['dense_median_us'])} µs (longest "
+                  f"{', '.join(f'{x:.2f}' for x in c['dense_max_ms'])} ms) on the dense "
+                  f"{c['dense_vertices']:,}-vertex one's ζ table, alternated in this run ({c['held_ratio']:.2f}x).  "
+                  f"Where the sections would not fit (past half the memory available) the core asks the surface "
+                  f"for the blocks instead, a tick that asks taking the GIL: median tick "
+                  f"{', '.join(f'{x:.2f}' for x in c['asked_median_us'])} µs ({c['asked_ratio']:.2f}x); "
                   f"{c['requests'][0]} requests for blocks per run, taking a median "
                   f"{c['request_median_ms'][0]:.3f} ms and at most {c['request_max_ms'][0]:.1f} ms from a cold cache "
-                  f"(the longest tick {c['compressed_max_ms'][0]:.1f} ms: a tick that asks is late by that much), "
+                  f"(the longest tick {c['asked_max_ms'][0]:.1f} ms: a tick that asks is late by that much), "
                   f"at most {max(c['request_max_ms'][1:] or [0.0]):.2f} ms once the stiffness's cache of blocks is "
                   f"warm."]
     c = res.get("coupled_step_c")

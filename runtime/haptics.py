@@ -218,9 +218,10 @@ class Contacts:
         the same samples (a tick with no sample waiting runs no step: ``tick_stats()["idle"]``).
 
         With the native core the thread is a native one (a real-time priority where the process may have one):
-        its ticks never take the GIL, so Python threads beside it (graphics, I/O) cannot delay them, except where
-        coupled contacts on a compressed artifact land on a new pair of triangles: that tick takes the GIL to read
-        their coupling blocks (the large-organs guide).  Without it, a Python thread runs the Python step (the same
+        its ticks never take the GIL, so Python threads beside it (graphics, I/O) cannot delay them (on a
+        compressed artifact the core holds Ξ's compressed sections; only where they would take more than half the
+        memory available does a tick whose coupled contacts land on a new pair of triangles take the GIL to ask
+        for their blocks: the large-organs guide).  Without it, a Python thread runs the Python step (the same
         API; its ticks share the GIL).  ``spin``: the thread
         sleeps to this many seconds before each tick and spins the rest (:data:`SPIN`; 0 sleeps only)."""
         rate = float(self.device.rate if rate is None else _num("rate", rate, lo=0.0, lo_open=True, hi=1e5))
