@@ -676,8 +676,8 @@ def markdown(res: dict) -> str:
     c = res.get("coupled_step")
     if g and c and "held_median_us" in c:
         L += ["", f"Two coupled jaws in the native core (a grasp 2.5 mm deep slid 10 mm, μ = 0.3, {c['ticks']:,} ticks, "
-                  f"each timed through the Python binding) on the organ-scale compressed artifact, by default with Ξ's "
-                  f"compressed sections held by the core ({c['held_greens_mib']:,.0f} MiB, read in "
+                  f"each timed through the Python binding) on the organ-scale compressed artifact, by default "
+                  f"with Ξ's compressed sections held by the core ({c['held_greens_mib']:,.0f} MiB, read in "
                   f"{c['held_load_s']:.1f} s when the first contacts are made), which forms a pair of triangles' "
                   f"blocks itself when the jaws land on them: median tick "
                   f"{', '.join(f'{x:.2f}' for x in c['held_median_us'])} µs (longest "

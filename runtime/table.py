@@ -177,7 +177,8 @@ def table_arrays(sections: dict, meta: dict) -> dict:
     ``pm_table_from_sections``): C-contiguous 2-D float64/int64 arrays (no copy when they already are), a
     compressed Ξ's byte sections (:data:`GREENS`) as their raw bytes (a uint8 view, little-endian as
     :func:`greens_sections` makes them) and the metadata as JSON bytes.  A viewer that rebuilds its 150 MB ζ table
-    on every change of the mask radius hands it over this way instead of serialising it (:func:`table_bytes`) for the loader to copy again."""
+    on every change of the mask radius hands it over this way instead of serialising it (:func:`table_bytes`) for
+    the loader to copy again."""
     out = {}
     for name, value in sections.items():
         a = np.asarray(value)
