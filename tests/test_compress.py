@@ -264,9 +264,10 @@ def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair, monk
     deformation (the C core sums a mask's columns in order, numpy's einsum may not); where they would take more
     than GREENS_MEMORY_SHARE of the memory available (here made so), the core asks the surface for them
     (pm_servo_create_paired), with a line that says so, and then agrees with the Python engine bit for bit (the
-    same blocks, the same sums).  All are within 1e-3 of the dense artifact's forces and displayed deformation
+    same blocks, the same sums); so it does when reading the sections runs out of memory though the estimate said
+    they fit.  All are within 1e-3 of the dense artifact's forces and displayed deformation
     (the far field's per-block 1e-4 summed over the mask; the coupled-forces bound above)."""
-    from pmask.runtime import Contacts, HapticContact, memory, servo
+    from pmask.runtime import Contacts, HapticContact, memory, servo, table
     from pmask.runtime.contact import ContactSurface
 
     dense, comp, _ = pair
@@ -293,6 +294,13 @@ def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair, monk
             grasp["asked"] = Contacts(ContactSurface(sc), 2, engine="native", **opts)
         assert not grasp["asked"]._native.has_greens
         assert "coupled contacts in the native core ask Python for their blocks" in caplog.text
+        monkeypatch.setattr(memory, "available_memory", lambda: 4 * comp.Xi.nbytes)  # fits by the estimate,
+        monkeypatch.setattr(servo, "GREENS_MEMORY_SHARE", 0.5)  # but the reads run out
+        monkeypatch.setattr(table, "greens_sections", lambda stiffness: (_ for _ in ()).throw(MemoryError()))
+        caplog.clear()
+        with caplog.at_level("INFO", logger="pmask.runtime.haptics"):
+            short = Contacts(ContactSurface(sc), 2, engine="native", **opts)
+        assert not short._native.has_greens and "out of memory reading" in caplog.text
     auto = Contacts(sc, 2, friction=0.3)
     assert auto.coupled and auto.engine == ("native" if servo.available() else "python")
     F = {k: np.array([c.step(list(p))[0] for p in path]) for k, c in grasp.items()}

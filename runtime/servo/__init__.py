@@ -118,7 +118,15 @@ def _native_table(surface, zeta: bool):
                 stiff.zeta_table(rows=zeta_rows)  # kept by the stiffness: the C loop, 2-3x numpy's
             if zeta and surface.compressed and not _greens_fit(stiff):
                 zeta = False
-            cache[key] = load_table(table_arrays(surface_sections(surface, zeta), surface.meta))
+            try:
+                sections = surface_sections(surface, zeta)
+            except MemoryError:  # the check above is an estimate; the machine had less
+                if not (zeta and surface.compressed):
+                    raise
+                log.info("out of memory reading the compressed Green's functions for the native core: coupled "
+                         "contacts ask Python for their blocks, a tick that asks taking the GIL")
+                sections = surface_sections(surface, False)
+            cache[key] = load_table(table_arrays(sections, surface.meta))
     return cache[key]
 
 
