@@ -301,7 +301,41 @@ def coupled_step(dense: Path, compressed: Path, repeats: int = 3) -> dict:
     dense_median = np.median(np.concatenate(runs["dense"]))
     for name in ("held", "asked"):
         out[f"{name}_ratio"] = float(np.median(np.concatenate(runs[name])) / dense_median)
+        # the native thread at 1 kHz beside a Python thread that holds the GIL (a pure-Python loop), the probes
+        # set at the same pace: a tick that asks Python for blocks waits for the GIL
+        c = Contacts(setups[name], 2, friction=0.3, engine="native")
+        out[f"{name}_thread"] = beside_gil_holder(c, paths[name])
     return out
+
+
+def beside_gil_holder(contacts, path) -> dict:
+    """``contacts``' native thread at 1 kHz (set_probes, paced by the caller's clock) while another Python thread
+    runs a pure-Python loop, holding the GIL but at its switch interval: the thread's ticks, late ticks and
+    longest step."""
+    done = threading.Event()
+
+    def hold_gil():
+        x = 0
+        while not done.is_set():
+            for i in range(100_000):
+                x += i
+
+    hog = threading.Thread(target=hold_gil, daemon=True)
+    hog.start()
+    contacts.start(1000.0)
+    try:
+        t0 = time.perf_counter()
+        for k, probes in enumerate(path):
+            contacts.set_probes(probes)
+            while time.perf_counter() < t0 + (k + 1) * 1e-3:
+                pass
+        stats = contacts.tick_stats()
+    finally:
+        contacts.stop()
+        done.set()
+        hog.join()
+    return {"ticks": int(stats["ticks"]), "late": int(stats["late"]), "step_max_ms": float(stats["step_max"]) * 1e3,
+            "samples": len(path)}
 
 
 def coupled_step_c(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> dict:
@@ -693,6 +727,13 @@ def markdown(res: dict) -> str:
                   f"(the longest tick {c['asked_max_ms'][0]:.1f} ms: a tick that asks is late by that much), "
                   f"at most {max(c['request_max_ms'][1:] or [0.0]):.2f} ms once the stiffness's cache of blocks is "
                   f"warm."]
+        if "held_thread" in c:
+            h, a = c["held_thread"], c["asked_thread"]
+            L[-1] += (f"  The native thread at 1 kHz beside a Python thread holding the GIL (a pure-Python loop; the "
+                      f"{h['samples']:,} samples set at the same pace): with the sections held, {h['late']} late "
+                      f"ticks of {h['ticks']:,}, the longest step {h['step_max_ms']:.2f} ms; asking Python for "
+                      f"blocks, {a['late']:,} late of {a['ticks']:,}, the longest step {a['step_max_ms']:.1f} ms "
+                      f"(the ticks that ask wait for the GIL).")
     c = res.get("coupled_step_c")
     if g and c:
         L += ["", f"The same grasp in C (`servo_bench`, tight, μ = 0.3, a fresh process each run) on the tables "
