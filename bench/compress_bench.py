@@ -733,7 +733,9 @@ def markdown(res: dict) -> str:
                       f"{h['samples']:,} samples set at the same pace): with the sections held, {h['late']} late "
                       f"ticks of {h['ticks']:,}, the longest step {h['step_max_ms']:.2f} ms; asking Python for "
                       f"blocks, {a['late']:,} late of {a['ticks']:,}, the longest step {a['step_max_ms']:.1f} ms "
-                      f"(the ticks that ask wait for the GIL).")
+                      f"(the ticks that ask wait for the GIL; with the sections held no step waits, and its late "
+                      f"ticks are the scheduler's: the servo, the pacing loop and the GIL holder spin on the "
+                      f"run's {res['machine']['cores']} cores).")
     c = res.get("coupled_step_c")
     if g and c:
         L += ["", f"The same grasp in C (`servo_bench`, tight, μ = 0.3, a fresh process each run) on the tables "
