@@ -401,7 +401,7 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
 
 def test_a_table_carries_float64_factors_and_hands_them_to_the_core_in_memory(pair_p1, tmp_path):
     """Below FLOAT32_TOLERANCE (``--compress 1e-6``) the far field's factors stay float64: the table writes them
-    as the raw bytes its format names (export-table failed on them, "section xi_U must be 2-D": found this stop),
+    as the raw bytes its format names (export-table used to fail on them: "section xi_U must be 2-D"),
     and the sections handed to the C core in memory (table_arrays: the 16-bit pairs and the factors as uint8
     views, no copy) are the file's.  Here the P1 artifact's float32 factors widened to float64 (the same
     numbers, so the blocks must agree to round-off): the C core's blocks from the file and from memory equal
