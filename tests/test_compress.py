@@ -290,7 +290,7 @@ def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair, monk
         assert grasp["native"]._native.has_greens
         monkeypatch.setattr(servo, "GREENS_MEMORY_SHARE", 0.01)
         monkeypatch.setattr(memory, "available_memory", lambda: comp.Xi.nbytes)
-        with caplog.at_level("INFO", logger="pmask.runtime.haptics"):
+        with caplog.at_level("WARNING", logger="pmask.runtime.haptics"):
             grasp["asked"] = Contacts(ContactSurface(sc), 2, engine="native", **opts)
         assert not grasp["asked"]._native.has_greens
         assert "coupled contacts in the native core ask Python for their blocks" in caplog.text
@@ -298,7 +298,7 @@ def test_contacts_on_a_compressed_artifact_render_as_on_the_dense_one(pair, monk
         monkeypatch.setattr(servo, "GREENS_MEMORY_SHARE", 0.5)  # but the reads run out
         monkeypatch.setattr(table, "greens_sections", lambda stiffness: (_ for _ in ()).throw(MemoryError()))
         caplog.clear()
-        with caplog.at_level("INFO", logger="pmask.runtime.haptics"):
+        with caplog.at_level("WARNING", logger="pmask.runtime.haptics"):
             short = Contacts(ContactSurface(sc), 2, engine="native", **opts)
         assert not short._native.has_greens and "out of memory reading" in caplog.text
     auto = Contacts(sc, 2, friction=0.3)

@@ -123,8 +123,9 @@ def _native_table(surface, zeta: bool):
             except MemoryError:  # the check above is an estimate; the machine had less
                 if not (zeta and surface.compressed):
                     raise
-                log.info("out of memory reading the compressed Green's functions for the native core: coupled "
-                         "contacts ask Python for their blocks, a tick that asks taking the GIL")
+                log.warning("out of memory reading the compressed Green's functions for the native core: coupled "
+                            "contacts ask Python for their blocks, a tick that asks waiting for the GIL (free memory "
+                            "to have the core hold them)")
                 sections = surface_sections(surface, False)
             cache[key] = load_table(table_arrays(sections, surface.meta))
     return cache[key]
@@ -137,9 +138,10 @@ def _greens_fit(stiff) -> bool:
     need, avail = stiff.model.Xi.nbytes, available_memory()
     if avail is None or need <= GREENS_MEMORY_SHARE * avail:
         return True
-    log.info("the compressed Green's functions (%.2f GiB) exceed %g of the memory available (%.2f GiB): coupled "
-             "contacts in the native core ask Python for their blocks, a tick that asks taking the GIL",
-             need / 2**30, GREENS_MEMORY_SHARE, avail / 2**30)
+    log.warning("the compressed Green's functions (%.2f GiB) exceed %g of the memory available (%.2f GiB): coupled "
+                "contacts in the native core ask Python for their blocks, a tick that asks waiting for the GIL (free "
+                "memory, or raise pmask.runtime.servo.GREENS_MEMORY_SHARE, to have the core hold them)",
+                need / 2**30, GREENS_MEMORY_SHARE, avail / 2**30)
     return False
 
 
