@@ -181,14 +181,26 @@ def table_arrays(sections: dict, meta: dict) -> dict:
     the loader to copy again."""
     out = {}
     for name, value in sections.items():
-        a = np.asarray(value)
-        if isinstance(value, (bytes, memoryview)) or GREENS.get(name, ("",))[0] == "b":
-            # raw bytes (16-bit pairs, float32 factors, a table's own bytes sections), as table_bytes writes them
-            out[name] = np.ascontiguousarray(a).view(np.uint8).reshape(-1)
+        if _is_bytes(name, value):
+            out[name] = _raw(value)
         else:
+            a = np.asarray(value)
             out[name] = np.ascontiguousarray(a, np.int64 if np.issubdtype(a.dtype, np.integer) else np.float64)
     out["meta"] = json.dumps(meta, sort_keys=True).encode()
     return out
+
+
+def _is_bytes(name: str, value) -> bool:
+    """Whether a section is raw bytes: given as bytes (the metadata, a table's own byte sections), or one the
+    format names bytes (:data:`GREENS`: 16-bit pairs, the factors in float32 or float64)."""
+    return isinstance(value, (bytes, bytearray, memoryview)) or GREENS.get(name, ("",))[0] == "b"
+
+
+def _raw(value) -> np.ndarray:
+    """A section's bytes as a flat uint8 view (a copy only where an array is not contiguous)."""
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return np.frombuffer(value, np.uint8)
+    return np.ascontiguousarray(value).view(np.uint8).reshape(-1)
 
 
 def _layout(sections: dict, meta: dict) -> tuple[list, int]:
@@ -199,12 +211,8 @@ def _layout(sections: dict, meta: dict) -> tuple[list, int]:
     offset = HEADER + len(items) * ENTRY
     layout = []
     for name, value in items:
-        if isinstance(value, (bytes, bytearray, memoryview)):
-            raw = memoryview(value).cast("B")
-            kind, rows, cols = BYTES, len(raw), 1
-        elif isinstance(value, np.ndarray) and (value.dtype.itemsize != 8 or GREENS.get(name, ("",))[0] == "b"):
-            # int16, float32, bytes, and a compressed Ξ's factors in float64 too: their raw bytes
-            raw = np.ascontiguousarray(value).view(np.uint8).reshape(-1)
+        if _is_bytes(name, value) or isinstance(value, np.ndarray) and value.dtype.itemsize != 8:
+            raw = _raw(value)  # (any array not of 8-byte items goes as its raw bytes: int16, float32, uint8)
             kind, rows, cols = BYTES, raw.size, 1
         else:
             a = np.asarray(value)

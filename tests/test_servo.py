@@ -362,6 +362,16 @@ def test_a_table_written_a_chunk_at_a_time_is_the_one_made_in_memory(surface, tm
         assert servo.load_table(path).counts()[2] == 1
 
 
+def test_byte_sections_keep_their_length_in_memory_and_in_a_file(surface):
+    """A byte section given as bytes, bytearray or a memoryview (a table's own, read back) is its bytes, the empty
+    one included (np.asarray(b"") is one zero byte of type S1: an empty section handed to the core became one
+    byte), in memory (table_arrays) and in a file (table_bytes, read back)."""
+    sections = surface_sections(surface, zeta=False)
+    for given in (b"", b"\x01\x02\x03", bytearray(b"\x04"), memoryview(b"\x05\x06")):
+        assert bytes(table_arrays({"extra": given}, {})["extra"]) == bytes(given)
+        assert bytes(read_table(table_bytes({**sections, "extra": given}, {}))["extra"]) == bytes(given)
+
+
 def test_a_surface_from_a_table_hands_its_own_arrays_to_the_core(model, table_path, tmp_path):
     """ContactSurface.from_table reads the file once: its sections are views of the file's bytes, and the native
     core borrows those same arrays rather than loading the file again (a 674 MiB table was held three times:
