@@ -76,8 +76,9 @@ def test_at_random_sites_pushing_harder_never_feels_softer_short_of_the_deep_reg
     """The same nine lines at 20 free vertices drawn at random (seeded): the contact never ends, and while it is
     short of the deep regime (status CONTACT, δ < δ_lin) |F| never falls from one tick to the next as the line
     goes deeper, beyond round-off (measured: not at all).  Past δ_lin (DEEP) it can: where a frozen contact
-    slides towards softer tissue its k(x) δ* part and its tangential term shrink faster than the increments grow,
-    or where the proxy moves by dead reckoning beside the support the penetration itself stops growing; how
+    slides obliquely into stiffer tissue its tangential term outgrows the freezing's bound and then shrinks faster
+    than the normal part grows as ∇k weakens, or where the proxy moves by dead reckoning beside the support the
+    penetration itself stops growing (the haptics guide's "Pressing deep" gives the numbers, by hand); how
     often and by how much is measured at 80 random sites by the haptics bench (the haptics guide's
     "Pressing deep" cites it), not asserted here."""
     _, below = kidney
