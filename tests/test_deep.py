@@ -78,9 +78,9 @@ def test_at_random_sites_pushing_harder_never_feels_softer_short_of_the_deep_reg
     goes deeper, beyond round-off (measured: not at all).  Past δ_lin (DEEP) it can: where a frozen contact
     slides obliquely into stiffer tissue its tangential term outgrows the freezing's bound and then shrinks faster
     than the normal part grows as ∇k weakens, or where the proxy moves by dead reckoning beside the support the
-    penetration itself stops growing (the haptics guide's "Pressing deep" gives the numbers, by hand); how
-    often and by how much is measured at 80 random sites by the haptics bench (the haptics guide's
-    "Pressing deep" cites it), not asserted here."""
+    penetration itself stops growing (both traced by hand: the haptics guide's "Pressing deep"); how often and
+    by how much is measured at 80 random sites by the haptics bench (which that guide cites), not asserted
+    here."""
     _, below = kidney
     P = model.points
     srf = HapticContact(stiff, engine="python").surface
