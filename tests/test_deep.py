@@ -2,8 +2,8 @@
 normal and 30° and 45° off it, at the pole, the flat top, the lateral face, the hilum's lip (the kidney's one
 saddle, next to the support) and the support rim, pushing harder never feels softer; a normal push on a
 smooth convex part keeps its force within 10° of the contact normal at first contact; past δ_lin the
-status says DEEP and there the force keeps growing.  At random sites it never falls short of δ_lin; past it, it
-does on a few lines in a hundred (the haptics bench counts them: the issue's "never softer" is not met there)."""
+status says DEEP and there the force keeps growing.  At random sites it never falls, short of δ_lin or past it
+(past it the force is held where the law's own would fall, and the hold only takes energy out)."""
 from __future__ import annotations
 
 import numpy as np
@@ -72,15 +72,15 @@ def test_pushing_harder_never_feels_softer(stiff, kidney, site):
                 assert angle.max() <= 10.0, (site, angle.max())
 
 
-def test_at_random_sites_pushing_harder_never_feels_softer_short_of_the_deep_regime(model, stiff, kidney):
-    """The same nine lines at 20 free vertices drawn at random (seeded): the contact never ends, and while it is
-    short of the deep regime (status CONTACT, δ < δ_lin) |F| never falls from one tick to the next as the line
-    goes deeper, beyond round-off (measured: not at all).  Past δ_lin (DEEP) it can: where a frozen contact
-    slides obliquely into stiffer tissue its tangential term outgrows the freezing's bound and then shrinks faster
-    than the normal part grows as ∇k weakens, or where the proxy moves by dead reckoning beside the support the
-    penetration itself stops growing (both traced by hand: the haptics guide's "Pressing deep"); how often and
-    by how much is measured at 80 random sites by the haptics bench (which that guide cites), not asserted
-    here."""
+def test_at_random_sites_pushing_harder_never_feels_softer(model, stiff, kidney):
+    """The same nine lines at 20 free vertices drawn at random (seeded): the contact never ends, and |F| never
+    falls as the line goes deeper, beyond round-off: neither short of the deep regime (status CONTACT, δ < δ_lin,
+    from one tick to the next) nor past δ_lin (DEEP, below its largest value so far).  Past δ_lin the law's own
+    |F| can fall: where a frozen contact slides obliquely into stiffer tissue its tangential term outgrows the
+    freezing's bound and then shrinks faster than the normal part grows as ∇k weakens, or where the proxy moves
+    by dead reckoning beside the support the penetration itself stops growing (both traced by hand: the haptics
+    guide's "Pressing deep").  There the force is held (:mod:`pmask.runtime.contact.output`; the next test shows
+    what it costs)."""
     _, below = kidney
     P = model.points
     srf = HapticContact(stiff, engine="python").surface
@@ -94,5 +94,47 @@ def test_at_random_sites_pushing_harder_never_feels_softer_short_of_the_deep_reg
                 m = push_metrics(F, status, depth)
                 assert not m["released"], (v, tilt, az)
                 assert m["fall_contact"] <= 1e-12, (v, tilt, az, m["fall_contact"])
+                assert m["fall"] <= 1e-12, (v, tilt, az, m["fall"])
                 deep += m["deep"]
-    assert deep > 0  # the lines do reach the deep regime, so the bound above is short of it, not vacuous
+    assert deep > 0  # the lines do reach the deep regime, so the bound above covers it, not vacuous
+
+
+def test_the_deep_hold_only_takes_energy_out(model, stiff):
+    """Past δ_lin, while δ grows and the hand does work against the force, the force's magnitude is held at
+    least at the last tick's (the factor on it returns to 1 over ten ticks otherwise): it only resists the motion,
+    so it can only take energy out.  In and straight back out along the 30° lines (azimuths 0 and 4.71) at the
+    random sites, controller off: on every line the hand gets back at most what it put in (net ≤ 1 % of the press's
+    work, the issue's bound for closed loops; measured at most +0.02 %, where the law's own round trip is not
+    exact), on the lines where the hold acts it dissipates (measured 0.4-63 % of the press's work, most of it the
+    law's own: lines where the hold does not act dissipate up to 39 %), and the hold
+    does act here (its factor reached 1.31: the law's own |F| fell to 0.77 of its largest past δ_lin, beyond
+    the line's deepest point).  The native engine holds the same force, to round-off."""
+    P = model.points
+    srf = HapticContact(stiff, engine="python").surface
+    sites = np.random.default_rng(1).choice(model.contact[model.core], 20, replace=False)
+    held, most = [], (1.0, None)
+    for v in sites:
+        N = vertex_normal(srf, v)
+        for az in (0.0, 4.71):
+            probes, _ = push_line(P[v], N, 30, az)
+            path = np.vstack([probes, probes[::-1]])
+            h = HapticContact(stiff, engine="python", passivity=False)
+            F, scale = [], 1.0
+            for p in path:
+                F.append(h.step(p)[0])
+                scale = max(scale, h._state().deep_scale)
+            F = np.array(F)
+            given = np.einsum("ij,ij->i", F[:-1], np.diff(path, axis=0))
+            press = -given[:len(probes) - 1].sum()
+            net = given.sum()
+            assert press > 0 and net <= 0.01 * press, (v, az, net / press)
+            if scale > 1.0 + 1e-9:
+                held.append(net / press)
+                if scale > most[0]:
+                    most = (scale, path, F)
+    assert most[0] > 1.05, most[0]  # the hold acts on these lines
+    assert max(held) < 0.0, held  # and where it acts, it takes energy out
+    _, path, F = most
+    native = HapticContact(stiff, engine="native", passivity=False)
+    Fn = np.array([native.step(p)[0] for p in path])
+    assert np.abs(Fn - F).max() <= 1e-12 * np.abs(F).max()

@@ -57,7 +57,9 @@ into stiffer tissue feels less of it (a 4 mm deep slide from the top face into t
 stiffness tenfold, ends 22 % below the unfrozen law's force, 6 % with 1/8 and 36 % with 1/16; by hand).  The law
 is the same with the secant stiffness k_s = φ / δ in place of k (:func:`secant`).  The status ``DEEP``
 says when δ ≥ δ_lin (:func:`pmask.runtime.contact.surface.linear_depths`: 0.29 x the smallest radius of
-curvature or 1.5 mask radii), where the linear model stops being meaningful.
+curvature or 1.5 mask radii), where the linear model stops being meaningful.  There the law's ‖F‖ can still fall
+on an oblique push (a frozen contact sliding into stiffer tissue, the proxy moving by dead reckoning beside the
+support); step 4 holds its magnitude while the press goes on (:mod:`pmask.runtime.contact.output`'s deep hold).
 
 The native core's ``core/law.c`` is the same code operation for operation.
 """

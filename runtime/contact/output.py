@@ -12,7 +12,15 @@ motion Δp (low-pass filtered over 10 ms):
   beyond a slack of 10 % of V a damper b_pc v (≤ 1 N·s/m, smoothly switched) takes out the difference.
 
 The velocity terms fade with the contact (at most half the elastic force), so a kink in the path or the
-release is not felt as a step.  Here a contact's status turns DEEP when its penetration reaches δ_lin.  The native core's ``core/output.c`` is the same code operation for operation.
+release is not felt as a step.
+
+**The deep hold.**  Past δ_lin (status DEEP, inside the full contact region) the law's own ‖F‖ can fall while the
+press goes deeper (:mod:`pmask.runtime.contact.law`'s "Deep presses"; the haptics guide's "Pressing deep" traces
+the cases), which the hands issue forbids.  There the force sent is the law's scaled by hs ≥ 1: while δ grows and
+the hand does work against it (f · Δp > 0), hs = max(1, m / ‖f‖) with m the magnitude sent at the last tick, so
+‖f‖ never falls; otherwise hs − 1 shrinks by DEEP_RELEASE a tick (a 10-tick time constant).  Along a force that
+resists the motion the extra only takes energy out (tests/test_deep.py: in and out along 30° lines the hand never
+gets back more than it put in).  Here a contact's status turns DEEP when its penetration reaches δ_lin.  The native core's ``core/output.c`` is the same code operation for operation.
 """
 from __future__ import annotations
 
@@ -20,7 +28,7 @@ import math
 
 from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_depth, increment_stiffness, taper_gradient
 from pmask.runtime.contact.linalg3 import mul3, speed_up, tracking_depth
-from pmask.runtime.contact.state import PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
+from pmask.runtime.contact.state import DEEP_RELEASE, PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
 
 
 def render(c, states, active, geo, ubar, result) -> None:
@@ -108,8 +116,20 @@ def render(c, states, active, geo, ubar, result) -> None:
             s = fm / vm
             vx, vy, vz = s * vx, s * vy, s * vz
         bx, by, bz = bx + vx, by + vy, bz + vz
+        # past δ_lin (inside the full region) a press that goes deeper never feels softer: while δ grows and the
+        # hand does work against the force (f·Δp > 0) its magnitude is held at least at the last tick's, the
+        # factor hs ≥ 1 on it only resisting the motion (so it can only take energy out); otherwise hs returns to
+        # 1 over DEEP_RELEASE's 10 ticks (in a region's edge band too, where the force fades with λ)
+        bm = math.sqrt(bx * bx + by * by + bz * bz)
+        mx, my, mz = st.move
+        if full and delta >= dlin and delta > st.depth and bx * mx + by * my + bz * mz > 0.0:
+            hs = st.deep_peak / bm if st.deep_peak > bm else 1.0
+        else:
+            hs = 1.0 + (st.deep_scale - 1.0) * DEEP_RELEASE
+        bx, by, bz = hs * bx, hs * by, hs * bz
         if not (math.isfinite(bx) and math.isfinite(by) and math.isfinite(bz)):
             raise FloatingPointError("non-finite contact force")  # never sent to a device
+        st.deep_scale, st.deep_peak = hs, hs * bm
         if c._trace is not None:
             c._trace.append((l, f, (bx, by, bz), delta, lam))
         st.body_force = (bx, by, bz)

@@ -51,6 +51,9 @@ VELOCITY_FILTER = 0.1
 #: as virtual damping, and 6x the kT/2 that a 350 N/m support needs at 1 kHz
 PC_DAMPING_MAX = 1.0
 PC_RAMP_TICKS = 50
+#: past δ_lin, once a press stops pushing on, the factor that held its force up keeps this share of its excess
+#: over 1 a tick (output.py): a 10-tick time constant, so that letting go of the hold is not felt as a step
+DEEP_RELEASE = 0.9
 #: thread mode: the servo thread sleeps to this many seconds before each tick and spins the rest.  On a
 #: 2-core VM with a busy Python thread beside it, a real-time thread woken from sleep began 0.3 % of its
 #: ticks more than a period late (up to 10 ms); sleeping to 200 µs before and spinning left 0-1 ticks in
@@ -71,6 +74,8 @@ class ContactState:
         self.frozen = False               # past δ_t: increments of depth at the stiffness k* where it began
         self.frozen_depth = 0.0           # δ*: δ_t, or δ when it froze past δ_t (law.py)
         self.frozen_stiffness = 0.0       # k* = k there
+        self.deep_scale = 1.0             # past δ_lin: the factor on the force that keeps a deeper press from
+        self.deep_peak = 0.0              # feeling softer, and the magnitude it held (output.py)
         self.in_contact = False
         self.above = False                # the probe was seen outside the body since tracking began
         self.sliding = False
@@ -110,5 +115,6 @@ def release(st: ContactState, status: Status = Status.NO_CONTACT) -> None:
     st.sliding = False
     st.anchor = None
     st.frozen = False
+    st.deep_scale, st.deep_peak = 1.0, 0.0
     st.slip = 0.0
     st.status = status

@@ -2,7 +2,8 @@
  *
  * The law's force plus ½ δ² (I − δ S)⁻¹ ∇k, the zero-order hold's first-order error ½ J Δp added back, viscous damping,
  * and the passivity observer/controller (Hannaford & Ryu): a smoothly switched damper takes out the energy the
- * hand did not put in beyond a slack of 10 % of the stored energy.  The velocity terms fade with the contact. */
+ * hand did not put in beyond a slack of 10 % of the stored energy.  The velocity terms fade with the contact.  Past
+ * δ_lin the deep hold keeps |f| from falling while the press goes deeper (output.py's "The deep hold"). */
 #include "pm_internal.h"
 
 /* ∇λ on triangle t, on the tangent plane of N (law.taper_gradient): (λ_1 − λ_0) a + (λ_2 − λ_0) b, a and b the
@@ -130,7 +131,22 @@ int pm__render(pm_servo *S, int32_t na)
         bx = bx + vx;
         by = by + vy;
         bz = bz + vz;
+        /* past δ_lin (inside the full region) a press that goes deeper never feels softer: while δ grows and the
+           hand does work against the force its magnitude is held at least at the last tick's; otherwise the
+           factor returns to 1 (output.py) */
+        const double bm = sqrt(bx * bx + by * by + bz * bz);
+        double hs;
+        if (full && delta >= g->dlin && delta > st->depth
+            && bx * st->move[0] + by * st->move[1] + bz * st->move[2] > 0.0)
+            hs = st->deep_peak > bm ? st->deep_peak / bm : 1.0;
+        else
+            hs = 1.0 + (st->deep_scale - 1.0) * DEEP_RELEASE;
+        bx = hs * bx;
+        by = hs * by;
+        bz = hs * bz;
         if (!(isfinite(bx) && isfinite(by) && isfinite(bz))) return -1;
+        st->deep_scale = hs;
+        st->deep_peak = hs * bm;
         st->body_force[0] = bx;
         st->body_force[1] = by;
         st->body_force[2] = bz;

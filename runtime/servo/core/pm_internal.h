@@ -58,6 +58,7 @@
 #define VELOCITY_FILTER 0.1
 #define PC_DAMPING_MAX 1.0
 #define PC_RAMP_TICKS 50.0
+#define DEEP_RELEASE 0.9  /* state.DEEP_RELEASE: the deep hold's excess kept a tick once a press stops pushing on */
 /* samples the exchange ring holds (pm_servo_exchange): a Python loop may run this many ticks ahead */
 #define PM_RING 64
 
@@ -167,6 +168,8 @@ typedef struct {
     int in_contact, above, sliding;
     int frozen;                   /* past δ_t: increments of depth at the stiffness where they began */
     double frozen_depth, frozen_stiffness;  /* δ* and k* */
+    double deep_scale, deep_peak; /* past δ_lin: the factor that keeps a deeper press from feeling softer, the
+                                     magnitude it held (output.c) */
     double slip;
     int has_last;
     double last[3], move[3], vel[3];
