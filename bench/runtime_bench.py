@@ -397,7 +397,9 @@ DEEP_SITES = 80
 def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dict:
     """The hands issue's straight pushes (:data:`pmask.pipeline.strokes.PUSH_LINES`, to 15 mm at 10 mm/s) at
     ``n_sites`` random free vertices: how many lines reach the deep regime, how many lose force while going
-    deeper (the issue: none) and by how much, short of it and in it (:func:`pmask.pipeline.strokes.push_metrics`).
+    deeper (the issue: none) and by how much, short of it and in it (:func:`pmask.pipeline.strokes.push_metrics`),
+    and on how many the deep hold acts (past δ_lin, :mod:`pmask.runtime.contact.output`) with its largest factor:
+    the Python engine, whose state shows it (the native one sends the same forces, tests/test_deep.py).
     Physics, not speed; here because it steps the haptic engine a few hundred thousand times."""
     from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics, vertex_normal
     from pmask.runtime import HapticContact
@@ -406,15 +408,18 @@ def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dic
     srf = HapticContact(stiff, levels=levels, engine="python").surface
     below = depth_below(P, model.triangles)
     sites = np.random.default_rng(1).choice(model.contact[model.core], n_sites, replace=False)
-    out = {"levels": levels, "sites": int(n_sites), "lines": 0, "deep_lines": 0, "released": 0, "falls": [],
+    out = {"levels": levels, "sites": int(n_sites), "lines": 0, "deep_lines": 0, "released": 0, "falls": [], "held": [],
            "fall_contact_max": 0.0, "vertices": len(P), "element": str(model.attrs.get("element", "P1"))}
     for v in sites:
         N = vertex_normal(srf, v)
         for tilt, azimuths in PUSH_LINES:
             for az in azimuths:
                 probes, s = push_line(P[v], N, tilt, az)
-                h = HapticContact(stiff, levels=levels)
-                steps = [h.step(p) for p in probes]
+                h = HapticContact(stiff, levels=levels, engine="python")  # the hold's factor is visible here
+                steps, scale = [], 1.0
+                for p in probes:
+                    steps.append(h.step(p))
+                    scale = max(scale, h._state().deep_scale)
                 status = np.array([int(st) for _, st in steps])
                 depth = below(probes) * np.sign(s)
                 m = push_metrics(np.array([f for f, _ in steps]), status, depth)
@@ -422,6 +427,8 @@ def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dic
                 out["deep_lines"] += m["deep"]
                 out["released"] += m["released"]
                 out["fall_contact_max"] = max(out["fall_contact_max"], m["fall_contact"])
+                if scale > 1.0 + 1e-9:
+                    out["held"].append({"vertex": int(v), "tilt": tilt, "azimuth": az, "scale": scale})
                 if m["fall"] > 1e-12:
                     k = m["fall_at"]
                     out["falls"].append({"vertex": int(v), "tilt": tilt, "azimuth": az, "fall": m["fall"],
@@ -557,7 +564,8 @@ def markdown(res: dict) -> str:
                   "physics, not speed: `pmask.pipeline.strokes.push_metrics`)", "",
               "| contact surface | lines | reaching DEEP | contact ended | largest fall tick to tick short of DEEP | "
               "lines where \\|F\\| falls | their falls at a DEEP tick | largest fall (depth below the surface, "
-              "distance of the site from the support) |", "|---|---|---|---|---|---|---|---|"]
+              "distance of the site from the support) | lines where the deep hold acts (its largest factor) |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for d in deep:
             f = d["falls"]
             w = max(f, key=lambda x: x["fall"]) if f else None
@@ -566,8 +574,10 @@ def markdown(res: dict) -> str:
                      if w else "none")
             label = f"subdivided (`levels={d['levels']}`)" if d["levels"] else "mesh"
             deep_ticks = sum(x["status"] == Status.DEEP for x in f)
+            held = d.get("held")
+            hold = "—" if held is None else f"{len(held)} ({max(x['scale'] for x in held):.3g})" if held else "0"
             L.append(f"| {label} | {d['lines']} | {d['deep_lines']} | {d['released']} | {d['fall_contact_max']:.1g} | "
-                     f"{len(f)} | {deep_ticks} | {worst} |")
+                     f"{len(f)} | {deep_ticks} | {worst} | {hold} |")
     L += ["", "**Servo thread at 1 kHz** (probes set from Python at 200 Hz along the tour; beside it nothing, a "
               "Python graphics thread at 60 Hz (the displayed deformation and 3 ms of pure Python per frame), or "
               "a Python thread saturating both cores (SVDs on the threaded BLAS and Python loops))", "",
