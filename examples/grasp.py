@@ -60,6 +60,13 @@ def run(contacts, path):
     return forces, status
 
 
+def shown(surface, v, st):
+    """How far the displayed mesh moves the contact point: the displacement v at the mesh point under it (the
+    contact surface may be the mesh's subdivision surface), less that point's offset from the contact point."""
+    m, *beta = surface.mesh_point(st.tri, *st.b)
+    return np.asarray(beta) @ v[surface.mesh_T[m]] - np.asarray(surface.mesh_offset(st.tri, st.b))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="A two-jaw grasp of the kidney at 1 kHz")
     ap.add_argument("artifact", nargs="?", default=str(DEFAULT_ARTIFACT),
@@ -80,8 +87,8 @@ def main(argv=None) -> int:
         forces, status = run(c, path[:n_close + n_hold])
         if name == "coupled":  # the display at the end of the hold, before the jaws open
             v = c.deformation()
-            meet = [np.linalg.norm(np.asarray(st.b) @ v[model.triangles[st.tri]] - np.asarray(st.u_bar))
-                    / np.linalg.norm(st.u_bar) for st in c.states]
+            meet = [np.linalg.norm(shown(c.surface, v, st) - np.asarray(st.u_bar)) / np.linalg.norm(st.u_bar)
+                    for st in c.states]
         rest, rest_status = run(c, path[n_close + n_hold:])
         runs[name] = (np.concatenate([forces, rest]), np.concatenate([status, rest_status]))
     hold = slice(n_close, n_close + n_hold)

@@ -394,10 +394,10 @@ def cmd_export(args) -> int:
 
 def add_levels(p) -> None:
     """``--levels``: the contact surface the haptic contact runs on (export-table, view)."""
-    p.add_argument("--levels", default="0", choices=["0", "1", "2", "3", "auto"],
-                   help="contact surface: 0 the mesh (default), n its Loop subdivision surface after n levels, auto "
-                        "the fewest levels whose facets meet the contact normals within 3.5 degrees (closed loops "
-                        "then give back less energy: see the haptics guide)")
+    p.add_argument("--levels", default="auto", choices=["0", "1", "2", "3", "auto"],
+                   help="contact surface: auto (default) the mesh's Loop subdivision surface after the fewest "
+                        "levels whose facets meet the contact normals within 3.5 degrees (closed loops then give "
+                        "back far less energy: see the haptics guide), n after n levels, 0 the mesh itself")
 
 
 def levels_of(args):

@@ -102,14 +102,14 @@ class Contacts:
         kidney's hilum lip, probed 5 mm deep, 1 mask radius left the force turning 7x faster than pressing
         on free tissue does, 3 radii brought it in line.
     levels
-        the contact surface: 0 (default) the finite-element mesh's triangles; n ≥ 1 its Loop subdivision surface
-        after n levels, through the mesh's vertices, on which the interpolated contact normal is the facets' normal
-        to within a small angle; "auto" the fewest levels that bring that angle within 3.5°
-        (:mod:`pmask.runtime.contact.subdivision`).  Measured on the default kidney's grid of closed loops
-        (tests/test_passivity_grid.py): with the controller off at most 1.78 % of a loop's energy given back on
-        the mesh, 0.024 % with 2 levels (0.44 % with one, by hand, with an earlier projection).  K_i and λ are
-        carried by the same masks (at the mesh's vertices within Loop's smoothing of them: at most 9 % on the
-        default kidney, by the support's ramp).
+        the contact surface: "auto" (default) the mesh's Loop subdivision surface after the fewest levels that bring
+        the angle between its facets and the interpolated contact normals within 3.5° (two on the default kidney;
+        none on a mesh fine enough already; at most 400,000 triangles); n the surface after n levels (0: the
+        finite-element mesh's own triangles).  It passes through the mesh's vertices
+        (:mod:`pmask.runtime.contact.subdivision`), and K_i and λ ride on it linearly from the mesh (eq. 15), so
+        the law is the gradient of its energy to within that small angle.  Measured on the default kidney's grid
+        of closed loops (tests/test_passivity_grid.py), controller off: at most 0.22 % of a loop's energy given
+        back on the default surface, 1.78 % on the mesh.
     coupled
         solve several contacts together (default: when the stiffness has Green's functions).
     engine
@@ -119,7 +119,7 @@ class Contacts:
     def __init__(self, stiffness, n: int = 1, *, friction=0.0, dynamic_friction=None, damping=0.0,
                  tool_radius=0.0, slip_length=None, device: Device | None = None, passivity: bool = True, max_jump=None,
                  decay=0.9, reset_after: int = 50, max_walk: int = 24, proxy_speed=PROXY_SPEED, coupled=None,
-                 normal_radius=None, levels=0, engine: str | None = None):
+                 normal_radius=None, levels="auto", engine: str | None = None):
         self.n = _int("n", n)
         self.friction = _num("friction", friction)
         self.dynamic_friction = self.friction if dynamic_friction is None else _num("dynamic_friction", dynamic_friction)
@@ -338,7 +338,10 @@ class Contacts:
         with display forces that make the interpolated response meet every contact's displacement ū'
         exactly: C_disp f_disp = ū', C_disp the exact interpolation of the ζ table (its diagonal blocks
         are Σ_i Σ_m φ_i φ_m ζ_m(i) rather than the inverse of eq. 15's K, which differ by 5-10 % between
-        vertices).  Zero where nothing is in contact."""
+        vertices).  On a subdivided contact surface the mesh point under a contact lies off the contact point
+        by the subdivision's offset (:meth:`ContactSurface.mesh_offset`), and it is moved by ū' plus that
+        offset, so that the shown mesh meets the instrument where the contact surface does.  Zero where
+        nothing is in contact."""
         if not self.surface.greens:
             raise InputError("deformation needs Green's functions (a Stiffness from Model.stiffness, or a "
                              "runtime table exported with its zeta table)")
@@ -357,7 +360,7 @@ class Contacts:
         for i, a in enumerate(act):
             for j, b in enumerate(act):
                 C[3 * i:3 * i + 3, 3 * j:3 * j + 3] = np.reshape(self.surface.compliance(a.tri, a.b, b.tri, b.b), (3, 3))
-        u = np.concatenate([np.asarray(st.u_bar) for st in act])
+        u = np.concatenate([np.add(st.u_bar, self.surface.mesh_offset(st.tri, st.b)) for st in act])
         try:
             f = np.linalg.solve(C, u)
         except np.linalg.LinAlgError:

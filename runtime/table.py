@@ -497,14 +497,15 @@ def table_greens(t: dict, where: str = "the runtime table"):
 
 
 def export_table(artifact, out, *, mask: str = "linear", radius: float | None = None, k_rigid: float | None = None,
-                 normal_radius: float | None = None, zeta: bool = True, device=None, levels=0) -> Path:
+                 normal_radius: float | None = None, zeta: bool = True, device=None, levels="auto") -> Path:
     """Export a runtime table from an artifact: :meth:`pmask.runtime.Model.stiffness` for the mask and
     radius, the contact surface of :class:`pmask.runtime.contact.ContactSurface`, and (``zeta``) the ζ table
     for several coupled contacts and the deformation (3n_c x 3n_c doubles: 150 MB at the default
     kidney's 1,446 contact vertices), or for a compressed artifact Ξ's own sections and the masks
     (:func:`greens_sections`: about the artifact's stored bytes).  radius : default
     :attr:`pmask.runtime.Model.default_radius`.  levels : the
-    contact surface's subdivision (:class:`pmask.runtime.Contacts`; 0 the mesh, "auto" the automatic choice)."""
+    contact surface's subdivision (:class:`pmask.runtime.Contacts`; "auto", the default, the automatic choice,
+    0 the mesh)."""
     from pmask.runtime.contact import ContactSurface
     from pmask.runtime.model import Model
 

@@ -34,18 +34,19 @@ def press(h, p0, n, depths):
 
 
 # ------------------------------------------------------------------------------------- the tour's bounds
-@pytest.mark.parametrize("options", [{}, FRICTION, {"levels": 2}, {**FRICTION, "levels": 2}],
-                         ids=["frictionless", "friction", "subdivided", "subdivided-friction"])
+@pytest.mark.parametrize("options", [{}, FRICTION, {"levels": 0}, {**FRICTION, "levels": 0}],
+                         ids=["frictionless", "friction", "mesh", "mesh-friction"])
 def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, options):
     """The haptics issue's three bounds on its tour (press, over the top and round the pole, onto and across
     the hilum 5 mm deep and back, lift off, re-enter, circles and tilted circles at 1-4 mm, 12 mm deep at
-    the pole), in the default settings:
+    the pole), in the default settings (the contact surface: the mesh's subdivision surface) and on the mesh:
 
     - the energy the body gives the hand over every closed loop is <= 1 % of the loop's peak stored energy
       (a tick's work is the force the device holds times the probe's motion; the trapezoid rule too);
     - the largest force change per tick anywhere is <= 2x the largest on smooth free surface at the same
       speed (the tour's reference segments: slides over the top face, presses to 6 mm on four faces; the
-      hands issue's bound, 3x before; measured 1.55x sliding back across the hilum's support 5 mm deep);
+      hands issue's bound, 3x before; measured 1.49x onto and across the hilum 5 mm deep on the default surface,
+      1.55x sliding back across the hilum's support on the mesh);
     - the proxy never moves more than twice the probe's own motion in one tick.
 
     One allowance, 12 mm deep at the pole (DEEP, 5 mm past the pole's focal depth of 7 mm): rocking there, the
@@ -55,8 +56,8 @@ def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, opti
     own motion a tick, measured 3.3x).  Bound 5x there (3.3x measured frictionless on the test session's kidney,
     4.2x with the projection of two fixed-point steps).
 
-    On the subdivided surface (levels=2) too (by hand before): measured 1.51x and 1.06x (frictionless, friction),
-    over the hilum; 2.9x and 3.3x 12 mm deep at the pole.
+    On the subdivided surface (levels=2, with K carried by Loop's masks, by hand before): measured 1.51x and 1.06x
+    (frictionless, friction), over the hilum; 2.9x and 3.3x 12 mm deep at the pole.
     """
     probes, segments = the_tour
     m = tour_metrics(run_contact(HapticContact(stiff, **options), probes), probes, segments)
@@ -102,7 +103,7 @@ def test_crossing_the_edge_of_a_contact_region(kidney_top, options):
     assert given <= 0.01 * r["stored"].max()
 
 
-@pytest.mark.parametrize("levels", [0, 2], ids=["mesh", "subdivided"])
+@pytest.mark.parametrize("levels", [0, "auto"], ids=["mesh", "default"])
 def test_the_proxy_does_not_hop_where_the_depth_hovers_about_half_the_radius(stiff, the_tour, levels):
     """Sliding onto, across and back over the hilum 5 mm deep the contact is 7 mm below the surface, about half
     the radius of curvature there, where the proxy stops following the probe's projection and moves by dead
@@ -139,8 +140,9 @@ def test_out_and_back_across_the_support_rim(stiff, depth):
 
     What holds: the body never gives back more than it was given (net ≤ +1 %: the law does not generate, where
     it gained 7-54 µJ over such a slide before), and short of the lip (to 0.5 rad, on tissue whose stiffness
-    rises towards the support) |net| ≤ 3 % (measured 2.5 % and 0.9 %).  What does not: over the lip the law
-    dissipates, measured 12 % (2 mm) and 30 % (4 mm) of the press's work (bound here 20 % and 45 %, to catch a
+    rises towards the support) |net| ≤ 3 % (measured 2.4 % and 0.9 % on the default surface; 2.5 % and 0.9 % on the
+    mesh).  What does not: over the lip the law dissipates, measured 10.5 % (2 mm) and 30 % (4 mm) of the press's
+    work (12 % and 30 % on the mesh; bound here 20 % and 45 %, to catch a
     return of the projection's drift: 41 % and 144 % while step 1's projection took two fixed-point steps, whose
     answers on neighbouring triangles differed where the normals turn fast; or of the proxy's drag: 2.2x and 4.3x
     with the proxy limited to 1.25x the probe, the default before).
@@ -186,7 +188,7 @@ def test_contact_life_cycle_and_the_frictionless_force(model, stiff):
     assert np.linalg.norm(np.diff(g, axis=0), axis=1).max() <= 0.02 * np.linalg.norm(g, axis=1).max()
 
 
-@pytest.mark.parametrize("levels", [0, 2])
+@pytest.mark.parametrize("levels", [0, "auto"])
 @pytest.mark.parametrize("engine", ["python", "native"])
 def test_a_jump_out_of_contact_is_tracked_where_it_lands(model, stiff, levels, engine):
     """A probe parked above the body that jumps (a mouse across the viewer's page, a device's reset) to just

@@ -116,21 +116,27 @@ def test_mesh_point_matches_the_map():
         assert math.isclose(sum(beta), 1.0, abs_tol=1e-15)
 
 
-def test_fields_carried_by_the_masks_stay_positive_and_within_their_range(ball):
-    """K_i and λ ride on the same masks (attributes): convex combinations, so a constant stays that constant (to
-    round-off), values stay within the mesh's range (a taper stays in [0, 1]) and positive definite 3x3 blocks stay
-    positive definite, whatever their variation (here random SPD blocks, eigenvalues 0.1-10, and a 0/1 step)."""
+def test_fields_carried_linearly_keep_the_vertices_values_and_stay_positive(ball):
+    """K_i and λ ride on the subdivided surface by eq. 15 in the mesh triangle's barycentrics
+    (Subdivided.interpolate): at the mesh's vertices (the first n_s subdivided vertices) they are the mesh's values
+    exactly, the mesh's own coordinates carried so land where the map puts each subdivided triangle's corners
+    (whichever triangle holds the vertex), values stay within the mesh's range (a taper stays in [0, 1]) and positive
+    definite 3x3 blocks stay positive definite (convex combinations: random SPD blocks, eigenvalues 0.1-10)."""
     P, T = ball
     rng = np.random.default_rng(5)
     Q = np.linalg.qr(rng.normal(size=(len(P), 3, 3)))[0]
     K = np.einsum("vij,vj,vkj->vik", Q, rng.uniform(0.1, 10.0, (len(P), 3)), Q)
     step = (P[:, 2] > 0).astype(float)
-    s = sd.subdivide(P, T, 2, attributes=np.hstack([K.reshape(-1, 9), step[:, None], np.full((len(P), 1), 7.0)]))
-    Kf = s.attributes[:, :9].reshape(-1, 3, 3)
+    s = sd.subdivide(P, T, 2)
+    fields = s.interpolate(T, np.hstack([K.reshape(-1, 9), step[:, None], P]))
+    assert fields.shape == (len(s.points), 13)
+    np.testing.assert_array_equal(fields[:len(P), :10], np.hstack([K.reshape(-1, 9), step[:, None]]))
+    Kf = fields[:, :9].reshape(-1, 3, 3)
     assert np.linalg.eigvalsh(0.5 * (Kf + Kf.transpose(0, 2, 1)))[:, 0].min() >= 0.1 * (1 - 1e-12)
-    assert s.attributes[:, 9].min() >= 0.0 and s.attributes[:, 9].max() <= 1.0
-    assert np.abs(s.attributes[:, 10] - 7.0).max() <= 1e-13
-    assert 0.0 < s.attributes[:, 9].mean() < 1.0  # the step is smoothed, not kept
+    assert fields[:, 9].min() >= 0.0 and fields[:, 9].max() <= 1.0 and 0.0 < fields[:, 9].mean() < 1.0
+    # the mesh's coordinates carried so are where the map puts every corner of every subdivided triangle (one
+    # place for a vertex, whichever of its triangles is asked: the carried field is continuous)
+    np.testing.assert_allclose(fields[s.triangles, 10:], param_points(s, P, T), rtol=0, atol=1e-15)
 
 
 def test_levels_a_user_asks_for_are_checked_in_one_line():

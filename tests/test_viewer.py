@@ -609,14 +609,15 @@ def _other_address():
 
 
 def test_the_viewer_runs_the_subdivided_contact_surface(session, kidney_small):
-    """``pmask view --levels 2``: the probes run on the mesh's Loop subdivision surface (16 contact triangles to a
-    mesh triangle), so a press at a triangle's centroid holds the proxy on the smooth surface, off the flat
-    triangle by a fraction of an edge (its sagitta), where the default session's proxy lies in the triangle's
-    plane."""
+    """``pmask view`` (``--levels auto``, the default): the probes run on the mesh's Loop subdivision surface (three
+    levels on the test kidney: 64 contact triangles to a mesh triangle), so a press at a triangle's centroid holds
+    the proxy on the smooth surface, off the flat triangle by a fraction of an edge (its sagitta), where a
+    ``--levels 0`` session's proxy lies in the triangle's plane."""
     from pmask.pipeline.cli import build_parser, levels_of
 
     assert levels_of(build_parser().parse_args(["view", "m.h5", "--levels", "2"])) == 2
-    assert levels_of(build_parser().parse_args(["view", "m.h5"])) == 0
+    assert levels_of(build_parser().parse_args(["view", "m.h5"])) == "auto"
+    assert levels_of(build_parser().parse_args(["view", "m.h5", "--levels", "0"])) == 0
     m = session.model
     P, T = m.points, m.triangles
     core = set(m.contact[m.core].tolist())
@@ -628,11 +629,12 @@ def test_the_viewer_runs_the_subdivided_contact_surface(session, kidney_small):
         n = -n
     path = [(c + (1.5 - 1.7 * s) * h * n).tolist() for s in np.linspace(0, 1, 30)]  # to 0.2 edges deep: the
     # proxy stays in the triangle (the interpolated normal is within a few degrees of the facet's there)
-    sub = ViewerSession(m, levels=2)
+    mesh = ViewerSession(m, levels=0)
     try:
-        assert len(sub.contacts.surface.T) == 16 * len(sub.contacts.surface.mesh_T)
+        srf = session.contacts.surface
+        assert srf.levels >= 2 and len(srf.T) == 4 ** srf.levels * len(srf.mesh_T)
         off = {}
-        for name, s in (("mesh", session), ("subdivided", sub)):
+        for name, s in (("mesh", mesh), ("subdivided", session)):
             for p in path:
                 reply = s.probe([p] + [None] * (N_PROBES - 1), deform=False, client="levels")
                 time.sleep(0.003)
@@ -643,4 +645,4 @@ def test_the_viewer_runs_the_subdivided_contact_surface(session, kidney_small):
             off[name] = abs(float(np.dot(np.array(reply["contacts"][0]["proxy"]) - c, n)))
         assert off["mesh"] <= 1e-9 * h and 1e-4 * h < off["subdivided"] <= 0.1 * h, off
     finally:
-        sub.close()
+        mesh.close()

@@ -93,11 +93,12 @@ class ViewerSession:
 
     model : a loaded :class:`pmask.runtime.Model`; mask : the pressure mask kind; radius : the initial
     mask radius (default :attr:`pmask.runtime.Model.default_radius`); engine : the servo engine (None: native if built);
-    levels : the contact surface (:class:`pmask.runtime.Contacts`: 0 the mesh, n its Loop subdivision surface, "auto").
+    levels : the contact surface (:class:`pmask.runtime.Contacts`: "auto" the default, n the mesh's Loop subdivision
+    surface after n levels, 0 the mesh).
     """
 
     def __init__(self, model: Model, *, mask: str = "linear", radius: float | None = None, engine: str | None = None,
-                 rate: float = RATE, spin: float = 0.0, levels=0):
+                 rate: float = RATE, spin: float = 0.0, levels="auto"):
         self.model = model
         self.levels = levels
         self.mask = mask
@@ -379,7 +380,7 @@ def make_server(session: ViewerSession, host: str = "127.0.0.1", port: int = 876
 
 
 def serve(artifact, *, host: str = "127.0.0.1", port: int = 8765, mask: str = "linear", radius=None,
-          engine: str | None = None, levels=0, ready=None) -> None:
+          engine: str | None = None, levels="auto", ready=None) -> None:
     """``pmask view``: load (refusing a foreign or corrupt artifact before anything listens), bind, print
     the URL, serve until Ctrl-C (KeyboardInterrupt) and stop the servo thread.  ``ready(url)`` is called
     once it listens (tests)."""

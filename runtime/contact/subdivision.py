@@ -22,14 +22,18 @@ contact normals blend there as they did).  Rounding them off instead made a prob
 hilum lip drag far more (measured by hand: 3x and 9.5x the press's work over an out-and-back slide 2 and 4 mm
 deep, against 0.4x and 1.3x on the mesh).
 
-The rendered stiffness K_i and the taper λ are carried onto the subdivided surface by the same masks
-(``attributes``): a field as smooth over the surface as the surface itself, in place of eq. 15's linear
-interpolation over the mesh's triangles, whose gradient jumps at every mesh edge.  At the mesh's vertices it
-differs from K_i by Loop's smoothing (on the default kidney: median 0.6 %, 99th percentile 4.4 %, at most 9 %, by
-the support's ramp).  Measured on the hands issue's grid of closed loops (two levels): with K interpolated
-linearly the worst loop gave back 0.23 % and the deep presses lost up to 0.18 % of their force where the
-proxy crossed a mesh edge (∇k jumped 2x there); with K subdivided 0.064 % (0.024 % with step 1's projection
-exact).  ζ and the deformation stay on the mesh's vertices: each subdivided triangle knows the mesh triangle it lies
+The rendered stiffness K_i and the taper λ are carried onto the subdivided surface linearly from the mesh
+(:meth:`Subdivided.interpolate`: eq. 15 in the mesh triangle's barycentrics), so K at the mesh's vertices is K_i
+itself and pairs of contacts pressed at vertices meet the full finite-element solve as on the mesh.  Measured on
+the hands issue's grid of closed loops (two levels, tests/test_passivity_grid.py): the worst loop gives back
+0.22 % of its energy and the controller takes 0.55 % (1.78 % and 2.18 % on the mesh).  Two other carryings were
+tried and dropped (the haptics guide's "The contact surface"): by Loop's masks (smoother, 0.024 % on the grid,
+but K at the vertices became Loop's smoothing of K_i, up to 9 % off by the support's ramp, and pairs moved 3.5 %
+off the full solve) and through interpolating control values (the field overshot beside the support's ramp).
+∇k of the linear field changes across a quarter of a mesh edge at every mesh edge; before the deep hold
+(:mod:`pmask.runtime.contact.output`) that cost a deep oblique push beside the support 17.7 % of its force, with
+the hold none of the benchmarks' deep pushes loses force.
+ζ and the deformation stay on the mesh's vertices: each subdivided triangle knows the mesh triangle it lies
 in (``parent``) and the barycentric
 coordinates in it of its three corners (``corners``), so a point (t, b) of the subdivided surface is the point
 :math:`\beta = \sum_k b_k\, \mathrm{corners}_{t,k}` of triangle ``parent[t]`` (:func:`mesh_point`).
@@ -47,8 +51,8 @@ from pmask.runtime.geometry import crease_edges, triangle_normals, vertex_normal
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
 #: hands issue's grid of closed loops, controller off) the mesh's 9.1° gave back up to 1.78 % of a loop's stored
-#: energy, one level (5.1°) 0.44 %, two levels (2.95°) 0.024 % (tests/test_passivity_grid.py's loops; one level
-#: by hand)
+#: energy, two levels (2.95°, the automatic choice there) 0.22 % (tests/test_passivity_grid.py's loops; one level,
+#: 5.1°, 0.44 % by hand, with K carried by Loop's masks and an earlier projection)
 MAX_FACET_ANGLE = math.radians(3.5)
 #: at most this many levels, and at most this many subdivided triangles (the contact surface's arrays grow 4x a
 #: level)
@@ -61,9 +65,8 @@ class Subdivided:
     triangle each lies in, ``corners`` (m_f, 3, 3) the barycentrics in it of each corner (row k: corner k),
     ``levels`` the levels applied (0: the mesh itself)."""
 
-    def __init__(self, points, triangles, parent, corners, levels, attributes=None):
+    def __init__(self, points, triangles, parent, corners, levels):
         self.points, self.triangles, self.parent, self.corners, self.levels = points, triangles, parent, corners, levels
-        self.attributes = attributes
 
     def vertex_weights(self, mesh_triangles) -> tuple[np.ndarray, np.ndarray]:
         """(n_f, 3) mesh vertices and (n_f, 3) weights: each subdivided vertex's place on the mesh, so that a
@@ -116,12 +119,8 @@ def choose_levels(points, triangles, crease_deg: float = 30.0) -> int:
     return levels
 
 
-def subdivide(points, triangles, levels: int, crease_deg: float = 30.0, attributes=None) -> Subdivided:
+def subdivide(points, triangles, levels: int, crease_deg: float = 30.0) -> Subdivided:
     """Loop subdivision ``levels`` times, creases and boundaries kept, vertices on the limit surface.
-
-    ``attributes`` (n_s, m), optional: per-vertex quantities subdivided with the same masks (not interpolating:
-    Loop's masks are convex combinations, so a positive or positive definite quantity stays so), the result's
-    ``attributes``: a field as smooth over the surface as the surface itself.
 
     Raises ValueError on an edge shared by more than two triangles (not a manifold: the caller keeps the mesh)."""
     P = np.asarray(points, float)
@@ -129,21 +128,17 @@ def subdivide(points, triangles, levels: int, crease_deg: float = 30.0, attribut
     m = len(T)
     parent = np.arange(m)
     corners = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
-    A = None if attributes is None else np.asarray(attributes, float).reshape(len(P), -1)
     if levels <= 0 or not m:
-        return Subdivided(P.copy(), T.copy(), parent, corners, 0, None if A is None else A.copy())
+        return Subdivided(P.copy(), T.copy(), parent, corners, 0)
     E, _, E_open = _edges(T)
     crease = _creases(P, T, E_open, crease_deg)
     fixed = _corners(P, crease, crease_deg)
     X = _interpolating_control(P, E, crease, fixed)
-    if A is not None:
-        X = np.hstack([X, A])
     for _ in range(levels):
         X, T, crease, parent, corners = _split(X, T, crease, parent, corners, fixed)
         fixed = np.r_[fixed, np.zeros(len(X) - len(fixed), bool)]
     X = _limit(X, T, crease, fixed)
-    return Subdivided(np.ascontiguousarray(X[:, :3]), T, parent, corners, int(levels),
-                      None if A is None else np.ascontiguousarray(X[:, 3:]))
+    return Subdivided(np.ascontiguousarray(X), T, parent, corners, int(levels))
 
 
 def _corners(P, crease, crease_deg):

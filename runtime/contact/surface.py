@@ -54,13 +54,13 @@ class ContactSurface:
 
     stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
     normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
-    levels : the contact surface, see :class:`Contacts`: 0 the mesh, n its Loop subdivision surface after n
-    levels (:mod:`pmask.runtime.contact.subdivision`), None the automatic choice.  The mesh's vertices keep
+    levels : the contact surface, see :class:`Contacts`: None (default) the automatic choice, n the mesh's Loop
+    subdivision surface after n levels (:mod:`pmask.runtime.contact.subdivision`), 0 the mesh.  The mesh's vertices keep
     their indices and positions; ``mesh_T``, ``parent`` and ``corners`` map a contact point to the mesh
     (:meth:`mesh_point`), where ζ, the deformation and the model's own arrays live.
     """
 
-    def __init__(self, stiffness, normal_radius: float | None = None, levels: int | None = 0):
+    def __init__(self, stiffness, normal_radius: float | None = None, levels: int | None = None):
         P0 = np.asarray(stiffness.points, float)
         T0 = np.asarray(stiffness.triangles, np.int64)
         e = np.linalg.norm(P0[T0[:, 1]] - P0[T0[:, 0]], axis=1)
@@ -76,10 +76,10 @@ class ContactSurface:
         taper0 = np.asarray(getattr(stiffness, "taper", np.ones(len(P0))), float)
         fields = np.hstack([K0, taper0[:, None]])
         try:
-            sub = subdivide(P0, T0, int(levels), attributes=fields)
+            sub = subdivide(P0, T0, int(levels))
         except ValueError as err:  # not a manifold: the mesh's own triangles
             log.warning("contact surface not subdivided (%s)", err)
-            sub = subdivide(P0, T0, 0, attributes=fields)
+            sub = subdivide(P0, T0, 0)
         P, T = sub.points, sub.triangles
         frames = triangle_frames(P, T)
         masks = getattr(stiffness, "masks", None)
@@ -88,7 +88,8 @@ class ContactSurface:
         if normal_radius is None:
             normal_radius = 3.0 * mask_radius
         normals = self._normals(sub, P0, T0, float(normal_radius))
-        K, taper = sub.attributes[:, :9], sub.attributes[:, 9]  # K_i and λ as smooth over the surface as it is
+        fields = sub.interpolate(T0, fields) if sub.levels else fields  # eq. 15: K_i and λ linear over the mesh
+        K, taper = np.ascontiguousarray(fields[:, :9]), np.ascontiguousarray(fields[:, 9])
         k = normal_stiffness(K, normals, taper)
         gradient = normal_stiffness_gradient(P, T, k, frames[:, 3:6], frames[:, 6:9])
         shape = shape_operators(P, T, normals, frames)
@@ -102,7 +103,7 @@ class ContactSurface:
         self.meta = {}
 
     @classmethod
-    def of(cls, stiffness, normal_radius: float | None = None, levels: int | None = 0) -> "ContactSurface":
+    def of(cls, stiffness, normal_radius: float | None = None, levels: int | None = None) -> "ContactSurface":
         """The contact surface of a stiffness, built once per normal radius and levels and kept on it (a
         stiffness's mesh and K do not change; a subdivided surface takes a second or so to build, and the native
         core's table is kept per surface)."""
@@ -144,7 +145,7 @@ class ContactSurface:
                    t["normal_stiffness"][:, 0], t["gradient"], t["shape"], t["linear_depth"][:, 0], grid,
                    t["bounds"][0], t["bounds"][1], mean_edge, diag, float(t["meta"].get("normal_radius", 0.0)),
                    (t["mesh_triangles"], t["parent"][:, 0], t["corners"]) if "parent" in t else None)
-        srf.levels = int(t["meta"].get("levels", 1 if "parent" in t else 0))
+        srf.levels = (round(math.log(len(T) / len(t["mesh_triangles"]), 4)) if "parent" in t else 0)  # 4x a level
         srf.stiffness = None
         srf.meta = t["meta"]
         srf.table = t  # the native core borrows the same arrays (pmask.runtime.servo: no second read, no copy)
@@ -235,6 +236,17 @@ class ContactSurface:
         if not self._mapped:
             return t, b0, b1, b2
         return mesh_point(self._parent, self._corners, t, b0, b1, b2)
+
+    def mesh_offset(self, t, b) -> tuple:
+        """The contact point (t, b) less the point of the finite-element mesh under it (:meth:`mesh_point`): zero on
+        the mesh itself, on a subdivided surface the limit surface's bulge over the flat triangle (up to about
+        e²/8R for edges e on a radius of curvature R)."""
+        if not self._mapped:
+            return (0.0, 0.0, 0.0)
+        m, *beta = self.mesh_point(t, *b)
+        P, j, i = self._P, self._idx[t], self._mesh_idx[m]  # the mesh's vertices keep their indices and positions
+        return tuple(b[0] * P[j[0]][c] + b[1] * P[j[1]][c] + b[2] * P[j[2]][c]
+                     - (beta[0] * P[i[0]][c] + beta[1] * P[i[1]][c] + beta[2] * P[i[2]][c]) for c in range(3))
 
     def _blocks(self):
         """(block function, row list) of :func:`pmask.runtime.stiffness.zeta_compliance`, made once."""
