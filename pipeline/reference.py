@@ -154,7 +154,8 @@ def kidney_tables(mesh_dir: Path, work: Path):
              "model": f"kidney (default resolution, default element: {m.attrs.get('element', 'P1')})",
              "resolution": f"{len(m.points)} surface vertices, {len(m.free)} free",
              "mask": f"single vertex; linear cone r = 2 x mean edge = {f6['radius']:.6e} m",
-             "stroke": "pmask.pipeline.strokes: y = 12 mm, x = -45..45 mm, 1.5 mm deep, 35 mm/s, 1 kHz",
+             "stroke": "pmask.pipeline.strokes: y = 12 mm, x = -45..45 mm, 1.5 mm deep, 35 mm/s, 1 kHz, on the "
+                       "default contact surface (levels auto)",
              "units": "N/m, N; roughness relative"}
     small = Model.load(artifact_for("kidney_small", mesh_dir, work))
     r = 2.0 * small.mean_edge_length
