@@ -394,7 +394,7 @@ def surface_bench(name: str, surface, probes: np.ndarray, exe, work: Path, *, re
 DEEP_SITES = 80
 
 
-def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dict:
+def deep_pushes(model, stiff, levels="auto", n_sites: int = DEEP_SITES) -> dict:
     """The hands issue's straight pushes (:data:`pmask.pipeline.strokes.PUSH_LINES`, to 15 mm at 10 mm/s) at
     ``n_sites`` random free vertices: how many lines reach the deep regime, how many lose force while going
     deeper (the issue: none) and by how much, short of it and in it (:func:`pmask.pipeline.strokes.push_metrics`),
@@ -408,7 +408,8 @@ def deep_pushes(model, stiff, levels: int = 0, n_sites: int = DEEP_SITES) -> dic
     srf = HapticContact(stiff, levels=levels, engine="python").surface
     below = depth_below(P, model.triangles)
     sites = np.random.default_rng(1).choice(model.contact[model.core], n_sites, replace=False)
-    out = {"levels": levels, "sites": int(n_sites), "lines": 0, "deep_lines": 0, "released": 0, "falls": [], "held": [],
+    out = {"levels": srf.levels, "default": levels == "auto", "sites": int(n_sites), "lines": 0, "deep_lines": 0,
+           "released": 0, "falls": [], "held": [],
            "fall_contact_max": 0.0, "vertices": len(P), "element": str(model.attrs.get("element", "P1"))}
     for v in sites:
         N = vertex_normal(srf, v)
@@ -453,27 +454,28 @@ def run(kidneys: dict, synthetic, work: Path) -> dict:
         print(f"  haptics on kidney {nv} ...", flush=True)
         m = Model.load(path)
         stiff = m.stiffness("linear", 2.0 * m.mean_edge_length)
-        srf = ContactSurface(stiff)
+        srf = ContactSurface(stiff)  # the default contact surface (levels "auto")
         res["surfaces"][f"kidney_{len(m.points)}"] = dict(surface_bench(f"kidney_{nv}", srf, tour_probes, exe, work),
-                                                          synthetic=False)
+                                                          synthetic=False, levels=srf.levels)
         res["surfaces"][f"kidney_{len(m.points)}"]["deformation"] = [deformation_bench(stiff, m, e)
                                                                      for e in ("native", "python") if e == "python" or _native()]
         if default is None or abs(len(m.points) - 1543) < abs(len(default[0].points) - 1543):
             default = (m, stiff, srf)
-    m, stiff, _ = default  # the same kidney on its Loop subdivision surface (levels=2), beside the mesh's row
-    print(f"  haptics on kidney {len(m.points)}, subdivided ...", flush=True)
-    sub = ContactSurface(stiff, levels=2)
-    res["surfaces"][f"kidney_{len(m.points)}_levels2"] = dict(
-        surface_bench(f"kidney_{len(m.points)}_levels2", sub, tour_probes, exe, work), synthetic=False, levels=2)
+    m, stiff, _ = default  # the same kidney on the mesh's own triangles (levels=0), beside the default's row
+    print(f"  haptics on kidney {len(m.points)}, mesh ...", flush=True)
+    mesh = ContactSurface(stiff, levels=0)
+    res["surfaces"][f"kidney_{len(m.points)}_mesh"] = dict(
+        surface_bench(f"kidney_{len(m.points)}_mesh", mesh, tour_probes, exe, work), synthetic=False, levels=0,
+        mesh=True)
     eq = equator_path()
     for n in (500, 5000, 50000, 164000):
         print(f"  haptics on synthetic {n} ...", flush=True)
-        srf = ContactSurface(synthetic(n))
+        srf = ContactSurface(synthetic(n), levels=0)  # the mesh as it is: the rows measure the step against n
         res["surfaces"][f"synthetic_{len(srf.P)}"] = dict(surface_bench(f"synthetic_{n}", srf, eq, exe, work),
                                                           synthetic=True)
     m, stiff, srf = default
-    print(f"  deep pushes at {DEEP_SITES} random sites, mesh and subdivided ...", flush=True)
-    res["deep"] = [deep_pushes(m, stiff, levels) for levels in (0, 2)]
+    print(f"  deep pushes at {DEEP_SITES} random sites, default surface and mesh ...", flush=True)
+    res["deep"] = [deep_pushes(m, stiff, levels) for levels in ("auto", 0)]
     print("  several contacts ...", flush=True)
     srf.coupling()
     table = write_table(work / "kidney_default_zeta.tbl", srf, {"bench": "several"}, zeta=True)
@@ -512,8 +514,8 @@ def markdown(res: dict) -> str:
         c = r.get("c")
         b = r.get("binding")
         p = r["python"]
-        label = ("synthetic" if r["synthetic"] else
-                 f"kidney, subdivided (`levels={r['levels']}`)" if r.get("levels") else "kidney")
+        label = ("synthetic" if r["synthetic"] else "kidney, mesh (`levels=0`)" if r.get("mesh") else
+                 f"kidney (default surface: `levels={r['levels']}`)" if "levels" in r else "kidney")
         if c:
             cc = (f"{c['tight']['median_us']:.2f} / {c['tight']['p999_us']:.2f} | {c['paced']['median_us']:.2f} / "
                   f"{c['paced']['p999_us']:.2f} | {c['blend_paced']['median_us']:.2f} / {c['empty_paced']['median_us']:.2f}")
@@ -572,7 +574,8 @@ def markdown(res: dict) -> str:
             worst = (f"{100 * w['fall']:.2g} % ({w['depth_mm']:.1f} mm, {w['to_support_mm']:.0f} mm); the others "
                      + ", ".join(f"{100 * x['fall']:.2g}" for x in sorted(f, key=lambda x: -x["fall"])[1:]) + " %"
                      if w else "none")
-            label = f"subdivided (`levels={d['levels']}`)" if d["levels"] else "mesh"
+            label = (f"default (`levels={d['levels']}`)" if d.get("default") else
+                     f"subdivided (`levels={d['levels']}`)" if d["levels"] else "mesh (`levels=0`)")
             deep_ticks = sum(x["status"] == Status.DEEP for x in f)
             held = d.get("held")
             hold = "—" if held is None else f"{len(held)} ({max(x['scale'] for x in held):.3g})" if held else "0"
