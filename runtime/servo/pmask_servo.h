@@ -199,7 +199,9 @@ PM_API int32_t pm_servo_count(const pm_servo *servo);
  * (may be NULL); 0 afterwards (it is reported once per servo, as the Python engine logs it once). */
 PM_API int32_t pm_servo_take_far_warning(pm_servo *servo, double *probe);
 /* The surface displacement (n_vertices x 3) of eq. 16 for the contacts after the last step, with display
- * forces that make it meet every contact's displacement: 0, or -1 without a ζ table or a compressed Ξ's sections
+ * forces that make it meet every contact's displacement (on a subdivided contact surface the mesh point under a
+ * contact moves by that plus the contact point's offset from it, so the mesh reaches where the contact surface
+ * does): 0, or -1 without a ζ table or a compressed Ξ's sections
  * (pm_table_has_greens).  On the latter it takes one product with the blocks the loads reach (its time at organ
  * scale: the benchmarks page), allocation-free: its workspace comes with the servo. */
 PM_API int pm_servo_deformation(pm_servo *servo, double *out);
