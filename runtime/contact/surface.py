@@ -241,12 +241,14 @@ class ContactSurface:
         """The contact point (t, b) less the point of the finite-element mesh under it (:meth:`mesh_point`): zero on
         the mesh itself, on a subdivided surface the limit surface's bulge over the flat triangle (up to about
         e²/8R for edges e on a radius of curvature R)."""
+        from pmask.runtime.contact.tracking import point  # (tracking reads this module)
+
         if not self._mapped:
             return (0.0, 0.0, 0.0)
+        x = point(self, t, *b)
         m, *beta = self.mesh_point(t, *b)
-        P, j, i = self._P, self._idx[t], self._mesh_idx[m]  # the mesh's vertices keep their indices and positions
-        return tuple(b[0] * P[j[0]][c] + b[1] * P[j[1]][c] + b[2] * P[j[2]][c]
-                     - (beta[0] * P[i[0]][c] + beta[1] * P[i[1]][c] + beta[2] * P[i[2]][c]) for c in range(3))
+        P, i = self._P, self._mesh_idx[m]  # the mesh's vertices keep their indices and positions
+        return tuple(x[c] - (beta[0] * P[i[0]][c] + beta[1] * P[i[1]][c] + beta[2] * P[i[2]][c]) for c in range(3))
 
     def _blocks(self):
         """(block function, row list) of :func:`pmask.runtime.stiffness.zeta_compliance`, made once."""

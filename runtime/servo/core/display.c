@@ -2,15 +2,16 @@
  * interpolated response meet every contact's displacement (Contacts.deformation). */
 #include "pm_internal.h"
 
-/* component r of the contact point (t, b) less the mesh point under it: 0 on the mesh itself */
-static double mesh_offset(const pm_table *tb, int64_t t, const double *b, int r)
+/* the contact point (t, b) less the mesh point under it (ContactSurface.mesh_offset): 0 on the mesh itself */
+static void mesh_offset(const pm_table *tb, int64_t t, const double *b, double *off)
 {
-    if (!tb->parent) return 0.0;
-    double beta[3];
-    const int64_t m = pm__mesh_point(tb, t, b, beta);
-    const int64_t *j = tb->T + 3 * t, *i = tb->mT + 3 * m;
-    return b[0] * tb->P[3 * j[0] + r] + b[1] * tb->P[3 * j[1] + r] + b[2] * tb->P[3 * j[2] + r]
-           - (beta[0] * tb->P[3 * i[0] + r] + beta[1] * tb->P[3 * i[1] + r] + beta[2] * tb->P[3 * i[2] + r]);
+    off[0] = off[1] = off[2] = 0.0;
+    if (!tb->parent) return;
+    double x[3], beta[3];
+    pm__point_at(tb, t, b, x);
+    const int64_t *i = tb->mT + 3 * pm__mesh_point(tb, t, b, beta);
+    for (int r = 0; r < 3; r++)
+        off[r] = x[r] - (beta[0] * tb->P[3 * i[0] + r] + beta[1] * tb->P[3 * i[1] + r] + beta[2] * tb->P[3 * i[2] + r]);
 }
 
 static int deformation(pm_servo *s, double *out)
@@ -51,8 +52,11 @@ static int deformation(pm_servo *s, double *out)
         }
     /* on a subdivided contact surface the mesh point under a contact is moved by ū' plus the contact point's
      * offset from it (ContactSurface.mesh_offset, operation for operation) */
-    for (int32_t i = 0; i < na; i++)
-        for (int r = 0; r < 3; r++) x[3 * i + r] = u[i][r] + mesh_offset(tb, tri[i], b[i], r);
+    for (int32_t i = 0; i < na; i++) {
+        double off[3];
+        mesh_offset(tb, tri[i], b[i], off);
+        for (int r = 0; r < 3; r++) x[3 * i + r] = u[i][r] + off[r];
+    }
     int singular = 0;
     for (int64_t k = 0; k < m && !singular; k++) {
         int64_t piv = k;
