@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import FullSystem, relerr
+from pmask.pipeline.strokes import vertex_normal
 from pmask.runtime import Contacts, HapticContact, Model, Status
 from pmask.runtime.contact import tracking
 from pmask.runtime.geometry import vertex_normals
@@ -221,7 +222,8 @@ def test_both_engines_run_the_subdivided_surface_and_map_contacts_to_the_mesh(mo
         assert st.status == Status.CONTACT
         tm, *beta = srf.mesh_point(st.tri, *st.b)
         moved = np.asarray(beta) @ v["python"][model.triangles[tm]]
-        offset = np.asarray(tracking.point(srf, st.tri, *st.b)) - np.asarray(beta) @ model.points[model.triangles[tm]]
+        under = np.asarray(beta) @ srf.mesh_points[model.triangles[tm]]  # the shown mesh's point, at rest
+        offset = np.asarray(tracking.point(srf, st.tri, *st.b)) - under
         assert np.linalg.norm(offset) > 1e-3 * np.linalg.norm(st.u_bar)  # (it matters)
         assert np.linalg.norm(moved - st.u_bar - offset) <= 1e-8 * np.linalg.norm(st.u_bar)
 
@@ -230,7 +232,8 @@ def test_both_engines_run_the_subdivided_surface_and_map_contacts_to_the_mesh(mo
 def test_the_displayed_surface_meets_the_tool(model, stiff, levels):
     """The display deformation (eq. 16 with the display forces) moves the mesh's surface point under each
     contact to where the contact's displacement ū' takes the contact point (within 1 % of |ū'|; here to
-    round-off), on the mesh and on the default contact surface (its subdivision surface)."""
+    round-off), on the mesh and on the default contact surface (its subdivision surface), the mesh drawn where the
+    contact surface has its vertices (``mesh_points``: near the hilum's lip the rounded surface's)."""
     top = model.contact[model.core]
     i = top[np.argmax(model.points[top, 2])]
     n = vertex_normals(model.points, model.triangles)[i]
@@ -243,7 +246,7 @@ def test_the_displayed_surface_meets_the_tool(model, stiff, levels):
         for st in c.states:
             assert st.status == Status.CONTACT
             tm, *beta = c.surface.mesh_point(st.tri, *st.b)  # the contact's point on the mesh, where v lives
-            shown = np.asarray(beta) @ (model.points + v)[model.triangles[tm]]
+            shown = np.asarray(beta) @ (c.surface.mesh_points + v)[model.triangles[tm]]
             reached = np.asarray(tracking.point(c.surface, st.tri, *st.b)) + st.u_bar
             assert np.linalg.norm(shown - reached) <= 1e-8 * np.linalg.norm(st.u_bar)
 
@@ -287,8 +290,9 @@ def test_a_grasp_with_friction_lies_between_the_sliding_and_the_stuck_solve(mode
     free = model.contact[model.core]
     P = model.points
     middle = free[np.abs(P[free, 0]) < 0.3 * np.abs(P[free, 0]).max()]
-    n = vertex_normals(P, model.triangles)
-    jaws = [(P[v], n[v]) for v in (middle[np.argmax(P[middle, 2])], middle[np.argmin(P[middle, 2])])]
+    srf = Contacts(stiff, 2, engine="python").surface  # the jaws press where the contact surface has the vertices
+    jaws = [(srf.mesh_points[v], vertex_normal(srf, v))
+            for v in (middle[np.argmax(P[middle, 2])], middle[np.argmin(P[middle, 2])])]
     depth = np.concatenate([np.linspace(-2e-3, 2.5e-3, 600), np.full(100, 2.5e-3)])
     path = np.stack([p - depth[:, None] * nv for p, nv in jaws], axis=1)
     law_forces, where = {}, None
@@ -482,11 +486,13 @@ def test_a_contact_the_other_carries_away_is_released_exactly_in_both_engines(mo
     from pmask.runtime.contact.tracking import normal, point
 
     free = model.contact[model.core]
-    P, T = model.points, model.triangles
+    T = model.triangles
+    srf = Contacts(stiff, 2, engine="python").surface
+    P = srf.mesh_points  # where the contact surface has the mesh's vertices (rounded near the hilum's lip)
     a = free[np.argmax(P[free, 2])]
     ring = np.unique(T[np.any(T == a, axis=1)])
     b = max((v for v in ring if v != a and v in set(free.tolist())), key=lambda v: P[v, 2])
-    n = vertex_normals(P, T)
+    n = {v: vertex_normal(srf, v) for v in (a, b)}
     deep, shallow = 3e-3, 2e-4
     ramp = np.concatenate([np.linspace(-1e-3, 1.0, 400), np.ones(100)])
     path = [[P[a] - min(deep, max(x * deep, -1e-3)) * n[a], P[b] - min(shallow, max(x * deep, -1e-3)) * n[b]]

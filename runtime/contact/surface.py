@@ -32,7 +32,8 @@ import numpy as np
 from pmask.runtime.geometry import (contact_normals, crease_blend, triangle_areas, triangle_frames, triangle_neighbours,
                                     vertex_normals)
 from pmask.errors import InputError
-from pmask.runtime.contact.subdivision import MAX_LEVELS, MAX_TRIANGLES, choose_levels, mesh_point, subdivide
+from pmask.runtime.contact.subdivision import (MAX_LEVELS, MAX_TRIANGLES, choose_levels, mesh_point, round_creases,
+                                               subdivide)
 from pmask.runtime.spatial import TriangleGrid
 from pmask.runtime.stiffness import table_block, zeta_compliance, zeta_deformation
 
@@ -55,8 +56,9 @@ class ContactSurface:
     stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
     normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
     levels : the contact surface, see :class:`Contacts`: None (default) the automatic choice, n the mesh's Loop
-    subdivision surface after n levels (:mod:`pmask.runtime.contact.subdivision`), 0 the mesh.  The mesh's vertices keep
-    their indices and positions; ``mesh_T``, ``parent`` and ``corners`` map a contact point to the mesh
+    subdivision surface after n levels (:mod:`pmask.runtime.contact.subdivision`), its creases rounded, 0 the mesh.  The
+    mesh's vertices keep their indices, and their positions away from creases (:attr:`mesh_points`); ``mesh_T``,
+    ``parent`` and ``corners`` map a contact point to the mesh
     (:meth:`mesh_point`), where ζ, the deformation and the model's own arrays live.
     """
 
@@ -80,14 +82,13 @@ class ContactSurface:
         except ValueError as err:  # not a manifold: the mesh's own triangles
             log.warning("contact surface not subdivided (%s)", err)
             sub = subdivide(P0, T0, 0)
-        P, T = sub.points, sub.triangles
-        frames = triangle_frames(P, T)
         masks = getattr(stiffness, "masks", None)
         r = getattr(masks, "radius", 0.0) if masks is not None else 0.0
         mask_radius = r if r > 0 else 2.0 * mean_edge  # a single-vertex mask or a bare surface: 2 mean edges
         if normal_radius is None:
             normal_radius = 3.0 * mask_radius
-        normals = self._normals(sub, P0, T0, float(normal_radius))
+        P, T, normals = self._shape(sub, P0, T0, float(normal_radius))
+        frames = triangle_frames(P, T)
         fields = sub.interpolate(T0, fields) if sub.levels else fields  # eq. 15: K_i and λ linear over the mesh
         K, taper = np.ascontiguousarray(fields[:, :9]), np.ascontiguousarray(fields[:, 9])
         k = normal_stiffness(K, normals, taper)
@@ -114,20 +115,29 @@ class ContactSurface:
         return cache[key]
 
     @staticmethod
-    def _normals(sub, P0, T0, normal_radius):
-        """Contact normals: :func:`pmask.runtime.geometry.contact_normals` on the mesh; on a subdivided surface its
-        own vertex normals (the facets meet at small angles, so these are the normals of the surface the proxy
-        moves on), blended near the mesh's creases as the mesh's are (the blend weight and the ball-averaged
-        normals of the mesh, interpolated)."""
+    def _shape(sub, P0, T0, normal_radius):
+        """(points, triangles, contact normals) of the contact surface.  On the mesh: its own points and
+        :func:`pmask.runtime.geometry.contact_normals`.  On a subdivided surface: its vertex normals, blended near
+        the mesh's creases as the mesh's are (the blend weight β and the ball-averaged normals of the mesh,
+        interpolated), and where β > 0 the surface itself moved along them until they are its own normals
+        (:func:`pmask.runtime.contact.subdivision.round_creases`): the crease rounded at the blend's scale, so the
+        force is the gradient of its energy there too, and the contact normals are the rounded surface's."""
+        P, T = sub.points, sub.triangles
         if not sub.levels:
-            return contact_normals(P0, T0, normal_radius)
-        n = vertex_normals(sub.points, sub.triangles)
+            return P, T, contact_normals(P0, T0, normal_radius)
+        n = vertex_normals(P, T)
         blend = crease_blend(P0, T0, normal_radius)
         if blend is None:
-            return n
+            return P, T, n
         beta, smooth = (sub.interpolate(T0, x) for x in blend)
-        out = (1.0 - beta) * n + beta * smooth
-        return out / np.linalg.norm(out, axis=1, keepdims=True)
+        target = (1.0 - beta) * n + beta * smooth
+        target /= np.linalg.norm(target, axis=1, keepdims=True)
+        try:
+            P = P + round_creases(P, T, target, beta[:, 0] > 0.0)[:, None] * target
+        except ValueError as err:  # (not seen): the creases stay sharp, with the blended normals
+            log.warning("contact surface's creases not rounded (%s)", err)
+            return P, T, target
+        return P, T, vertex_normals(P, T)
 
     @classmethod
     def from_table(cls, table) -> "ContactSurface":
@@ -237,17 +247,24 @@ class ContactSurface:
             return t, b0, b1, b2
         return mesh_point(self._parent, self._corners, t, b0, b1, b2)
 
+    @property
+    def mesh_points(self) -> np.ndarray:
+        """(n_mesh, 3) where the contact surface has the mesh's vertices (its first points): the mesh's own points,
+        except near a crease of a subdivided surface, rounded (:mod:`pmask.runtime.contact.subdivision`).  Draw the deformation
+        (:meth:`pmask.runtime.Contacts.deformation`) on these, and the shown surface meets every instrument."""
+        return self.P[:self.n_mesh]
+
     def mesh_offset(self, t, b) -> tuple:
-        """The contact point (t, b) less the point of the finite-element mesh under it (:meth:`mesh_point`): zero on
-        the mesh itself, on a subdivided surface the limit surface's bulge over the flat triangle (up to about
-        e²/8R for edges e on a radius of curvature R)."""
+        """The contact point (t, b) less the point of the finite-element mesh under it (:meth:`mesh_point`), the mesh
+        drawn at :attr:`mesh_points`: zero on the mesh itself, on a subdivided surface the limit surface's bulge over
+        the flat triangle (up to about e²/8R for edges e on a radius of curvature R)."""
         from pmask.runtime.contact.tracking import point  # (tracking reads this module)
 
         if not self._mapped:
             return (0.0, 0.0, 0.0)
         x = point(self, t, *b)
         m, *beta = self.mesh_point(t, *b)
-        P, i = self._P, self._mesh_idx[m]  # the mesh's vertices keep their indices and positions
+        P, i = self._P, self._mesh_idx[m]  # the mesh's vertices keep their indices (mesh_points)
         return tuple(x[c] - (beta[0] * P[i[0]][c] + beta[1] * P[i[1]][c] + beta[2] * P[i[2]][c]) for c in range(3))
 
     def _blocks(self):
