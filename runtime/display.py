@@ -55,6 +55,15 @@ class DisplaySurface:
             out -= w[:, None] * self.lift
         return out
 
+    def on(self, rest) -> "DisplaySurface":
+        """This display surface laid onto the simulation surface drawn at ``rest`` (n_s, 3) rather than at the
+        points it was embedded in: the lift becomes x_d − Σ_k b_{d,k} rest_{v_{d,k}} (ℓ_d less the embedding
+        point's move), so that at a contact it lies on the rest surface plus u (the contact surface rounds the
+        simulation mesh's creases: :attr:`pmask.runtime.contact.ContactSurface.mesh_points`)."""
+        rest = np.asarray(rest, float)
+        return DisplaySurface(self.points, self.triangles, self.vertices, self.bary,
+                              self.points - np.einsum("dk,dkc->dc", self.bary, rest[self.vertices]))
+
 
 def contact_weights(points: np.ndarray, contacts, radius: float) -> np.ndarray | None:
     """w_d = max over contacts of smoothstep(1 − ‖x_d − p_c‖ / r), or None without contacts."""

@@ -340,8 +340,9 @@ class Contacts:
         are Σ_i Σ_m φ_i φ_m ζ_m(i) rather than the inverse of eq. 15's K, which differ by 5-10 % between
         vertices).  On a subdivided contact surface the mesh point under a contact lies off the contact point
         by the subdivision's offset (:meth:`ContactSurface.mesh_offset`), and it is moved by ū' plus that
-        offset, so that the shown mesh meets the instrument where the contact surface does.  Zero where
-        nothing is in contact."""
+        offset, so that the shown mesh meets the instrument where the contact surface does: draw it on
+        ``surface.mesh_points`` (the mesh's points, except near a crease, which the contact surface rounds).  Zero
+        where nothing is in contact."""
         if not self.surface.greens:
             raise InputError("deformation needs Green's functions (a Stiffness from Model.stiffness, or a "
                              "runtime table exported with its zeta table)")

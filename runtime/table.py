@@ -23,11 +23,13 @@ finite-element mesh's surface under it, n_c contact vertices; the contact surfac
 surface, :mod:`pmask.runtime.contact.subdivision`, or the mesh itself when ``parent`` is absent):
 
 ================= ============ ==========================================================================
-points            n_s x 3      vertex positions [model units]
+points            n_s x 3      vertex positions [model units]; the first n_m the mesh's vertices where the contact
+                               surface has them (rounded near creases: ContactSurface.mesh_points), where the
+                               deformation is drawn
 triangles         n_t x 3      vertex indices, counter-clockwise seen from outside
 neighbours        n_t x 3      triangle across the edge opposite each vertex, -1 on an open edge
 frames            n_t x 12     v0, duals a and b of the edges, unit normal (:func:`~pmask.runtime.geometry.triangle_frames`)
-normals           n_s x 3      contact normals (crease-blended, :func:`~pmask.runtime.geometry.contact_normals`)
+normals           n_s x 3      contact normals: the surface's own (on the mesh itself crease-blended)
 stiffness         n_s x 9      rendered K_i [N/m], row-major
 taper             n_s x 1      λ: 1 in the contact region, falling to 0 across the band beyond it
 normal_stiffness  n_s x 1      k: the tapered normal stiffness [N/m] (:func:`~pmask.runtime.contact.surface.normal_stiffness`)
@@ -56,7 +58,8 @@ display_points    n_d x 3      optional (1.2): the display surface at the scan's
 display_triangles n_dt x 3     with display_points: its triangles
 display_vertices  n_d x 3      with display_points: each display vertex's simulation triangle's vertices
 display_bary      n_d x 3      with display_points: the barycentric weights of its closest point there
-display_lift      n_d x 3      with display_points: the display vertex minus that closest point
+display_lift      n_d x 3      with display_points: the display vertex minus that closest point on the mesh drawn at
+                               `points`' first n_m rows (rounded near creases: DisplaySurface.on)
 meta              bytes        JSON: mask, radius, k_rigid, normal_radius, units, source artifact and digest
 ================= ============ ==========================================================================
 
@@ -113,6 +116,7 @@ def surface_sections(surface, zeta: bool = True, display=None) -> dict:
         out.update(greens_sections(s.stiffness))
         out["contact_row"] = np.asarray(s.stiffness._contact_row, np.int64)[:, None]
     if display is not None:
+        display = display.on(s.mesh_points)  # laid onto the mesh where the contact surface has its vertices
         out.update({"display_points": display.points, "display_triangles": display.triangles,
                     "display_vertices": display.vertices, "display_bary": display.bary, "display_lift": display.lift})
     return out

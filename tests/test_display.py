@@ -26,6 +26,28 @@ def scan(tmp_path_factory):
     return Model.load(d / "scan.h5"), np.asarray(s.vertices) * 1e-3, np.asarray(s.faces)
 
 
+def test_laid_onto_another_rest_the_scan_meets_it_at_a_contact_and_keeps_its_shape_away(scan):
+    """A display surface laid onto the simulation surface drawn elsewhere (DisplaySurface.on: the contact surface
+    rounds a mesh's creases, and the mesh is drawn where it has its vertices): its embedding's foot plus the new
+    lift is the scan's vertex (to round-off); next to a contact (w = 1) the deformed scan lies on the rest surface
+    plus u, a mask radius away it is the scan plus u, as before."""
+    model, _, _ = scan
+    ds = model.display()
+    rng = np.random.default_rng(3)
+    rest = model.points + rng.normal(scale=2e-4, size=model.points.shape)
+    on = ds.on(rest)
+    assert np.abs(np.einsum("dk,dkc->dc", on.bary, rest[on.vertices]) + on.lift - on.points).max() <= 1e-15
+    u = rng.normal(scale=1e-3, size=model.points.shape)
+    x, r = ds.points[0], 0.004
+    shown = on.deform(u, [x], r)
+    d = np.linalg.norm(ds.points - x, axis=1)
+    near, far = d <= 1e-4 * r, d >= r
+    assert near.any() and far.any()
+    foot = np.einsum("dk,dkc->dc", ds.bary, (rest + u)[ds.vertices])
+    assert np.abs(shown[near] - foot[near]).max() <= 1e-12
+    assert np.abs(shown[far] - ds.deform(u)[far]).max() <= 1e-15
+
+
 def test_the_scan_is_kept_and_embedded_at_its_closest_points(scan):
     """Every vertex of the scan is kept (in metres) and embedded at its closest point on the simulation
     surface: the foot Σ b P plus the lift gives the vertex back (to round-off), the lift's length is the
@@ -157,7 +179,7 @@ def test_the_viewer_shows_the_scan_and_deforms_it_as_the_runtime_does(browser, s
         assert int(st.status) == 1, browser.find_element("id", "status0").text
         u = c.deformation()
         proxy = np.asarray(tracking.point(c.surface, st.tri, *st.b))  # as the server sends it
-        want = ds.deform(u, [proxy], session.radius)
+        want = ds.on(session.rest).deform(u, [proxy], session.radius)  # (a ball: no crease to round, ds itself)
         near = np.argsort(np.linalg.norm(ds.points - proxy, axis=1))[:20]
         shown = np.array([browser.execute_script(f"return window.pmaskView.scanPosition({int(d)})") for d in near])
     finally:

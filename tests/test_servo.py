@@ -335,6 +335,8 @@ def test_a_table_round_trips_and_both_loaders_read_the_same(table_path, surface)
     assert srf.levels == surface.levels
     native = servo.load_table(table_path)
     assert native.counts() == (surface.n_mesh, len(surface.mesh_T), 1)  # the mesh's: the deformation's size
+    # where the deformation is drawn (pm_table_points): the mesh's vertices as the contact surface has them
+    assert np.array_equal(np.frombuffer(native.points()).reshape(-1, 3), surface.mesh_points)
     assert servo.table_meta(native)["mask"] == "linear"
     # K(x) in a batch from C against eq. 15 in numpy
     rng = np.random.default_rng(3)

@@ -316,6 +316,15 @@ def test_the_radius_slider_rebuilds_the_stiffness_and_its_colour_range(browser, 
     assert (lo, hi) != (lo0, hi0)
     assert lo == pytest.approx(np.percentile(norms, 2), rel=1e-12)
     assert hi == pytest.approx(np.percentile(norms, 98), rel=1e-12)
+    # and the surface is drawn where the new contact surface has the vertices: its rounding of the hilum's lip
+    # follows the normals' blending radius, three mask radii (float32 on the page)
+    rest = session.rest
+    assert np.array_equal(rest, Contacts(m.stiffness("linear", r), 1, engine="python").surface.mesh_points)
+    moved = np.linalg.norm(rest - m.points, axis=1)
+    v = int(np.argmax(moved))
+    assert moved[v] > 1e-4  # (it is rounded: more than 0.1 mm here)
+    shown = np.array(browser.execute_script(f"return window.pmaskView.rest({v})"))
+    assert np.abs(shown - rest[v]).max() <= 1e-6 * np.abs(rest).max()
     browser.find_element("id", "radius").send_keys(Keys.HOME)
     for _ in range(200):
         if float(browser.find_element("id", "radius").get_attribute("data-applied")) != r:

@@ -122,7 +122,7 @@ class ViewerSession:
         self.fields = {"single": _norms(single.K_vertex), "area": model.vertex_areas.astype(float),
                        "fixed": np.isin(np.arange(len(P)), model.fixed).astype(float),
                        "contact": np.isin(np.arange(len(P)), model.contact[model.core]).astype(float)}
-        self.contacts = None
+        self.contacts, self.rest = None, None
         self.display = model.display()  # the scan's surface at its own resolution, if the artifact keeps one
         try:
             self._build(radius)
@@ -147,8 +147,10 @@ class ViewerSession:
             contacts.start(self.rate, spin=self.spin)
             contacts.set_probes([self.park] * N_PROBES)
             masked = _norms(stiffness.K_vertex)
+            rest = np.array(contacts.surface.mesh_points)  # the mesh where the contact surface has its vertices
             with self.lock:
                 old, self.contacts = self.contacts, contacts
+                self.rest = rest
                 self.stiffness = stiffness
                 self.radius = float(radius)
                 self.fields["masked"] = masked
@@ -161,19 +163,30 @@ class ViewerSession:
             if self.contacts is not None:
                 self.contacts.stop()
 
+    def rest_json(self) -> dict:
+        """The surface at rest as the page draws it for the current radius: the mesh where the contact surface has
+        its vertices (:attr:`pmask.runtime.contact.ContactSurface.mesh_points`: the model's points, except that the
+        contact surface rounds creases at the contact normals' blending radius, which follows the mask's radius),
+        and the scan's lift onto it (:meth:`pmask.runtime.display.DisplaySurface.on`), base64 float32."""
+        with self.lock:
+            rest = self.rest
+        out = {"rest": _b64(rest, np.float32)}
+        if self.display is not None:
+            out["lift"] = _b64(self.display.on(rest).lift, np.float32)
+        return out
+
     def model_json(self) -> dict:
         m = self.model
         units = m.attrs.get("units", {}) if isinstance(m.attrs.get("units"), dict) else {}
         return {"name": Path(m.path).name if m.path else "model", "units": units.get("length", "model units"),
-                "points": m.points.ravel().tolist(), "triangles": m.triangles.ravel().tolist(),
+                "points": m.points.ravel().tolist(), "triangles": m.triangles.ravel().tolist(), **self.rest_json(),
                 "mask": self.mask, "radius": self.radius, "radius_range": list(self.radius_range),
                 "mean_edge": m.mean_edge_length, "diag": self.diag, "n_probes": N_PROBES,
                 "engine": self.contacts.engine, "rate": self.rate,
                 "fields": {k: v.tolist() for k, v in self.fields.items()},
                 "display": None if self.display is None else {
                     "points": _b64(self.display.points, np.float32), "triangles": _b64(self.display.triangles, np.uint32),
-                    "vertices": _b64(self.display.vertices, np.uint32), "bary": _b64(self.display.bary, np.float32),
-                    "lift": _b64(self.display.lift, np.float32)}}
+                    "vertices": _b64(self.display.vertices, np.uint32), "bary": _b64(self.display.bary, np.float32)}}
 
     def probe(self, probes: list, deform: bool, client: str = "") -> dict:
         """Set the probes (None: lifted) and return the servo thread's latest contacts.  ``client``: the page's
@@ -263,7 +276,7 @@ class ViewerSession:
                 raise BadRequest(str(exc)) from None
             with self.lock:
                 masks, radius, masked = self.stiffness.masks, self.radius, self.fields["masked"]
-            return _json(200, {"radius": radius, "masked": masked.tolist(),
+            return _json(200, {"radius": radius, "masked": masked.tolist(), **self.rest_json(),
                                "single_vertex": int(masks.single_vertex), "masks": int(len(masks.centres))})
         if path in FILES or path.startswith("/api/"):
             return _json(405, {"error": f"{method[:20]!r} is not allowed on {path[:200]!r}"})

@@ -293,6 +293,12 @@ static PyObject *Table_counts(TableObject *self, PyObject *unused)
                          (int)pm_table_has_zeta(self->table));
 }
 
+static PyObject *Table_points(TableObject *self, PyObject *unused)
+{
+    return PyBytes_FromStringAndSize((const char *)pm_table_points(self->table),
+                                     (Py_ssize_t)(24 * pm_table_vertices(self->table)));
+}
+
 static PyObject *Table_has_greens(TableObject *self, PyObject *unused)
 {
     return PyBool_FromLong(pm_table_has_greens(self->table));
@@ -391,6 +397,7 @@ static PyObject *Table_display_counts(TableObject *self, PyObject *unused)
 
 static PyMethodDef Table_methods[] = {
     {"counts", (PyCFunction)Table_counts, METH_NOARGS, "(vertices, triangles, has_zeta)"},
+    {"points", (PyCFunction)Table_points, METH_NOARGS, "the mesh's vertices at rest, as the contact surface has them"},
     {"pair_blocks", (PyCFunction)Table_pair_blocks, METH_VARARGS,
      "pair_blocks(ta, tb): the coupling blocks of two mesh triangles, 81 floats (pm_table_pair_blocks)"},
     {"has_greens", (PyCFunction)Table_has_greens, METH_NOARGS,

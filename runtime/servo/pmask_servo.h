@@ -133,6 +133,10 @@ PM_API void pm_table_free(pm_table *table);
  * Loop subdivision surface (table 1.3), which the table carries beside it. */
 PM_API int64_t pm_table_vertices(const pm_table *table);
 PM_API int64_t pm_table_triangles(const pm_table *table);
+/* Those vertices at rest where the contact surface has them (3 x pm_table_vertices doubles, owned by the table):
+ * the mesh's own points, except near a crease, which the contact surface rounds.  Draw pm_servo_deformation on
+ * these and the shown surface meets every instrument. */
+PM_API const double *pm_table_points(const pm_table *table);
 PM_API int32_t pm_table_has_zeta(const pm_table *table);
 /* Whether the table can couple contacts: its ζ table, or (table 1.4, exported from a compressed artifact) Ξ's
  * compressed sections, from which the core forms the blocks of the vertices a pair of contacts touches. */

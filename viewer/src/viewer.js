@@ -39,8 +39,11 @@ async function main() {
   const mm = model.units === 'm' ? 1000 : 1;            // lengths shown in mm when the model is in metres
   const lenUnit = model.units === 'm' ? 'mm' : model.units;
   $('title').textContent = `pmask view · ${model.name}`;
+  const typed = (b64, T) => new T(Uint8Array.from(atob(b64), (ch) => ch.charCodeAt(0)).buffer);
   const n = model.points.length / 3;
-  const base = new Float32Array(model.points);
+  // the surface at rest where the contact surface has its vertices (rounded at creases; the server sends it
+  // again when the radius changes it): the deformation is drawn on it, so the shown surface meets the tool
+  const base = typed(model.rest, Float32Array);
   const index = model.triangles;
 
   // ---------------------------------------------------------------- scene
@@ -70,12 +73,11 @@ async function main() {
   const mesh = new THREE.Mesh(geom, new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }));
   scene.add(mesh);
   // the scan's surface at its own resolution, carried by the simulation surface (pmask.runtime.display)
-  const typed = (b64, T) => new T(Uint8Array.from(atob(b64), (ch) => ch.charCodeAt(0)).buffer);
   let scan = null;
   if (model.display) {
     const d = model.display;
     scan = { base: typed(d.points, Float32Array), tris: typed(d.triangles, Uint32Array),
-      v: typed(d.vertices, Uint32Array), b: typed(d.bary, Float32Array), lift: typed(d.lift, Float32Array) };
+      v: typed(d.vertices, Uint32Array), b: typed(d.bary, Float32Array), lift: typed(model.lift, Float32Array) };
     scan.n = scan.base.length / 3;
     scan.geom = new THREE.BufferGeometry();
     scan.geom.setAttribute('position', new THREE.BufferAttribute(scan.base.slice(), 3));
@@ -177,6 +179,17 @@ async function main() {
   radius.min = model.radius_range[0]; radius.max = model.radius_range[1];
   radius.step = (model.radius_range[1] - model.radius_range[0]) / 400;
   radius.value = model.radius;
+  function setRest(r) {   // the rest surface and the scan's lift onto it for the new radius
+    base.set(typed(r.rest, Float32Array));
+    if (scan) scan.lift.set(typed(r.lift, Float32Array));
+    pickGeom.attributes.position.needsUpdate = true;
+    pickGeom.computeBoundingSphere();
+    pickGeom.computeBoundingBox();
+    geom.attributes.position.array.set(base);   // until the next deformation is drawn on it
+    geom.attributes.position.needsUpdate = true;
+    geom.computeVertexNormals();
+    redraw();
+  }
   const showRadius = () => { $('radiusLabel').textContent = `${fmt(radius.value * mm, 3)} ${lenUnit}`; };
   showRadius();
   radius.addEventListener('input', showRadius);
@@ -186,6 +199,7 @@ async function main() {
       const r = await api('/api/radius', { radius: Number(radius.value) });
       fields.masked = r.masked;
       radius.value = r.radius;
+      setRest(r);
       recolour();
       notice = r.single_vertex > 0   // kept on show (the probe loop's replies would clear a plain message)
         ? `at this radius ${r.single_vertex} of ${r.masks} masks reach no neighbour and fall back to the `
@@ -404,6 +418,7 @@ async function main() {
       const hits = raycaster.intersectObject(pickMesh, false);
       return hits.length > 0 && hits[0].point.distanceTo(p) < 0.5 * model.mean_edge;
     },
+    rest(i) { return [base[3 * i], base[3 * i + 1], base[3 * i + 2]]; },   // where the surface is drawn at rest
     scanVertices() { return scan ? scan.n : 0; },
     scanPosition(d) { return scan ? Array.from(scan.geom.attributes.position.array.slice(3 * d, 3 * d + 3)) : null; },
     displacement() {   // the largest displacement shown (before exaggeration), for a scripted release

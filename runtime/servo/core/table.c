@@ -520,6 +520,7 @@ void pm_table_free(pm_table *t)
 
 int64_t pm_table_vertices(const pm_table *t) { return t->nm; }
 int64_t pm_table_triangles(const pm_table *t) { return t->nmt; }
+const double *pm_table_points(const pm_table *t) { return t->P; }  /* the mesh's vertices come first (table 1.3) */
 int32_t pm_table_has_zeta(const pm_table *t) { return t->zeta != NULL; }
 int32_t pm_table_has_greens(const pm_table *t) { return t->zeta != NULL || t->xi.n > 0; }
 int64_t pm_display_vertices(const pm_table *t) { return t->nd; }
