@@ -250,8 +250,9 @@ class ContactSurface:
     @property
     def mesh_points(self) -> np.ndarray:
         """(n_mesh, 3) where the contact surface has the mesh's vertices (its first points): the mesh's own points,
-        except near a crease of a subdivided surface, rounded (:mod:`pmask.runtime.contact.subdivision`).  Draw the deformation
-        (:meth:`pmask.runtime.Contacts.deformation`) on these, and the shown surface meets every instrument."""
+        except near a crease of a subdivided surface, rounded (:mod:`pmask.runtime.contact.subdivision`).  Draw the
+        deformation (:meth:`pmask.runtime.Contacts.deformation`) on these, and the shown surface meets every
+        instrument."""
         return self.P[:self.n_mesh]
 
     def mesh_offset(self, t, b) -> tuple:

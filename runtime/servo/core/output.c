@@ -131,13 +131,16 @@ int pm__render(pm_servo *S, int32_t na)
         bx = bx + vx;
         by = by + vy;
         bz = bz + vz;
-        /* past δ_lin (inside the full region) a press that goes deeper never feels softer: while δ grows and the
-           hand does work against the force its magnitude is held at least at the last tick's; otherwise the
-           factor returns to 1 (output.py) */
+        /* (inside the full region) a press that goes deeper never feels softer: while δ grows (past δ_lin at all,
+           short of it by at least half the probe's motion: a press, not a slide) and the hand does work against
+           the force its magnitude is held at least at the last tick's; otherwise the factor returns to 1
+           (output.py) */
         const double bm = sqrt(bx * bx + by * by + bz * bz);
+        const double gain = delta - st->depth, *mv = st->move;
         double hs;
-        if (full && delta >= g->dlin && delta > st->depth
-            && bx * st->move[0] + by * st->move[1] + bz * st->move[2] > 0.0)
+        if (full && gain > 0.0
+            && (delta >= g->dlin || 4.0 * gain * gain >= mv[0] * mv[0] + mv[1] * mv[1] + mv[2] * mv[2])
+            && bx * mv[0] + by * mv[1] + bz * mv[2] > 0.0)
             hs = st->deep_peak > bm ? st->deep_peak / bm : 1.0;
         else
             hs = 1.0 + (st->deep_scale - 1.0) * DEEP_RELEASE;
