@@ -404,8 +404,8 @@ def deep_pushes(model, stiff, levels="auto", n_sites: int = DEEP_SITES) -> dict:
     from pmask.pipeline.strokes import PUSH_LINES, depth_below, push_line, push_metrics, vertex_normal
     from pmask.runtime import HapticContact
 
-    P = model.points
     srf = HapticContact(stiff, levels=levels, engine="python").surface
+    P = srf.mesh_points  # each line through the contact surface's point at the vertex (rounded near creases)
     below = depth_below(P, model.triangles)
     sites = np.random.default_rng(1).choice(model.contact[model.core], n_sites, replace=False)
     out = {"levels": srf.levels, "default": levels == "auto", "sites": int(n_sites), "lines": 0, "deep_lines": 0,
@@ -561,8 +561,9 @@ def markdown(res: dict) -> str:
         L += ["", f"**Deep pushes at random sites** (the {deep[0]['vertices']:,}-vertex kidney, {deep[0]['element']} as "
                   f"this bench precomputes it (the tests' default kidney is P2), {deep[0]['sites']} free vertices drawn "
                   "at random, "
-                  "the hands issue's nine straight pushes at each (along the inward normal, 30° and 45° off it "
-                  "towards four azimuths) to 15 mm at 10 mm/s, over the stretch where the line goes deeper; "
+                  "the hands issue's nine straight pushes at each (through the contact surface's point there, "
+                  "along the inward normal, 30° and 45° off it towards four azimuths) to 15 mm at 10 mm/s, over the "
+                  "stretch where the line goes deeper; "
                   "physics, not speed: `pmask.pipeline.strokes.push_metrics`)", "",
               "| contact surface | lines | reaching DEEP | contact ended | largest fall tick to tick short of DEEP | "
               "lines where \\|F\\| falls | their falls at a DEEP tick | largest fall (depth below the surface, "
