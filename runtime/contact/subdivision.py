@@ -309,7 +309,6 @@ def _limit(P, T, crease, fixed):
     return _smooth_or_crease(P, E, _crease_flags(E, crease), fixed, _limit_smooth, _limit_crease)
 
 
-
 #: :func:`round_creases` stops when the normal equations' residual has fallen by this much
 ROUND_RTOL = 1e-10
 #: and its Tikhonov weight on the heights, relative to the mean diagonal of the normal equations: it only pins
@@ -349,7 +348,8 @@ def round_creases(points, triangles, normals, free, iterations: int = 5000) -> n
     diag = diag + eps
 
     def normal_matrix(x):  # (AᵀA + ε) x, A the residuals' derivative in the free heights
-        r = cj * np.r_[x, 0.0][fj] - ci * np.r_[x, 0.0][fi]
+        xp = np.r_[x, 0.0]  # (a fixed vertex's column m reads 0)
+        r = cj * xp[fj] - ci * xp[fi]
         return np.bincount(fj[oj], (cj * r)[oj], minlength=m) - np.bincount(fi[oi], (ci * r)[oi], minlength=m) + eps * x
 
     rhs = np.bincount(fi[oi], (ci * b)[oi], minlength=m) - np.bincount(fj[oj], (cj * b)[oj], minlength=m)  # −Aᵀb
