@@ -48,8 +48,7 @@ class DisplaySurface:
         """The displaced display points (m, 3) for the simulation surface's displacement ``u`` (n_s, 3); with
         ``contacts`` (proxy points) and the mask ``radius`` the surface is laid onto the simulation surface
         around each contact (module docstring)."""
-        u = np.asarray(u, float)
-        out = self.points + np.einsum("dk,dkc->dc", self.bary, u[self.vertices])
+        out = self.points + self._carried(u)
         w = contact_weights(self.points, contacts, radius)
         if w is not None:
             out -= w[:, None] * self.lift
@@ -60,9 +59,12 @@ class DisplaySurface:
         points it was embedded in: the lift becomes x_d − Σ_k b_{d,k} rest_{v_{d,k}} (ℓ_d less the embedding
         point's move), so that at a contact it lies on the rest surface plus u (the contact surface rounds the
         simulation mesh's creases: :attr:`pmask.runtime.contact.ContactSurface.mesh_points`)."""
-        rest = np.asarray(rest, float)
-        return DisplaySurface(self.points, self.triangles, self.vertices, self.bary,
-                              self.points - np.einsum("dk,dkc->dc", self.bary, rest[self.vertices]))
+        return DisplaySurface(self.points, self.triangles, self.vertices, self.bary, self.points - self._carried(rest))
+
+    def _carried(self, values) -> np.ndarray:
+        """Σ_k b_{d,k} values_{v_{d,k}} (m, 3): a per-vertex quantity of the simulation surface at the display
+        vertices' embedding points."""
+        return np.einsum("dk,dkc->dc", self.bary, np.asarray(values, float)[self.vertices])
 
 
 def contact_weights(points: np.ndarray, contacts, radius: float) -> np.ndarray | None:
