@@ -104,14 +104,16 @@ def test_at_random_sites_pushing_harder_never_feels_softer(model, stiff, kidney)
 
 def test_the_deep_hold_only_takes_energy_out(model, stiff):
     """Past δ_lin, while δ grows and the hand does work against the force, the force's magnitude is held at
-    least at the last tick's (the factor on it returns to 1 over ten ticks otherwise): it only resists the motion,
-    so it can only take energy out.  In and straight back out along the 30° lines (azimuths 0 and 4.71) at the
-    random sites, controller off: on every line the hand gets back at most what it put in (net ≤ 1 % of the press's
-    work, the issue's bound for closed loops; measured at most +0.02 %, where the law's own round trip is not
-    exact), on the lines where the hold acts it dissipates (measured 0.4-63 % of the press's work, most of it the
-    law's own: lines where the hold does not act dissipate up to 39 %), and the hold
-    does act here (its factor reached 1.31: the law's own |F| fell to 0.77 of its largest past δ_lin, beyond
-    the line's deepest point).  The native engine holds the same force, to round-off."""
+    least at the last tick's (the factor hs on it returns to 1 over ten ticks otherwise): it only resists the
+    motion, so it can only take energy out.  In and straight back out along the 30° lines (azimuths 0 and 4.71) at
+    the random sites, controller off: on every line the hand gets back at most what it put in (net ≤ 1 % of the
+    press's work, the issue's bound for closed loops; measured at most +0.06 %, on a line where the law's own round
+    trip is not exact and the hold barely acts), and on every line where the hold acts its own share of the work,
+    Σ (1 − 1/hs) f·Δp over the ticks (the force sent is hs times the law's), takes energy out: ≤ 1e-6 of the
+    press's work (measured −6.7 % to +1.6e-7; the +1.6e-7 is a line where hs − 1 reached 3e-4 and, during its
+    ten-tick release, the probe moved along the force: the release gives back a little of what the hold held).  The
+    hold does act here (its factor reached 1.54: the law's own |F| fell to 0.65 of its
+    largest past δ_lin, beyond the line's deepest point).  The native engine holds the same force, to round-off."""
     srf = HapticContact(stiff, engine="python").surface
     P = srf.mesh_points
     sites = np.random.default_rng(1).choice(model.contact[model.core], 20, replace=False)
@@ -122,21 +124,21 @@ def test_the_deep_hold_only_takes_energy_out(model, stiff):
             probes, _ = push_line(P[v], N, 30, az)
             path = np.vstack([probes, probes[::-1]])
             h = HapticContact(stiff, engine="python", passivity=False)
-            F, scale = [], 1.0
+            F, scale = [], []
             for p in path:
                 F.append(h.step(p)[0])
-                scale = max(scale, h._state().deep_scale)
-            F = np.array(F)
+                scale.append(h._state().deep_scale)
+            F, scale = np.array(F), np.array(scale)
             given = np.einsum("ij,ij->i", F[:-1], np.diff(path, axis=0))
             press = -given[:len(probes) - 1].sum()
             net = given.sum()
             assert press > 0 and net <= 0.01 * press, (v, az, net / press)
-            if scale > 1.0 + 1e-9:
-                held.append(net / press)
-                if scale > most[0]:
-                    most = (scale, path, F)
+            if scale.max() > 1.0 + 1e-9:
+                held.append(float(((1.0 - 1.0 / scale[:-1]) * given).sum() / press))
+                if scale.max() > most[0]:
+                    most = (scale.max(), path, F)
     assert most[0] > 1.05, most[0]  # the hold acts on these lines
-    assert max(held) < 0.0, held  # and where it acts, it takes energy out
+    assert max(held) <= 1e-6, held  # and where it acts, it takes energy out
     _, path, F = most
     native = HapticContact(stiff, engine="native", passivity=False)
     Fn = np.array([native.step(p)[0] for p in path])

@@ -45,8 +45,8 @@ def test_tour_is_passive_continuous_and_the_proxy_keeps_up(stiff, the_tour, opti
       (a tick's work is the force the device holds times the probe's motion; the trapezoid rule too);
     - the largest force change per tick anywhere is <= 2x the largest on smooth free surface at the same
       speed (the tour's reference segments: slides over the top face, presses to 6 mm on four faces; the
-      hands issue's bound, 3x before; measured 1.49x onto and across the hilum 5 mm deep on the default surface,
-      1.55x sliding back across the hilum's support on the mesh);
+      hands issue's bound, 3x before; measured 1.58x sliding back across the hilum 5 mm deep on the default
+      surface, 1.55x on the mesh);
     - the proxy never moves more than twice the probe's own motion in one tick.
 
     One allowance, 12 mm deep at the pole (DEEP, 5 mm past the pole's focal depth of 7 mm): rocking there, the
@@ -112,11 +112,12 @@ def test_the_proxy_does_not_hop_where_the_depth_hovers_about_half_the_radius(sti
     changed in a sawtooth (on the subdivided surface the largest second difference of F per tick was 1.59x its
     largest first difference; with friction the slide's largest change per tick 1.37x the reference's, 1.14x
     with the blend).  Blended over 0.4-0.5 R (linalg3.reckoning) it is continuous in the state: ‖Δ²F‖ ≤ ‖ΔF‖ at
-    its largest on the mesh (measured 0.78-0.81; a sawtooth's is up to twice), ≤ 1.2 ‖ΔF‖ on the default surface,
-    whose lip is rounded (measured 0.94 and 1.10: the 1.10 is one tick 5.9 mm deep where the proxy passes a vertex
-    beside a mesh edge, across which the linear K's gradient steps and ∇k, a per-vertex average, turns within
-    two ticks; the tangential term it drives is a tenth of the force that deep; not a hop: the proxy's own
-    second difference stays within 0.43 of its largest move there)."""
+    its largest on the mesh (measured 0.81 and 0.78; a sawtooth's is up to twice), ≤ 1.2 ‖ΔF‖ on the default
+    surface, whose lip is rounded (measured 0.80 and 1.04: the 1.04 is one tick 5.9 mm deep where the proxy passes
+    a vertex beside a mesh edge, across which the linear K's gradient steps and ∇k, a per-vertex average, turns
+    within two ticks; the tangential term it drives is a tenth of the force that deep; not a hop: the proxy's own
+    second difference stays within 0.43 of its largest move there; with the proxy-offset term faded out only at
+    the focal depth, not at 0.8 R, it was 1.21: linalg3.LAG_TO)."""
     probes, segments = the_tour
     F = run_contact(HapticContact(stiff, levels=levels), probes)["force"]
     dF = np.linalg.norm(np.diff(F, axis=0), axis=1)
@@ -140,29 +141,21 @@ def out_and_back_work(stiff, depth, end, **options):
 def test_out_and_back_across_the_support_rim(stiff, depth):
     """The hands issue's out-and-back across the support rim, frictionless with the controller off: from the top
     face down the medial side over the hilum's lip (the rim of its fixed support) into the hilum's middle and
-    back, 2 and 4 mm deep at 20 mm/s, on the default contact surface.  The issue asks |net work| ≤ 1 % of the work
-    done pressing in.
+    back, 2 and 4 mm deep at 20 mm/s, on the default contact surface, and the same short of the lip (to 0.5 rad).
+    The issue's bound: |net work| ≤ 1 % of the work done pressing in (measured, over the lip 0.02 % and 0.06 %,
+    short of it 0.09 % and 0.06 %; the slide into the hilum's stiffer tissue stores 5-13x what the press did).
 
-    What holds: the body never gives back more than it was given (net ≤ +1 %: the law does not generate, where
-    it gained 7-54 µJ over such a slide before), and short of the lip (to 0.5 rad, on tissue whose stiffness
-    rises towards the support) |net| ≤ 3 % (measured 2.3 % and 0.9 %).  What does not: over the lip the law
-    dissipates 5.2 % (2 mm) and 7.1 % (4 mm) of the press's work (0.40 % and 1.4 % of the largest energy stored
-    on the way, ½ f·ū': the slide into the hilum's stiffer tissue stores 5-13x what the press did).  With the lip
-    a crease and the contact normals blended over it (``normal_radius``), up to 50° off the facets the proxy
-    moves on, it was 10.5 % and 30 % (12 % and 30 % on the mesh, which still has them): the force was not the
-    gradient of the energy the law stores.  The contact surface is now rounded there at the blend's scale, the
-    blended normals its own (:func:`pmask.runtime.contact.subdivision.round_creases`).  The bounds here, 8 % and
-    15 %, catch a return of the crease (and of the projection's drift: 41 % and 144 % while step 1's projection
-    took two fixed-point steps; or of the proxy's drag: 2.2x and 4.3x with the proxy limited to 1.25x the
-    probe, the default before)."""
-    for end, bound in ((0.5, 0.03), (0.0, None)):
+    Three things each broke it (measured by hand): the lip a crease of the contact surface
+    under normals blended across it (10.5 % and 30 %; the default surface is rounded there,
+    :func:`pmask.runtime.contact.subdivision.round_creases`; the mesh, ``levels=0``, keeps it: 7.4 % and 20 %);
+    the zero-order hold's correction with J = k N Nᵀ alone, which over-damps a slide whose depth and stiffness
+    change along it (5.2 % at 2 mm: J is now the stored energy's Hessian, output.py); and 4 mm deep, where the
+    slide turns DEEP and the proxy moves by dead reckoning off the probe's normal line, a force that left out how
+    that offset changes the penetration as the proxy moves (4.6 %: output.py's proxy-offset term)."""
+    for end in (0.5, 0.0):
         net, press_in = out_and_back_work(stiff, depth, end, passivity=False)
         assert press_in > 0
-        assert net <= 0.01 * press_in, (end, net / press_in)
-        if bound is not None:
-            assert abs(net) <= bound * press_in, (end, net / press_in)
-        else:
-            assert net >= -(0.08 if depth < 0.003 else 0.15) * press_in, net / press_in
+        assert abs(net) <= 0.01 * press_in, (end, net / press_in)
 
 
 # ------------------------------------------------------------------------------------- the contact law

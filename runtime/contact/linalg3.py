@@ -74,6 +74,27 @@ def tracking_depth(S, delta):
     return delta
 
 
+#: the proxy-offset term (:func:`lag_weight`) fades out from FOCAL_FRACTION, where the proxy moves by dead reckoning
+#: alone (so dx = (I − δ_f S)⁻¹ P dp, the move the term assumes), to this fraction of the radius of curvature, short
+#: of the focal point, where the penetration at the proxy stops being a smooth function of where the proxy is.
+#: Faded out at 1 instead, sliding back across the hilum 5.9 mm deep (κ_max δ = 0.81) one tick's ‖Δ²F‖ was 1.21
+#: ‖ΔF‖ (1.04 now; tests/test_haptics.py), and 12 mm deep at the pole (κ_max δ up to 1.75) the whole term was up to
+#: 80 % of the force; faded from RECKON_FROM to 0.8, out and back over the hilum's lip 4 mm deep lost 0.6 %
+LAG_TO = 0.8
+
+
+def lag_weight(S, delta):
+    """The share of the proxy-offset term the force keeps (:mod:`pmask.runtime.contact.output`): 1 up to κ_max δ =
+    FOCAL_FRACTION, 0 from LAG_TO on, a smoothstep between."""
+    x = largest_curvature(S) * delta
+    if x <= FOCAL_FRACTION:
+        return 1.0
+    if x >= LAG_TO:
+        return 0.0
+    u = (x - FOCAL_FRACTION) / (LAG_TO - FOCAL_FRACTION)
+    return 1.0 - u * u * (3.0 - 2.0 * u)
+
+
 def reckoning(S, delta):
     """(:func:`tracking_depth`, w): w the share of the proxy's move made by dead reckoning, 0 up to κ_max δ =
     RECKON_FROM, 1 from FOCAL_FRACTION, a smoothstep between (continuous in the state, so the proxy never hops

@@ -1,11 +1,19 @@
 r"""Step 4, the force sent: the zero-order hold's error, damping and the passivity observer/controller.
 
-The law's force plus the tangential term ½ δ² (I − δ S)⁻¹ ∇k (which makes the frictionless force the gradient
-of the stored energy ½ k δ², :mod:`pmask.runtime.contact.law`), then three velocity terms on the probe's
-motion Δp (low-pass filtered over 10 ms):
+The law's force plus the tangential term ½ δ² (I − δ_f S)⁻¹ ∇k (which makes the frictionless force the gradient
+of the stored energy ½ k δ², :mod:`pmask.runtime.contact.law`) and, frictionless, the **proxy-offset term**
+φ (I − δ_f S)⁻¹ S e: e = P (x − p) is how far the proxy x is off the probe's normal line, which it is where its
+speed is limited or it moves by dead reckoning (:func:`pmask.runtime.contact.tracking.follow`); the penetration at
+the proxy then changes by (S e) · dx as the proxy moves, by dx = (I − δ_f S)⁻¹ P dp, so the energy's gradient has
+this term too (faded out towards the focal depth: :func:`pmask.runtime.contact.linalg3.lag_weight`).  Then three
+velocity terms on the probe's motion Δp (low-pass filtered over 10 ms):
 
-- the zero-order hold's first-order error ½ J Δp (Colgate's kT/2 damping, J the law's stiffness: k N Nᵀ
-  while the contact slides, K̃ while friction holds it; past δ* k* in place of k) is added back;
+- the zero-order hold's first-order error ½ J Δp (Colgate's kT/2 damping) is added back, J the stiffness the
+  force has: sliding, the stored energy's Hessian k N Nᵀ − ψ'(δ) (N tᵀ + t Nᵀ) − φ S (I − δ_f S)⁻¹ with
+  t = (I − δ_f S)⁻¹ ∇k, ψ'(δ) = δ (δ* when frozen) and φ the normal force (past δ*, λ k* in place of k); K̃ while
+  friction holds the contact.  Its normal part alone over-damped a slide whose depth and stiffness change along
+  it: out and back over the kidney's hilum lip 2 mm deep the hand lost 5.2 % of the press's work, 0.02 % with
+  the whole J (tests/test_haptics.py);
 - viscous damping b_v (Δp / T);
 - a **passivity observer/controller** (Hannaford & Ryu): the energy the hand has put in,
   E += f_held · Δp (the force the device held during the last tick), is compared with the energy stored, V;
@@ -14,23 +22,24 @@ motion Δp (low-pass filtered over 10 ms):
 The velocity terms fade with the contact (at most half the elastic force), so a kink in the path or the
 release is not felt as a step.
 
-**The deep hold.**  Past δ_lin (status DEEP, inside the full contact region) the law's own ‖F‖ can fall while the
-press goes deeper (:mod:`pmask.runtime.contact.law`'s "Deep presses"; the haptics guide's "Pressing deep" traces
-the cases), which the hands issue forbids.  There the force sent is the law's scaled by hs ≥ 1: while δ grows and
-the hand does work against it (f · Δp > 0), hs = max(1, m / ‖f‖) with m the magnitude sent at the last tick, so
-‖f‖ never falls; otherwise hs − 1 shrinks by DEEP_RELEASE a tick (a 10-tick time constant).  Along a force that
-resists the motion the extra only takes energy out (tests/test_deep.py: in and out along 30° lines the hand never
-gets back more than it put in).  Short of δ_lin it holds the same way while δ grows by at least half the probe's
-motion a tick (a press, not a slide along the surface): at the contact surface's rounded lip, 7 mm from the
-support, a 45° push lost 0.09 % of its force at 4 mm (the benchmarks' deep pushes, by hand), and a slide into
-softer tissue must ease.  Here a contact's status turns DEEP when its penetration reaches δ_lin.  The native core's ``core/output.c`` is the same code operation for operation.
+**The deep hold.** Past δ_lin (status DEEP, inside the full contact region) the law's own ‖F‖ can fall while the
+press goes deeper (:mod:`pmask.runtime.contact.law`'s "Deep presses"; the haptics guide's "Pressing deep" traces the
+cases), which the hands issue forbids. There the force sent is the law's scaled by hs ≥ 1: while δ grows and the
+hand does work against it (f · Δp > 0), hs = max(1, m / ‖f‖) with m the magnitude sent at the last tick, so ‖f‖
+never falls; otherwise hs − 1 shrinks by DEEP_RELEASE a tick (a 10-tick time constant). Along a force that resists
+the motion the extra only takes energy out (tests/test_deep.py: in and out along 30° lines the hold's own work is
+never positive, to 1e-6 of the press's: its ten-tick release can give back a little of what it held). Short of δ_lin
+it holds the same way while δ grows by at least half the probe's motion a tick (a press, not a slide along the
+surface): at the contact surface's rounded lip, 7 mm from the support, a 45° push lost 0.09 % of its force at 4 mm
+(the benchmarks' deep pushes, by hand), and a slide into softer tissue must ease. Here a contact's status turns DEEP
+when its penetration reaches δ_lin. The native core's ``core/output.c`` is the same code operation for operation.
 """
 from __future__ import annotations
 
 import math
 
 from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_depth, increment_stiffness, taper_gradient
-from pmask.runtime.contact.linalg3 import mul3, speed_up, tracking_depth
+from pmask.runtime.contact.linalg3 import lag_weight, mul3, speed_up, tracking_depth
 from pmask.runtime.contact.state import DEEP_RELEASE, PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
 
 
@@ -94,18 +103,33 @@ def render(c, states, active, geo, ubar, result) -> None:
         d0 = st.frozen_depth
         hd = d0 * delta - 0.5 * d0 * d0 if st.frozen else 0.5 * delta * delta
         A = speed_up(S, tracking_depth(S, delta))
-        ax, ay, az = mul3(A, gx, gy, gz)
-        bx, by, bz = f[0] + hd * ax, f[1] + hd * ay, f[2] + hd * az
+        tx, ty, tz = mul3(A, gx, gy, gz)
+        bx, by, bz = f[0] + hd * tx, f[1] + hd * ty, f[2] + hd * tz
         if st.frozen:
             hl = 0.5 * st.frozen_stiffness * (delta - d0) * (delta - d0)
             ax, ay, az = mul3(A, *taper_gradient(c.surface, st.tri, Nx, Ny, Nz))
             bx, by, bz = bx + hl * ax, by + hl * ay, bz + hl * az
-        # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): J = k N Nᵀ sliding (frictionless),
-        # K̃ stuck
+        # the proxy-offset term φ (I − δ_f S)⁻¹ S e, e = P (x − p), faded out towards the focal depth (module doc)
+        phi = -(f[0] * Nx + f[1] * Ny + f[2] * Nz)
+        if frictionless:
+            ux, uy, uz = ubar[l]
+            un = Nx * ux + Ny * uy + Nz * uz
+            ex, ey, ez = mul3(A, *mul3(S, un * Nx - ux, un * Ny - uy, un * Nz - uz))
+            we = lag_weight(S, delta) * phi
+            bx, by, bz = bx + we * ex, by + we * ey, bz + we * ez
+        # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): sliding (frictionless) J the stored energy's
+        # Hessian (module doc), K̃ stuck
         kt = increment_stiffness(st, lam) if st.frozen else k  # the normal stiffness of an increment
         if sliding:
-            hz = 0.5 * kt * (Nx * dpx + Ny * dpy + Nz * dpz)
-            vx, vy, vz = hz * Nx, hz * Ny, hz * Nz
+            vn = Nx * dpx + Ny * dpy + Nz * dpz
+            vt = tx * dpx + ty * dpy + tz * dpz
+            hz = 0.5 * kt * vn
+            hc = -0.5 * (d0 if st.frozen else delta)  # ½ ψ'(δ)
+            hp = -0.5 * phi
+            wx, wy, wz = mul3(S, *mul3(A, dpx, dpy, dpz))
+            vx = hz * Nx + hc * (Nx * vt + tx * vn) + hp * wx
+            vy = hz * Ny + hc * (Ny * vt + ty * vn) + hp * wy
+            vz = hz * Nz + hc * (Nz * vt + tz * vn) + hp * wz
         else:
             q = kt / k
             vx, vy, vz = mul3(Kt, 0.5 * q * dpx, 0.5 * q * dpy, 0.5 * q * dpz)

@@ -88,10 +88,10 @@ int pm__render(pm_servo *S, int32_t na)
            ½ k* (δ − δ*)² (I − δ_f S)⁻¹ ∇λ */
         const double d0 = st->frozen_depth;
         const double hd = st->frozen ? d0 * delta - 0.5 * d0 * d0 : 0.5 * delta * delta;
-        double A[9], a3[3];
+        double A[9], t3[3], a3[3];
         pm__speed_up(g->S, pm__tracking_depth(g->S, delta), A);
-        pm__mul3(A, g->g[0], g->g[1], g->g[2], a3);
-        double bx = f[0] + hd * a3[0], by = f[1] + hd * a3[1], bz = f[2] + hd * a3[2];
+        pm__mul3(A, g->g[0], g->g[1], g->g[2], t3);
+        double bx = f[0] + hd * t3[0], by = f[1] + hd * t3[1], bz = f[2] + hd * t3[2];
         if (st->frozen) {
             const double hl = 0.5 * st->frozen_stiffness * (delta - d0) * (delta - d0);
             double gl[3];
@@ -101,14 +101,37 @@ int pm__render(pm_servo *S, int32_t na)
             by = by + hl * a3[1];
             bz = bz + hl * a3[2];
         }
-        /* the zero-order hold's first-order error, ½ J Δp: J = k N Nᵀ sliding, K̃ stuck (DEEP: λ k*) */
+        /* frictionless, the proxy's offset e = P (x − p) from the probe's normal line: the energy's gradient has
+           φ (I − δ_f S)⁻¹ S e too, faded out towards the focal depth (output.py) */
+        const double phi = -(f[0] * Nx + f[1] * Ny + f[2] * Nz);
+        if (frictionless) {
+            const double *ub = S->ubar + 3 * l;
+            const double un = Nx * ub[0] + Ny * ub[1] + Nz * ub[2];
+            double s3[3], e3[3];
+            pm__mul3(g->S, un * Nx - ub[0], un * Ny - ub[1], un * Nz - ub[2], s3);
+            pm__mul3(A, s3[0], s3[1], s3[2], e3);
+            const double we = pm__lag_weight(g->S, delta) * phi;
+            bx = bx + we * e3[0];
+            by = by + we * e3[1];
+            bz = bz + we * e3[2];
+        }
+        /* the zero-order hold's first-order error, ½ J Δp: J sliding the Hessian of the stored energy,
+           k N Nᵀ − ψ'(δ) (N tᵀ + t Nᵀ) − φ S (I − δ_f S)⁻¹ with t = (I − δ_f S)⁻¹ ∇k and φ the normal force
+           (output.py), K̃ stuck (past δ*: λ k* for k) */
         const double kt = st->frozen ? lam * st->frozen_stiffness : k;
         double vx, vy, vz;
         if (sliding) {
-            double hz = 0.5 * kt * (Nx * dpx + Ny * dpy + Nz * dpz);
-            vx = hz * Nx;
-            vy = hz * Ny;
-            vz = hz * Nz;
+            const double vn = Nx * dpx + Ny * dpy + Nz * dpz;
+            const double vt = t3[0] * dpx + t3[1] * dpy + t3[2] * dpz;
+            const double hz = 0.5 * kt * vn;
+            const double hc = -0.5 * (st->frozen ? d0 : delta);
+            const double hp = -0.5 * phi;
+            double m3[3], w3[3];
+            pm__mul3(A, dpx, dpy, dpz, m3);
+            pm__mul3(g->S, m3[0], m3[1], m3[2], w3);
+            vx = hz * Nx + hc * (Nx * vt + t3[0] * vn) + hp * w3[0];
+            vy = hz * Ny + hc * (Ny * vt + t3[1] * vn) + hp * w3[1];
+            vz = hz * Nz + hc * (Nz * vt + t3[2] * vn) + hp * w3[2];
         } else {
             double q = kt / k, v3[3];
             pm__mul3(g->Kt, 0.5 * q * dpx, 0.5 * q * dpy, 0.5 * q * dpz, v3);

@@ -413,6 +413,19 @@ static inline double pm__reckoning(const double *Sm, double delta, double *d)
     return u * u * (3.0 - 2.0 * u);
 }
 
+#define LAG_TO 0.8
+
+/* the share of the proxy-offset term the force keeps: 1 up to κ_max δ = FOCAL_FRACTION, 0 from LAG_TO, a
+   smoothstep between (linalg3.lag_weight) */
+static inline double pm__lag_weight(const double *Sm, double delta)
+{
+    double x = pm__largest_curvature(Sm) * delta;
+    if (x <= FOCAL_FRACTION) return 1.0;
+    if (x >= LAG_TO) return 0.0;
+    double u = (x - FOCAL_FRACTION) / (LAG_TO - FOCAL_FRACTION);
+    return 1.0 - u * u * (3.0 - 2.0 * u);
+}
+
 /* S(x) alone, interpolated as pm__at does (surface.shape_at): what step 1 reads every tick */
 static inline void pm__shape_at(const pm_table *tb, int64_t t, const double *b, double *Sm)
 {
