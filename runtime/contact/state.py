@@ -25,12 +25,12 @@ TOUCHING = (Status.CONTACT, Status.REGION_EDGE, Status.DEEP)
 #: Gauss-Seidel sweeps of the several-contact solve (s = 1 needs one); both engines run exactly this many
 #: unless the forces stop changing (relative 1e-13), which both test the same way
 GS_SWEEPS = 60
-#: the default ``proxy_speed``: the proxy moves at most this many times the probe's motion a tick.  On a convex
-#: part the projection of a probe δ deep runs 1 / (1 − δ/R) as fast as the probe; 1.75 keeps up with it to 0.43 R,
-#: near where the proxy moves by dead reckoning (R/2, speed 2: linalg3.FOCAL_FRACTION).  1.25 before lagged past
-#: R/5, and the lag dragged a frictionless slide (out and back across the hilum's lip 2 mm deep: 2.2x the press's
-#: work lost, 0.41x now); 2 let a 45° push at the hilum's saddle lose 0.03 % of its force for a few ticks while
-#: the proxy ran to softer tissue (tests/test_deep.py), which the issue forbids
+#: the default ``proxy_speed``: the proxy moves at most this many times the probe's motion a tick.  On a convex part
+#: the projection of a probe δ deep runs 1 / (1 − δ/R) as fast as the probe; 1.75 keeps up with it to 0.43 R, near
+#: where the proxy moves by dead reckoning (R/2, speed 2: linalg3.FOCAL_FRACTION).  1.25 before lagged past R/5, and
+#: the lag dragged a frictionless slide (out and back across the hilum's lip 2 mm deep: 2.2x the press's work lost,
+#: 0.41x with 1.75 and the law of then); 2 let a 45° push at the hilum's saddle lose 0.03 % of its force for a few
+#: ticks while the proxy ran to softer tissue (tests/test_deep.py), which the issue forbids
 PROXY_SPEED = 1.75
 #: the far-outside test: distance from the model's bounding box, in bounding-box diagonals
 FAR_FACTOR = 10.0

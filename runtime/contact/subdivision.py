@@ -4,7 +4,7 @@ The law's frictionless force is k δ along the contact normal N plus the term th
 stored energy ½ k δ² (:mod:`pmask.runtime.contact.law`).  That holds exactly only where N is the normal of the
 surface the proxy moves on.  On the finite-element mesh's flat triangles it is not: N is interpolated from the
 vertices (so that the force turns smoothly over edges) and differs from a facet's own normal by up to the angle
-between neighbouring facets, a few degrees on the default kidney; closed loops then gave back up to 1.78 % of
+between neighbouring facets, a few degrees on the default kidney; closed loops then gave back up to 1.92 % of
 their stored energy (the hands issue asks ≤ 1 %), and with the facets' own normals the force jumped at every
 edge.  A surface whose facets meet at vanishing angles removes the conflict: this module subdivides the contact
 mesh with Loop's scheme (Loop 1987; each level splits every triangle in four and moves the vertices by Loop's
@@ -23,8 +23,9 @@ contact surface rounds them at the scale over which the contact normals blend ac
 blended normal so that the blended normals become the surface's own, and the contact normals are the rounded
 surface's (:class:`pmask.runtime.contact.ContactSurface`).  A blended normal up to 50° off the facets the
 proxy moved on made the force differ from the gradient of the law's energy there: out and back over the kidney's
-hilum lip 2 and 4 mm deep the law dissipated 10.5 % and 30 % of the press's work, rounded 5.2 % and 7.1 %
-(tests/test_haptics.py).  Rounding by Loop's rules (no crease kept) rounds at the mesh's edge length instead, far
+hilum lip 2 and 4 mm deep the law dissipated 10.5 % and 30 % of the press's work, rounded 5.2 % and 7.1 %, and
+0.02 % and 0.06 % once the force's velocity and proxy terms were the energy's too (tests/test_haptics.py,
+:mod:`pmask.runtime.contact.output`).  Rounding by Loop's rules (no crease kept) rounds at the mesh's edge length instead, far
 tighter than the blend: a probe pressed 2-4 mm deep over it is in the deep regime, and it dragged 3x and 9.5x the
 press's work (by hand, with an earlier law); rounding the mesh itself at the blend's scale and subdividing it
 smoothly was too coarse (27.8 % at 4 mm, and the force per tick crossing the lip 3.1x the smooth slide's, 2x asked).
@@ -35,7 +36,7 @@ The rendered stiffness K_i and the taper λ are carried onto the subdivided surf
 (:meth:`Subdivided.interpolate`: eq. 15 in the mesh triangle's barycentrics), so K at the mesh's vertices is K_i
 itself and pairs of contacts pressed at vertices meet the full finite-element solve as on the mesh.  Measured on
 the hands issue's grid of closed loops (two levels, tests/test_passivity_grid.py): the worst loop gives back
-0.22 % of its energy and the controller takes 0.55 % (1.78 % and 2.18 % on the mesh).  Two other carryings were
+0.39 % of its energy and the controller takes 0.75 % (1.92 % and 2.19 % on the mesh).  Two other carryings were
 tried and dropped (the haptics guide's "The contact surface"): by Loop's masks (smoother, 0.024 % on the grid,
 but K at the vertices became Loop's smoothing of K_i, up to 9 % off by the support's ramp, and pairs moved 3.5 %
 off the full solve) and through interpolating control values (the field overshot beside the support's ramp).
@@ -59,9 +60,10 @@ from pmask.runtime.geometry import crease_edges, triangle_normals, vertex_normal
 
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
-#: hands issue's grid of closed loops, controller off) the mesh's 9.1° gave back up to 1.78 % of a loop's stored
-#: energy, two levels (2.95°, the automatic choice there) 0.22 % (tests/test_passivity_grid.py's loops; one level,
-#: 5.1°, 0.44 % by hand, with K carried by Loop's masks and an earlier projection)
+#: hands issue's grid of closed loops, controller off) the mesh's 9.1° gave back up to 1.92 % of a loop's stored
+#: energy, two levels (2.95°, the automatic choice there) 0.39 % (tests/test_passivity_grid.py's loops; one level,
+#: 5.1°, 0.44 % by hand, with K carried by Loop's masks, an earlier projection and the zero-order hold's
+#: correction k N Nᵀ alone, under which the mesh gave 1.78 % and two levels 0.22 %)
 MAX_FACET_ANGLE = math.radians(3.5)
 #: at most this many levels, and at most this many subdivided triangles (the contact surface's arrays grow 4x a
 #: level)
