@@ -17,18 +17,18 @@ pressed at a vertex presses where the finite-element mesh is.
 
 Sharp creases (edges whose facets meet at more than ``crease_deg``, the same test as
 :func:`pmask.runtime.geometry.contact_normals`) and open boundaries are kept as creases, with Loop's crease rules:
-their curve is subdivided as a cubic B-spline and the surfaces on either side meet along it as before.  Then the
+their curve is subdivided as a cubic B-spline and the surfaces on either side meet along it as before. Then the
 contact surface rounds them at the scale over which the contact normals blend across them (``normal_radius``,
-:func:`pmask.runtime.geometry.crease_blend`): :func:`round_creases` moves each vertex of the band along its
-blended normal so that the blended normals become the surface's own, and the contact normals are the rounded
-surface's (:class:`pmask.runtime.contact.ContactSurface`).  A blended normal up to 50° off the facets the
-proxy moved on made the force differ from the gradient of the law's energy there: out and back over the kidney's
-hilum lip 2 and 4 mm deep the law dissipated 10.5 % and 30 % of the press's work, rounded 5.2 % and 7.1 %, and
-0.02 % and 0.06 % once the force's velocity and proxy terms were the energy's too (tests/test_haptics.py,
-:mod:`pmask.runtime.contact.output`).  Rounding by Loop's rules (no crease kept) rounds at the mesh's edge length
-instead, far tighter than the blend: a probe pressed 2-4 mm deep over it is in the deep regime, and it dragged 3x
-and 9.5x the press's work (by hand, with an earlier law); rounding the mesh itself at the blend's scale and subdividing it
-smoothly was too coarse (27.8 % at 4 mm, and the force per tick crossing the lip 3.1x the smooth slide's, 2x asked).
+:func:`pmask.runtime.geometry.crease_blend`): :func:`round_creases` moves each vertex of the band along its blended
+normal so that the blended normals become the surface's own, and the contact normals are the rounded surface's
+(:class:`pmask.runtime.contact.ContactSurface`). A blended normal up to 50° off the facets the proxy moved on made
+the force differ from the gradient of the law's energy there: out and back over the kidney's hilum lip 2 and 4 mm
+deep the law dissipated 10.5 % and 30 % of the press's work, rounded 5.2 % and 7.1 %, and 0.02 % and 0.06 % once the
+force's velocity and proxy terms were the energy's too (tests/test_haptics.py, :mod:`pmask.runtime.contact.output`).
+Rounding by Loop's rules (no crease kept) rounds at the mesh's edge length instead, far tighter than the blend: a
+probe pressed 2-4 mm deep over it is in the deep regime, and it dragged 3x and 9.5x the press's work (by hand, with
+an earlier law); rounding the mesh itself at the blend's scale and subdividing it smoothly was too coarse (27.8 % at
+4 mm, and the force per tick crossing the lip 3.1x the smooth slide's, 2x asked).
 The mesh's vertices in the band move with it (up to 2 mm on the default kidney): the display draws the mesh where the
 contact surface has them (:attr:`pmask.runtime.contact.ContactSurface.mesh_points`).
 
