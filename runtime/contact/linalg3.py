@@ -84,15 +84,18 @@ LAG_TO = 0.8
 
 
 def lag_weight(S, delta):
-    """The share of the proxy-offset term the force keeps (:mod:`pmask.runtime.contact.output`): 1 up to κ_max δ =
-    FOCAL_FRACTION, 0 from LAG_TO on, a smoothstep between."""
-    x = largest_curvature(S) * delta
+    """(:func:`tracking_depth`, w): w the share of the proxy-offset term the force keeps
+    (:mod:`pmask.runtime.contact.output`), 1 up to κ_max δ = FOCAL_FRACTION, 0 from LAG_TO on, a smoothstep
+    between; both from one κ_max (step 4 reads them every tick)."""
+    kmax = largest_curvature(S)
+    x = kmax * delta
+    d = FOCAL_FRACTION / kmax if x > FOCAL_FRACTION else delta
     if x <= FOCAL_FRACTION:
-        return 1.0
+        return d, 1.0
     if x >= LAG_TO:
-        return 0.0
+        return d, 0.0
     u = (x - FOCAL_FRACTION) / (LAG_TO - FOCAL_FRACTION)
-    return 1.0 - u * u * (3.0 - 2.0 * u)
+    return d, 1.0 - u * u * (3.0 - 2.0 * u)
 
 
 def reckoning(S, delta):

@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 
 from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_depth, increment_stiffness, taper_gradient
-from pmask.runtime.contact.linalg3 import lag_weight, mul3, speed_up, tracking_depth
+from pmask.runtime.contact.linalg3 import lag_weight, mul3, speed_up
 from pmask.runtime.contact.state import DEEP_RELEASE, PASSIVITY_SLACK, PC_DAMPING_MAX, PC_RAMP_TICKS, Status
 
 
@@ -102,7 +102,8 @@ def render(c, states, active, geo, ubar, result) -> None:
         # speed-up the proxy moves with (tracking.follow)
         d0 = st.frozen_depth
         hd = d0 * delta - 0.5 * d0 * d0 if st.frozen else 0.5 * delta * delta
-        A = speed_up(S, tracking_depth(S, delta))
+        d_f, lag = lag_weight(S, delta)  # δ_f and the proxy-offset term's share
+        A = speed_up(S, d_f)
         tx, ty, tz = mul3(A, gx, gy, gz)
         bx, by, bz = f[0] + hd * tx, f[1] + hd * ty, f[2] + hd * tz
         if st.frozen:
@@ -115,7 +116,7 @@ def render(c, states, active, geo, ubar, result) -> None:
             ux, uy, uz = ubar[l]
             un = Nx * ux + Ny * uy + Nz * uz
             ex, ey, ez = mul3(A, *mul3(S, un * Nx - ux, un * Ny - uy, un * Nz - uz))
-            we = lag_weight(S, delta) * phi
+            we = lag * phi
             bx, by, bz = bx + we * ex, by + we * ey, bz + we * ez
         # the zero-order hold's first-order error, ½ J Δp (Colgate's kT/2): sliding (frictionless) J the stored energy's
         # Hessian (module doc), K̃ stuck

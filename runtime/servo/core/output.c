@@ -89,7 +89,9 @@ int pm__render(pm_servo *S, int32_t na)
         const double d0 = st->frozen_depth;
         const double hd = st->frozen ? d0 * delta - 0.5 * d0 * d0 : 0.5 * delta * delta;
         double A[9], t3[3], a3[3];
-        pm__speed_up(g->S, pm__tracking_depth(g->S, delta), A);
+        double d_f;
+        const double lag = pm__lag_weight(g->S, delta, &d_f);  /* δ_f and the proxy-offset term's share */
+        pm__speed_up(g->S, d_f, A);
         pm__mul3(A, g->g[0], g->g[1], g->g[2], t3);
         double bx = f[0] + hd * t3[0], by = f[1] + hd * t3[1], bz = f[2] + hd * t3[2];
         if (st->frozen) {
@@ -110,7 +112,7 @@ int pm__render(pm_servo *S, int32_t na)
             double s3[3], e3[3];
             pm__mul3(g->S, un * Nx - ub[0], un * Ny - ub[1], un * Nz - ub[2], s3);
             pm__mul3(A, s3[0], s3[1], s3[2], e3);
-            const double we = pm__lag_weight(g->S, delta) * phi;
+            const double we = lag * phi;
             bx = bx + we * e3[0];
             by = by + we * e3[1];
             bz = bz + we * e3[2];

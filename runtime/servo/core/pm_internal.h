@@ -390,14 +390,6 @@ static inline double pm__largest_curvature(const double *Sm)
 #define FOCAL_FRACTION 0.5
 #define FROZEN_CHANGE (0.125 / 1.4142135623730951)  /* 1/(8√2) (law.FROZEN_CHANGE: 0.125 / math.sqrt(2.0)) */
 
-/* min(δ, FOCAL_FRACTION / κ_max) (linalg3.tracking_depth) */
-static inline double pm__tracking_depth(const double *Sm, double delta)
-{
-    double kmax = pm__largest_curvature(Sm);
-    if (kmax * delta > FOCAL_FRACTION) return FOCAL_FRACTION / kmax;
-    return delta;
-}
-
 #define RECKON_FROM 0.4
 
 /* the share w of the proxy's move made by dead reckoning, 0 up to κ_max δ = RECKON_FROM, 1 from FOCAL_FRACTION, a
@@ -416,10 +408,13 @@ static inline double pm__reckoning(const double *Sm, double delta, double *d)
 #define LAG_TO 0.8
 
 /* the share of the proxy-offset term the force keeps: 1 up to κ_max δ = FOCAL_FRACTION, 0 from LAG_TO, a
-   smoothstep between (linalg3.lag_weight) */
-static inline double pm__lag_weight(const double *Sm, double delta)
+   smoothstep between; *d the tracking depth min(δ, FOCAL_FRACTION / κ_max), from the same κ_max
+   (linalg3.lag_weight) */
+static inline double pm__lag_weight(const double *Sm, double delta, double *d)
 {
-    double x = pm__largest_curvature(Sm) * delta;
+    double kmax = pm__largest_curvature(Sm);
+    double x = kmax * delta;
+    *d = x > FOCAL_FRACTION ? FOCAL_FRACTION / kmax : delta;
     if (x <= FOCAL_FRACTION) return 1.0;
     if (x >= LAG_TO) return 0.0;
     double u = (x - FOCAL_FRACTION) / (LAG_TO - FOCAL_FRACTION);
