@@ -14,11 +14,15 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    Otherwise both are split; pairs of leaves are stored densely.
 3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices, fewer for large
    n so that a panel stays near :data:`PANEL_BYTES`: wider panels read W fewer times).  One task per
-   panel computes the columns of Ξ it holds and compresses its share of each block: a randomized range
-   finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of :math:`Q^TB`
-   truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is computed, not
-   estimated: B is at hand).  A block whose factors would not be smaller stays dense.  Only one panel, at
-   most 3n x 3 #J numbers (the rows its blocks need), exists at a time on a worker.  The blocks are the
+   panel computes the columns of Ξ it holds and compresses its share of each block.  A far block wide and tall
+   enough (:func:`sketches`: most of the far field's entries) is never formed: the tile's one pass over W takes
+   its range sketch :math:`B\Omega` (64 columns, 16 of them a test) and forms 64 of its rows, and
+   :func:`from_sketches` interpolates the block from them, the error estimated by the test columns (a block
+   they cannot show within ε is formed after all).  Any other block is formed and compressed by a randomized
+   range finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of
+   :math:`Q^TB` truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is
+   computed: B is at hand).  A block whose factors would not be smaller stays dense.  Only one panel's formed
+   rows, at most 3n x 3 #J numbers (the rows its formed blocks need), exist at a time on a worker.  The blocks are the
    tree's, not the panels': a far block
    whose column cluster holds several panels comes back from each as a *piece* (compressed within ε/2)
    and :func:`assemble` merges the pieces (:func:`merge_pieces`, within the other ε/2).  So the stored
@@ -36,8 +40,9 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    to a file in the run's work folder (:class:`SweepStore`; under a tenth of the dense Ξ: the bench page gives it
    at 20,427 vertices);
    a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
-   :math:`W^TW` products (each once: a tile computes only the rows above the diagonal, P1 being
-   symmetric) and nothing else, and the tiles need no factor.
+   :math:`W^TW` products for the rows they form (each once: a tile computes only the rows above the diagonal,
+   P1 being symmetric), and for the sketched rows the products with 64 columns instead of the panel's; the
+   tiles need no factor.
    P2 (a consistent load B ≠ E diag(a)): :math:`\Xi = W_E^T W_B`, W_B = L⁻¹PB swept after W into the same
    store (:func:`pmask.precompute.selinv.load_sweep`; a column of W_B reaches the tree paths up from all its
    non-zeros, the vertex's neighbours), and a tile sums :math:`X_s Y_{s,J}^T` over the supernodes its columns
@@ -283,6 +288,93 @@ def low_rank(B: np.ndarray, tol: float, rng: np.random.Generator):
     return Q @ (Us[:, :r] * s[:r]), Vt[:r].T
 
 
+#: sketched far blocks (:class:`Sketch`): range sketch columns (twice the largest rank measured at 1e-4, 25, less
+#: one), test columns that estimate the error, and the rows of each block formed to solve for its co-range
+SKETCH_RANK = 48
+SKETCH_TESTS = 16
+SKETCH_SAMPLES = SKETCH_RANK + SKETCH_TESTS
+
+
+@dataclass
+class SketchGroup:
+    r"""The sketched blocks of a tile that share a column range, columns ``q0:q1`` of the tile's (the panel's
+    share of J): ``rows`` marks their rows among the asked rows; ``omega`` ((q1 - q0) x (k + t)) is the range
+    map, its last t columns the test's; ``samples[b]`` the rows of block b (among the asked rows) that are formed
+    too.  The pass sets ``Y`` (a row's :math:`\Xi_{r,J}\Omega` at row ``at[r]``)."""
+
+    q0: int
+    q1: int
+    rows: np.ndarray
+    omega: np.ndarray
+    samples: list
+    Y: np.ndarray | None = None
+    at: np.ndarray | None = None
+
+
+@dataclass
+class Sketch:
+    """What a tile asks of its pass over W (:meth:`SweepStore.sorted_columns`): the rows it forms (``formed``
+    marks them among the asked rows: those of the blocks it forms and the sketched blocks' samples) and the
+    range sketches of its :class:`SketchGroup` s."""
+
+    formed: np.ndarray
+    groups: list
+
+
+def sketch_group(n_rows: int, q0: int, q1: int, spans: list[tuple[int, int]], rng: np.random.Generator) -> SketchGroup:
+    """The maps for blocks over columns ``q0:q1`` whose rows are the asked rows ``spans`` (start, stop): a
+    Gaussian Ω, and for each block :data:`SKETCH_SAMPLES` of its rows drawn uniformly without replacement."""
+    omega = rng.standard_normal((q1 - q0, SKETCH_RANK + SKETCH_TESTS))
+    marked = np.zeros(n_rows, bool)
+    samples = []
+    for r0, r1 in spans:
+        marked[r0:r1] = True
+        samples.append(r0 + np.sort(rng.choice(r1 - r0, SKETCH_SAMPLES, replace=False)))
+    return SketchGroup(q0, q1, marked, omega, samples)
+
+
+def sketches(tree: ClusterTree, i: int, j: int, c0: int, c1: int) -> bool:
+    """Whether far block (I, J) is sketched in the tile of panel c0..c1: the panel's share of J has at least
+    four times the sketch's columns and I at least twice as many rows (a narrower or smaller block is formed for
+    less work and memory than its sketches)."""
+    width = SKETCH_RANK + SKETCH_TESTS
+    cols = min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0)
+    return 3 * cols >= 4 * width and 3 * tree.size(i) >= 2 * width
+
+
+def from_sketches(Yb: np.ndarray, Sb: np.ndarray, samples: np.ndarray, omega: np.ndarray, tol: float):
+    r"""U, V (V's columns orthonormal) of a block B from its range sketch Yb = BΩ and its rows ``samples``
+    (Sb = B[samples]), within ``tol`` of :math:`\|B\|_F`, or None where they cannot show it (then the block is
+    formed).  Q: the range sketch's left singular vectors down to ``tol``/100 of its largest (B's range to
+    well within the tolerance: a far block's spectrum falls geometrically); :math:`X = Q_S^+ S_B`, the rows
+    interpolated from the samples (Q_S: Q's rows there; an interpolative decomposition on random rows, which a
+    far block's smooth, incoherent range allows), so that B ≈ QX.  The error of QX is estimated from the t
+    test columns, :math:`e = \|B\Omega_t - QX\Omega_t\|_F/\sqrt t` (for a Gaussian Ω_t its square's mean is
+    :math:`\|B - QX\|_F^2`), and must be within ``tol``/4.2 of ‖X‖_F: it stays within tol/2 even if it is an
+    underestimate by 2 (for 16 test columns a χ²₁₆ below 4, probability 6e-4 where the error is one direction,
+    less where it is spread).  The SVD of X is then truncated within what is left, tol − 2.1 e (at least
+    tol/2), so that the block is within ``tol`` (the two add at most; 2.1 rather than 2 for
+    ‖B‖ ≥ ‖X‖ − ‖B − QX‖)."""
+    k = SKETCH_RANK
+    m, n = Yb.shape[0], Sb.shape[1]
+    if not np.any(Yb) and not np.any(Sb):
+        return np.zeros((m, 0)), np.zeros((n, 0))
+    Uy, sy, _ = np.linalg.svd(Yb[:, :k], full_matrices=False)
+    Q = Uy[:, :int(np.sum(sy > tol / 100 * sy[0]))]
+    X = np.linalg.lstsq(Q[samples], Sb, rcond=None)[0]
+    normX = float(np.linalg.norm(X))
+    miss = Yb[:, k:] - Q @ (X @ omega[:, k:])
+    e = float(np.linalg.norm(miss)) / np.sqrt(miss.shape[1])
+    if not normX > 0.0 or e > tol / 4.2 * normX:
+        return None
+    Ux, s, Vt = np.linalg.svd(X, full_matrices=False)
+    tail = np.concatenate([np.cumsum((s * s)[::-1])[::-1], [0.0]])  # tail[r] = Σ_{q≥r} s_q²
+    r = int(np.argmax(tail <= (tol * normX - 2.1 * e) ** 2))
+    if r * (m + n) >= m * n:
+        return None
+    return Q @ (Ux[:, :r] * s[:r]), Vt[:r].T
+
+
 class SweepStore:
     """W's supernode blocks X_s (:func:`pmask.precompute.selinv.forward_sweep`) of a factor, in a
     file of the run's work folder, and the index a tile needs to read them: for each supernode its
@@ -310,7 +402,7 @@ class SweepStore:
         D, at = self.sorted_columns(rows, cols)
         return D[at]
 
-    def sorted_columns(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def sorted_columns(self, rows: np.ndarray, cols: np.ndarray, sketch: "Sketch | None" = None):
         r"""Ξ's rows ``rows`` (contact dofs, any of them) at the columns ``cols``, in W's order, and where each
         asked row is in it: ``D[at[i]] = Ξ[rows[i], cols]``.  :math:`\sum_s X_s X_{s,J}^T` over the supernodes
         on the tree paths up from the columns' first supernodes, scaled by the columns' areas (Ξ = G diag(a));
@@ -320,7 +412,12 @@ class SweepStore:
         that each chunk of X_s adds to a run of D's rows.  A block larger than :data:`READ_BYTES` is read in row
         chunks (its rows are contiguous in the file), and each product X Xᴶᵀ is formed in slices of at most
         :data:`READ_BYTES`, so a tile holds D, one chunk and one slice, not the root's whole block (3n rows by
-        the top separator's columns) nor a reordered copy."""
+        the top separator's columns) nor a reordered copy.
+
+        ``sketch``: only the rows it marks ``formed`` are formed (their ``at``; -1 for the others), and its groups'
+        rows are sketched in the same pass over W (:class:`SketchGroup`): their range sketch
+        :math:`\Xi_{R,J}\,\Omega`, for each chunk of X_s :math:`X_R (X_J^T \Omega)`, so that their work is the
+        sketch's width, not the columns'.  The sketches are set on the groups."""
         ix = self.index
         pos, lo, hi, parent, ncol, offset = ix["pos"], ix["lo"], ix["hi"], ix["parent"], ix["ncol"], ix["offset"]
         pj = pos[cols]
@@ -335,22 +432,48 @@ class SweepStore:
             while s >= 0 and not reached[s]:
                 reached[s] = True
                 s = parent[s]
-        order = np.argsort(pos[rows])
-        ps = pos[rows][order]  # the asked rows' positions, sorted: D's rows
-        at = np.empty(len(rows), np.int64)
-        at[order] = np.arange(len(rows))
-        D = np.zeros((len(rows), len(cols)))
+        groups = [] if sketch is None else sketch.groups
+        asked = np.ones(len(rows), bool) if sketch is None else sketch.formed | np.any([g.rows for g in groups], 0)
+        rows_in = np.flatnonzero(asked)
+        order = rows_in[np.argsort(pos[rows[rows_in]])]  # the rows that are formed or sketched, in W's order
+        ps = pos[rows[order]]  # their positions, sorted
+        formed = np.ones(len(order), bool) if sketch is None else sketch.formed[order]
+        fbefore = np.concatenate([[0], np.cumsum(formed)])  # formed rows before each sorted row
+        at = np.full(len(rows), -1, np.int64)
+        at[order[formed]] = np.arange(int(fbefore[-1]))  # D's rows: the formed ones, in W's order
+        D = np.zeros((int(fbefore[-1]), len(cols)))
+        scale = np.ones(len(cols)) if self.load else ix["scale"][cols]
+        live = []  # per group: its rows among the sorted ones' positions, the count before each, Ω scaled
+        for g in groups:
+            mine = g.rows[order]
+            g.Y = np.zeros((int(np.sum(mine)), g.omega.shape[1]))
+            live.append((g, ps[mine], np.concatenate([[0], np.cumsum(mine)]), g.omega * scale[g.q0:g.q1, None]))
+        pf = ps[formed]  # the formed rows' positions
 
-        def add(first, X, XJ):  # D's rows at positions first .. first + len(X) += X XJᵀ, in slices
+        def add(first, X, XJ, OJ):  # the rows at positions first .. first + len(X): D += X XJᵀ, in slices
             a, b = np.searchsorted(ps, first), np.searchsorted(ps, first + len(X))
-            Xk = X if b - a == len(X) else X[ps[a:b] - first]
+            for (g, pg, before, _), OJg in zip(live, OJ):
+                y0, y1 = int(before[a]), int(before[b])
+                if y1 > y0 and OJg is not None:  # the group's rows: Y += X_R (X_Jᵀ Ω)
+                    g.Y[y0:y1] += (X if y1 - y0 == len(X) else X[pg[y0:y1] - first]) @ OJg
+            d0, d1 = int(fbefore[a]), int(fbefore[b])
+            if d1 == d0:
+                return
+            Xk = X if d1 - d0 == len(X) else X[pf[d0:d1] - first]
             step = max(1, READ_BYTES // (8 * max(len(sel), 1)))
-            for q in range(0, b - a, step):
+            for q in range(0, len(Xk), step):
                 P = Xk[q:q + step] @ XJ.T
                 if len(sel) == len(cols):
-                    D[a + q:a + q + len(P)] += P
+                    D[d0 + q:d0 + q + len(P)] += P
                 else:
-                    D[a + q:a + q + len(P), sel] += P
+                    D[d0 + q:d0 + q + len(P), sel] += P
+
+        def products(XJ):  # per group: X_Jᵀ Ω over the supernode's columns in its range (None: none are)
+            out = []
+            for g, _, _, omega in live:
+                idx = np.flatnonzero((sel >= g.q0) & (sel < g.q1))
+                out.append(XJ[idx].T @ omega[sel[idx] - g.q0] if len(idx) else None)
+            return out
 
         def read_rows(f, off, nc, idx):  # rows idx of the row-major (·, nc) block at ``off`` (doubles)
             out = np.empty((len(idx), nc))
@@ -381,16 +504,21 @@ class SweepStore:
                     if m <= step:
                         f.seek(8 * off)
                         X = np.fromfile(f, np.float64, m * nc).reshape(m, nc)
-                        add(int(lo[s]), X, X[pj[sel] - lo[s]])
+                        XJ = X[pj[sel] - lo[s]]
+                        add(int(lo[s]), X, XJ, products(XJ))
                         continue
                     XJ = read_rows(f, off, nc, pj[sel] - lo[s])  # the panel's rows of X_s
+                OJ = products(XJ)
                 for r0 in range(0, m, step):
                     r1 = min(m, r0 + step)
                     if np.searchsorted(ps, lo[s] + r0) < np.searchsorted(ps, lo[s] + r1):
                         f.seek(8 * (off + r0 * nc))
-                        add(int(lo[s]) + r0, np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc), XJ)
+                        add(int(lo[s]) + r0, np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc), XJ, OJ)
         if not self.load:
-            D *= ix["scale"][cols][None, :]
+            D *= scale[None, :]
+        for g in groups:
+            g.at = np.full(len(rows), -1, np.int64)
+            g.at[order[g.rows[order]]] = np.arange(len(g.Y))
         return D, at
 
 
@@ -728,30 +856,64 @@ def panel_columns(store: SweepStore, perm: np.ndarray, c0: int, c1: int, upto: i
     return store.sorted_columns(rows if upto is None else rows[:3 * upto], dcols)
 
 
-def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, near=None) -> dict:
+def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, near=None, sketch: bool = True) -> dict:
     """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
     reader's layout with offsets relative to this tile (:func:`assemble` shifts them), the low-rank
     index with an eighth column: the block's column cluster J.  Where J is wider than the panel the
     entry is a *piece* Ξ_{I,column} of the block, compressed within ``tol``/2 with V's columns
     orthonormal; :func:`assemble` merges a block's pieces (:func:`merge_pieces`) within the other half.
     ``near``: (the vertices' positions in cluster order, r_max): the dense blocks are stored pair by pair, those
-    within r_max exactly and the others in 16 bits (:func:`pmask.runtime.compressed.encode_near`); None: whole."""
+    within r_max exactly and the others in 16 bits (:func:`pmask.runtime.compressed.encode_near`); None: whole.
+    ``sketch``: the far blocks :func:`sketches` picks are compressed from sketches taken in the same pass over W
+    (:func:`from_sketches`), not formed; one whose sketches cannot show the tolerance is formed after all (the
+    tile's ``formed_again``).  False: every block formed (the test's reference)."""
     t0 = time.perf_counter()
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # one past the last row any block needs
-    X, at = panel_columns(store, tree.perm, c0, c1, upto if upto < len(tree.perm) else None)
-    t_solve = time.perf_counter() - t0
     rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
+    rows = (3 * tree.perm[:, None] + np.arange(3)).ravel()[:3 * upto]  # contact dofs in cluster order
+    dcols = (3 * tree.perm[c0:c1, None] + np.arange(3)).ravel()  # the panel's traction columns
+    sketched = {(i, j) for i, j, far in blocks if far and sketches(tree, i, j, c0, c1)} if sketch else set()
+    formed = np.zeros(len(rows), bool)  # the rows of the blocks formed (none of a block below the diagonal)
+    spans: dict[tuple[int, int], list] = {}  # the sketched blocks' rows by their columns in the tile
+    for i, j, _ in blocks:
+        r0, r1 = 3 * int(tree.start[i]), 3 * int(tree.stop[i])
+        if (i, j) in sketched:
+            q = (3 * (max(int(tree.start[j]), c0) - c0), 3 * (min(int(tree.stop[j]), c1) - c0))
+            spans.setdefault(q, []).append(((i, j), r0, r1))
+        else:
+            formed[r0:r1] = True
+    srng = np.random.default_rng([column, 1])  # the sketches' own: the low-rank blocks' draws stay as they were
+    groups = [sketch_group(len(rows), q0, q1, [(r0, r1) for _, r0, r1 in spans[q0, q1]], srng)
+              for q0, q1 in sorted(spans)]
+    for g in groups:
+        for rs in g.samples:
+            formed[rs] = True
+    band = {ij: (g, b) for g, (q0, q1) in zip(groups, sorted(spans)) for b, (ij, _, _) in enumerate(spans[q0, q1])}
+    X, at = store.sorted_columns(rows, dcols, Sketch(formed, groups))
+    t_solve = time.perf_counter() - t0
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
     near_index, near_q, near_mask, near_scale = [], [], [], []
     d_off = u_off = v_off = 0
     at_near = np.zeros(3, np.int64)  # offsets in near_q, near_mask, near_scale
+    formed_again = 0
     for i, j, far in blocks:
         r0, r1 = int(tree.start[i]), int(tree.stop[i])
         b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
         piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
-        B = X[at[3 * r0:3 * r1], 3 * (b0 - c0):3 * (b1 - c0)]
-        uv = low_rank(B, tol / 2 if piece else tol, rng) if far else None
+        uv = B = None
+        if (i, j) in band:  # from its sketches; formed after all where they cannot show the tolerance
+            g, b = band[i, j]
+            rs = g.samples[b]
+            uv = from_sketches(g.Y[g.at[3 * r0:3 * r1]], X[at[rs], 3 * (b0 - c0):3 * (b1 - c0)], rs - 3 * r0, g.omega,
+                               tol / 2 if piece else tol)
+            if uv is None:
+                formed_again += 1
+                B = store.columns(rows[3 * r0:3 * r1], dcols[3 * (b0 - c0):3 * (b1 - c0)])
+        else:
+            B = X[at[3 * r0:3 * r1], 3 * (b0 - c0):3 * (b1 - c0)]
+        if uv is None and far:
+            uv = low_rank(B, tol / 2 if piece else tol, rng)
         if uv is None and piece:  # a piece is merged in low-rank form: its exact columns, V = I
             uv = (np.array(B), np.eye(B.shape[1]))
         if uv is None and near is not None:
@@ -779,7 +941,8 @@ def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, 
             "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 8), "U": cat(Us),
             "V": cat(Vs), "near_index": np.array(near_index, np.int64).reshape(-1, 3),
             "near_q": cat(near_q, np.int16), "near_mask": cat(near_mask, np.uint8), "near_scale": cat(near_scale),
-            "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid()}
+            "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid(),
+            "sketched": len(sketched), "formed_again": formed_again}
 
 
 def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -910,7 +1073,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     dense_index, lowrank_index, near_index = [], [], []
     runs = {"dense": [], "U": [], "V": [], "near_q": [], "near_mask": [], "near_scale": []}
     at = dict.fromkeys(TileStore.FIELDS, 0)
-    times = {"solve_s": 0.0, "compress_s": 0.0}
+    times = {"solve_s": 0.0, "compress_s": 0.0, "sketched": 0, "formed_again": 0}
 
     def run(field, name, a, b):  # the next run of a field, joined to the last when it continues it
         last = runs[field][-1] if runs[field] else None
@@ -942,7 +1105,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
             at[field] += int(ends[-1]) if len(ends) else 0
         lowrank_index.append(entry)
         for k in times:
-            times[k] += float(g.attrs[k])
+            times[k] += type(times[k])(g.attrs.get(k, 0))  # (a tile of an older run has no sketch counts)
     for r0, r1, c0, c1, k, (ua, ub), (va, vb) in merged:
         lowrank_index.append(np.array([[r0, r1, c0, c1, k, at["U"], at["V"]]], np.int64))
         run("U", out_U.name, ua, ub)
@@ -1004,7 +1167,7 @@ class TileStore:
         g = self.file.create_group(f"tile-{t['column']}")
         for k in self.FIELDS:
             g.create_dataset(k, data=t[k])
-        for k in ("solve_s", "compress_s", "pid"):
+        for k in ("solve_s", "compress_s", "pid", "sketched", "formed_again"):
             g.attrs[k] = t[k]
         g.attrs["done"] = True
         self.file.flush()
@@ -1085,11 +1248,39 @@ def tile_bytes(held: float, n_contact: int, panel: int = PANEL, copies: int = 1,
 def output_bytes(tree: ClusterTree, column: int, blocks) -> float:
     """What a tile makes beside its panel (bytes): its dense blocks twice (each block, then the tile's array of
     them) and its largest far block four times (the block's copy, then :func:`low_rank`'s products BΩ, Q and QᵀB,
-    each smaller than the block where it is compressed)."""
+    each smaller than the block where it is compressed), and its sketches (:func:`sketch_bytes`); less the rows
+    of the panel it does not form (:func:`tile_bytes` counts all 3n): those of no block it forms, but for the
+    sketched blocks' samples."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     area = [(72.0 * tree.size(i) * (min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0)), far)
             for i, j, far in blocks]
-    return 2 * sum(a for a, far in area if not far) + 4 * max((a for a, far in area if far), default=0.0)
+    made = 2 * sum(a for a, far in area if not far) + 4 * max((a for a, far in area if far), default=0.0)
+    formed, sampled = np.zeros(3 * len(tree.perm), bool), 0
+    for i, j, far in blocks:
+        if far and sketches(tree, i, j, c0, c1):
+            sampled += SKETCH_SAMPLES
+        else:
+            formed[3 * int(tree.start[i]):3 * int(tree.stop[i])] = True
+    unformed = max(float(np.sum(~formed)) - sampled, 0.0)
+    return made + sketch_bytes(tree, column, blocks) - 8.0 * unformed * 3 * (c1 - c0)
+
+
+def sketch_bytes(tree: ClusterTree, column: int, blocks) -> float:
+    """What a tile's sketches take (bytes, :class:`SketchGroup`): for each group Ω and its copy scaled by the
+    areas, its masks, counts and positions over the asked rows (at most four numbers a row) and its range sketch
+    Y; a chunk's rows of a group copied for their product (at most :data:`READ_BYTES`); and the largest block's
+    work (:func:`from_sketches`: its Y, its SVD, the test's product; X and its SVD)."""
+    c0, c1 = int(tree.start[column]), int(tree.stop[column])
+    width, total, one = SKETCH_RANK + SKETCH_TESTS, 0.0, 0.0
+    groups: dict[tuple[int, int], list] = {}
+    for i, j, far in blocks:
+        if far and sketches(tree, i, j, c0, c1):
+            groups.setdefault((int(tree.start[j]), int(tree.stop[j])), []).append(3 * tree.size(i))
+    for (j0, j1), rows in groups.items():
+        cols, n_sk = 3 * (min(j1, c1) - max(j0, c0)), float(sum(rows))
+        total += 2 * cols * width + 4 * 3 * len(tree.perm) + n_sk * width
+        one = max(one, max(4 * m * width + 4 * SKETCH_RANK * cols for m in rows))
+    return 8.0 * (total + one) + (float(READ_BYTES) if groups else 0.0)
 
 
 def source_bytes(source: SweepStore) -> float:

@@ -73,6 +73,7 @@ def test_artifact_is_compressed_and_every_far_block_within_tolerance(which, requ
         X = dense.Xi
         assert np.linalg.norm(C.to_dense() - X) <= TOL * np.linalg.norm(X)
     assert summary["factor_stats"]["compress"]["lowrank_blocks"] > 0
+    assert summary["factor_stats"]["compress"]["sketched"] > 0  # some far blocks come from their sketches (#27 2)
     # stores less than the dense array (measured 2.9x here; grows with n: README)
     assert C.compression_ratio() > 2.0
     X = dense.Xi
@@ -1449,6 +1450,47 @@ def test_merged_pieces_keep_the_block_within_tolerance_at_its_own_rank():
     assert U.shape[1] == 7
 
 
+def _sketched(B, rng, tol):
+    """from_sketches on block B through a sketch group's own draws (Y = BΩ and the sampled rows, as the pass forms
+    them)."""
+    g = compress.sketch_group(B.shape[0], 0, B.shape[1], [(0, B.shape[0])], rng)
+    return compress.from_sketches(B @ g.omega, B[g.samples[0]], g.samples[0], g.omega, tol)
+
+
+def test_a_block_from_its_sketches_is_within_tolerance_or_formed():
+    """#27 item 2: a far block compressed from its sketches (BΩ and a few of its rows, never B whole) against B
+    itself.  Spectra as a far block's (geometric decay: the Green's function's multipole terms), of
+    effective ranks from 5 to 60 for the sketch of 48 columns: every block accepted is within tol (the error
+    estimate's margin, from_sketches' docstring), V orthonormal, at a rank within 2 of the SVD's own rank at
+    tol/2; the flat spectra it cannot show within tol are refused (None: the tile forms them), none accepted
+    wrongly."""
+    tol, accepted, refused = 1e-4, 0, 0
+    rng = np.random.default_rng(1)
+    for trial in range(60):
+        m, n = 240 + 3 * trial, 600
+        reach = 5 + trial  # the rank at which the spectrum falls below tol/10
+        s = 10.0 ** (-5.0 * np.arange(min(m, n)) / reach)
+        U, _ = np.linalg.qr(rng.normal(size=(m, len(s))))
+        V, _ = np.linalg.qr(rng.normal(size=(n, len(s))))
+        B = (U * s) @ V.T
+        uv = _sketched(B, rng, tol)
+        if uv is None:
+            refused += 1
+            assert reach > 20  # a block of small rank is never refused
+            continue
+        accepted += 1
+        Uk, Vk = uv
+        assert np.linalg.norm(B - Uk @ Vk.T) <= tol * np.linalg.norm(B)
+        assert np.allclose(Vk.T @ Vk, np.eye(Vk.shape[1]), atol=1e-12)
+        tail = np.sqrt(np.cumsum((s * s)[::-1])[::-1]) / np.linalg.norm(s)
+        assert Uk.shape[1] <= int(np.argmax(np.append(tail, 0.0) <= tol / 2)) + 2
+    assert accepted >= 20 and refused >= 10  # both ways taken
+    # a zero block: rank 0; a block of noise: refused
+    Uk, Vk = _sketched(np.zeros((200, 300)), rng, tol)
+    assert Uk.shape == (200, 0) and Vk.shape == (300, 0)
+    assert _sketched(rng.normal(size=(200, 300)), rng, tol) is None
+
+
 def test_a_tile_task_carries_the_tree_without_the_partition_s_memo():
     """Every tile's task is sent the cluster tree.  The partition memoises which pairs of clusters hold a pair of
     vertices within r_max (ClusterTree.close), which at 47,467 vertices was 7 MiB against 0.6 MiB for the
@@ -1490,8 +1532,12 @@ def test_blocks_are_set_by_the_cluster_tree_not_by_the_panels(tmp_path):
                                           workers=1) for p in (512, 48)}
     wide, narrow = runs[512][0], runs[48][0]
     assert runs[48][1]["merged_blocks"] > 0  # blocks wider than a 48-vertex panel were merged from pieces
-    for k in ("dense_index", "lowrank_index"):
-        assert sorted(map(tuple, wide[k][:, :4])) == sorted(map(tuple, narrow[k][:, :4]))
+    # the same partition (a block near the border between dense and low-rank may be stored either way: its rank
+    # comes from a random sample)
+    def blocks(out):
+        return sorted(map(tuple, np.vstack([out[k][:, :4] for k in ("dense_index", "lowrank_index")])))
+
+    assert blocks(wide) == blocks(narrow)
     X, _ = greens.greens_functions(factor)
     C = CompressedXi(**read(narrow), tolerance=TOL)
     dofs = (3 * C.perm[:, None] + np.arange(3)).ravel()
