@@ -1245,12 +1245,12 @@ def tile_bytes(held: float, n_contact: int, panel: int = PANEL, copies: int = 1,
     return copies * columns + min(float(READ_BYTES), columns) + held + made
 
 
-def output_bytes(tree: ClusterTree, column: int, blocks) -> float:
+def output_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYTES) -> float:
     """What a tile makes beside its panel (bytes): its dense blocks twice (each block, then the tile's array of
     them) and its largest far block four times (the block's copy, then :func:`low_rank`'s products BΩ, Q and QᵀB,
     each smaller than the block where it is compressed), and its sketches (:func:`sketch_bytes`); less the rows
     of the panel it does not form (:func:`tile_bytes` counts all 3n): those of no block it forms, but for the
-    sketched blocks' samples."""
+    sketched blocks' samples.  ``chunk``: the largest chunk of W's blocks a tile reads (:func:`source_bytes`)."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     area = [(72.0 * tree.size(i) * (min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0)), far)
             for i, j, far in blocks]
@@ -1262,13 +1262,13 @@ def output_bytes(tree: ClusterTree, column: int, blocks) -> float:
         else:
             formed[3 * int(tree.start[i]):3 * int(tree.stop[i])] = True
     unformed = max(float(np.sum(~formed)) - sampled, 0.0)
-    return made + sketch_bytes(tree, column, blocks) - 8.0 * unformed * 3 * (c1 - c0)
+    return made + sketch_bytes(tree, column, blocks, chunk) - 8.0 * unformed * 3 * (c1 - c0)
 
 
-def sketch_bytes(tree: ClusterTree, column: int, blocks) -> float:
+def sketch_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYTES) -> float:
     """What a tile's sketches take (bytes, :class:`SketchGroup`): for each group Ω and its copy scaled by the
     areas, its masks, counts and positions over the asked rows (at most four numbers a row) and its range sketch
-    Y; a chunk's rows of a group copied for their product (at most :data:`READ_BYTES`); and the largest block's
+    Y; a chunk's rows of a group copied for their product (at most ``chunk``); and the largest block's
     work (:func:`from_sketches`: its Y, its SVD, the test's product; X and its SVD)."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     width, total, one = SKETCH_RANK + SKETCH_TESTS, 0.0, 0.0
@@ -1280,7 +1280,7 @@ def sketch_bytes(tree: ClusterTree, column: int, blocks) -> float:
         cols, n_sk = 3 * (min(j1, c1) - max(j0, c0)), float(sum(rows))
         total += 2 * cols * width + 4 * 3 * len(tree.perm) + n_sk * width
         one = max(one, max(4 * m * width + 4 * SKETCH_RANK * cols for m in rows))
-    return 8.0 * (total + one) + (float(READ_BYTES) if groups else 0.0)
+    return 8.0 * (total + one) + (float(chunk) if groups else 0.0)
 
 
 def source_bytes(source: SweepStore) -> float:
@@ -1439,9 +1439,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client = client or connect(scheduler, workers, memory_limit)
                 info = list(client.scheduler_info()["workers"].values())
                 limits = [w.get("memory_limit") for w in info]
-                made = max((output_bytes(tree, c, plan[c]) for c in todo), default=0.0)
 
                 def check_tiles(held, copies):  # refuse workers too small for their tiles, before they start
+                    made = max((output_bytes(tree, c, plan[c], held) for c in todo), default=0.0)  # (held ≥ a chunk)
                     stats["tile_bytes"] = tile_bytes(held, len(points), panel, copies, made)
                     check_worker_memory(limits, stats["tile_bytes"], [int(w.get("nthreads") or 1) for w in info])
 
