@@ -846,16 +846,6 @@ def is_symmetric(factor) -> bool:
     return bool(np.all(per_dof == per_dof[:, :1]))
 
 
-def panel_columns(store: SweepStore, perm: np.ndarray, c0: int, c1: int, upto: int | None = None):
-    """Ξ's columns of positions c0..c1 (3(c1-c0) of them) from W's store (rows in W's order: no reordered copy),
-    and where each row in cluster order is in them: ``X[at[3p + d]]`` is the row of dof d of the vertex at
-    position p.  ``upto``: only the rows of positions below it, 3·upto rows (a symmetric Ξ's tile stores the
-    blocks above the diagonal)."""
-    rows = (3 * perm[:, None] + np.arange(3)).ravel()  # contact dofs in cluster order
-    dcols = rows[3 * c0:3 * c1]  # the panel's traction columns
-    return store.sorted_columns(rows if upto is None else rows[:3 * upto], dcols)
-
-
 def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, near=None, sketch: bool = True) -> dict:
     """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
     reader's layout with offsets relative to this tile (:func:`assemble` shifts them), the low-rank
