@@ -873,7 +873,7 @@ def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, 
             spans.setdefault(q, []).append(((i, j), r0, r1))
         else:
             formed[r0:r1] = True
-    srng = np.random.default_rng([column, 1])  # the sketches' own: the low-rank blocks' draws stay as they were
+    srng = np.random.default_rng([column, 1])  # the sketches' own draws, apart from the formed blocks' (rng)
     groups = [sketch_group(len(rows), q0, q1, [(r0, r1) for _, r0, r1 in spans[q0, q1]], srng)
               for q0, q1 in sorted(spans)]
     for g in groups:
