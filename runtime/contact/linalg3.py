@@ -68,10 +68,12 @@ RECKON_FROM = 0.4
 
 def tracking_depth(S, delta):
     """min(δ, FOCAL_FRACTION / κ_max): the depth whose speed-up (I − δ S)⁻¹ the proxy moves with."""
-    kmax = largest_curvature(S)
-    if kmax * delta > FOCAL_FRACTION:
-        return FOCAL_FRACTION / kmax
-    return delta
+    return _depth(largest_curvature(S), delta)
+
+
+def _depth(kmax, delta):
+    """:func:`tracking_depth` from κ_max (which :func:`lag_weight` and :func:`reckoning` need too)."""
+    return FOCAL_FRACTION / kmax if kmax * delta > FOCAL_FRACTION else delta
 
 
 #: the proxy-offset term (:func:`lag_weight`) fades out from FOCAL_FRACTION, where the proxy moves by dead reckoning
@@ -88,8 +90,7 @@ def lag_weight(S, delta):
     (:mod:`pmask.runtime.contact.output`), 1 up to κ_max δ = FOCAL_FRACTION, 0 from LAG_TO on, a smoothstep
     between; both from one κ_max (step 4 reads them every tick)."""
     kmax = largest_curvature(S)
-    x = kmax * delta
-    d = FOCAL_FRACTION / kmax if x > FOCAL_FRACTION else delta
+    x, d = kmax * delta, _depth(kmax, delta)
     if x <= FOCAL_FRACTION:
         return d, 1.0
     if x >= LAG_TO:
@@ -103,8 +104,7 @@ def reckoning(S, delta):
     RECKON_FROM, 1 from FOCAL_FRACTION, a smoothstep between (continuous in the state, so the proxy never hops
     between the two)."""
     kmax = largest_curvature(S)
-    x = kmax * delta
-    d = FOCAL_FRACTION / kmax if x > FOCAL_FRACTION else delta
+    x, d = kmax * delta, _depth(kmax, delta)
     if x <= RECKON_FROM:
         return d, 0.0
     if x >= FOCAL_FRACTION:
