@@ -13,17 +13,19 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    tolerance, so η trades block count for rank, not accuracy).
    Otherwise both are split; pairs of leaves are stored densely.
 3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices, fewer for large
-   n so that a panel stays near :data:`PANEL_BYTES`: wider panels read W fewer times).  One task per
-   panel computes the columns of Ξ it holds and compresses its share of each block.  A far block wide and tall
-   enough (:func:`sketches`: most of the far field's entries) is never formed: the tile's one pass over W takes
+   n so that a panel stays near :data:`PANEL_BYTES`).  A tile computes the columns of Ξ its panel holds and
+   compresses its share of each block; one task, a *pass* (:func:`tiles`), runs a run of neighbouring tiles
+   together, reading each of W's blocks once for all of them (:func:`passes`: as many as :data:`PASS_BYTES`, or
+   half the worker's memory per thread, holds by :func:`pass_bytes`, and at least two passes per thread).  A far
+   block wide and tall enough (:func:`sketches`: most of the far field's entries) is never formed: the pass takes
    its range sketch :math:`B\Omega` (64 columns, 16 of them a test) and forms 64 of its rows, and
    :func:`from_sketches` interpolates the block from them, the error estimated by the test columns (a block
    they cannot show within ε is formed after all).  Any other block is formed and compressed by a randomized
    range finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of
    :math:`Q^TB` truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is
-   computed: B is at hand).  A block whose factors would not be smaller stays dense.  Only one panel's formed
-   rows, at most 3n x 3 #J numbers (the rows its formed blocks need), exist at a time on a worker.  The blocks are the
-   tree's, not the panels': a far block
+   computed: B is at hand).  A block whose factors would not be smaller stays dense.  Only one pass's formed
+   rows, at most 3n x 3 #J numbers a tile (the rows its formed blocks need), exist at a time on a worker thread.
+   The blocks are the tree's, not the panels': a far block
    whose column cluster holds several panels comes back from each as a *piece* (compressed within ε/2)
    and :func:`assemble` merges the pieces (:func:`merge_pieces`, within the other ε/2).  So the stored
    blocks are the hierarchical matrix's whatever the panel width (blocks cut at the panels stored ~3n·k
@@ -39,7 +41,9 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    run there too, :class:`FactorJob`, so the client never holds the factor), and written supernode by supernode
    to a file in the run's work folder (:class:`SweepStore`; under a tenth of the dense Ξ: the bench page gives it
    at 20,427 vertices);
-   a tile reads the X_s on its columns' tree paths.  So the tiles together do the dense route's
+   a pass reads the X_s on its tiles' columns' tree paths, once for them all (W in all about as many times as
+   there are passes, where tiles alone read it about once each: the top separators' blocks, most of W, are on
+   every column's path).  So the tiles together do the dense route's
    :math:`W^TW` products for the rows they form (each once: a tile computes only the rows above the diagonal,
    P1 being symmetric), and for the sketched rows the products with 64 columns instead of the panel's; the
    tiles need no factor.
@@ -52,8 +56,8 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
 4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
    this machine, or a real cluster (``--scheduler ADDRESS``; the work folder must then be on a
    filesystem every worker sees, for W's store: checked before the tiles).  The client writes each
-   finished tile into a tile store in the run's work folder (HDF5) as it arrives.  A lost worker's
-   tiles are run again (by the scheduler, or here if the task's inputs went with it); finished tiles
+   finished tile into a tile store in the run's work folder (HDF5) as its pass arrives.  A lost worker's
+   passes are run again (by the scheduler, or here if the task's inputs went with it); finished tiles
    are in the store and are never recomputed, also by a rerun after a crash.  The artifact's arrays
    are then filled from the store one tile at a time (:func:`assemble`).
 """
@@ -101,6 +105,10 @@ TILE_LAYOUT = "tree blocks, pieces per panel, near = a pair within r_max, dense 
 SCHEDULER_WAIT = 10.0
 #: tolerances at least this large store the far field's factors in float32 (:func:`far_dtype`)
 FLOAT32_TOLERANCE = 1e-5
+#: a pass of tiles (:func:`tiles`) holds at most this much on a worker thread (less where the worker's memory
+#: limit per thread is smaller): more tiles a pass read W fewer times (measured by hand at 20,427 vertices: 16
+#: tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB, and took 31 s against 36 s)
+PASS_BYTES = 3 * 2**30
 #: a tile is run again at most this often when workers are lost (then the run stops with the error)
 TILE_ATTEMPTS = 4
 
@@ -391,6 +399,7 @@ class SweepStore:
         self.key = str(self.index["key"])
         self.largest = int(self.index["largest"])  # doubles in the largest X_s (of W_E or W_B)
         self.load = "setptr" in self.index  # W_B stored (P2): Ξ = W_Eᵀ W_B, no area scaling
+        self.bytes_read = 0  # of the file, by this copy's passes (:meth:`passed`)
 
     @staticmethod
     def index_path(path: Path) -> Path:
@@ -418,107 +427,160 @@ class SweepStore:
         rows are sketched in the same pass over W (:class:`SketchGroup`): their range sketch
         :math:`\Xi_{R,J}\,\Omega`, for each chunk of X_s :math:`X_R (X_J^T \Omega)`, so that their work is the
         sketch's width, not the columns'.  The sketches are set on the groups."""
+        return self.passed([(rows, cols, sketch)])[0]
+
+    def passed(self, asks: list[tuple]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`sorted_columns` for several tiles' ``(rows, cols, sketch)`` in one pass over W: each chunk of
+        W's blocks is read once and added to every tile whose rows and columns it reaches (each tile's own
+        products, in the order its own pass makes them: the same numbers).  A pass of many tiles reads W once
+        where as many passes of one tile each read it about once each (their columns' paths share the top
+        separators, whose blocks are most of W)."""
         ix = self.index
-        pos, lo, hi, parent, ncol, offset = ix["pos"], ix["lo"], ix["hi"], ix["parent"], ix["ncol"], ix["offset"]
-        pj = pos[cols]
+        lo, hi, ncol, offset = ix["lo"], ix["hi"], ix["ncol"], ix["offset"]
+        todo = [_Asked(self, rows, cols, sketch) for rows, cols, sketch in asks]
+        reached = np.any([a.reached for a in todo], 0) if todo else np.zeros(len(lo), bool)
+        with open(self.path, "rb") as f:
+            for s in np.flatnonzero(reached):
+                m, nc, off = int(hi[s] - lo[s]), int(ncol[s]), int(offset[s])
+                step = max(1, READ_BYTES // (8 * nc))
+                mine = [(a, a.sel(s)) for a in todo if a.reached[s] and a.asks(lo[s], hi[s])]
+                mine = [(a, sel) for a, sel in mine if len(sel)]
+                if not mine:
+                    continue  # none of its rows asked for, or none of the tiles' columns reach it
+                if not self.load and m <= step:
+                    X = self._read(f, off, m * nc).reshape(m, nc)
+                    for a, sel in mine:
+                        XJ = X[a.pj[sel] - lo[s]]
+                        a.add(int(lo[s]), X, XJ, a.products(XJ, sel), sel)
+                    continue
+                work, whole = [], None
+                for a, sel in mine:
+                    if self.load:  # the tile's columns that reach s: their rows of W_B's block Y_s (read once)
+                        nB = int(ix["setptr"][s + 1] - ix["setptr"][s])
+                        if nB * nc * 8 <= READ_BYTES:
+                            whole = self._read(f, int(ix["offsetB"][s]), nB * nc).reshape(nB, nc) if whole is None \
+                                else whole
+                            XJ = whole[a.kB[sel]]
+                        else:
+                            XJ = self._rows(f, int(ix["offsetB"][s]), nc, a.kB[sel])
+                    else:
+                        XJ = self._rows(f, off, nc, a.pj[sel] - lo[s])  # the tile's rows of X_s (row by row)
+                    work.append((a, sel, XJ, a.products(XJ, sel)))
+                del whole
+                for r0 in range(0, m, step):
+                    r1 = min(m, r0 + step)
+                    want = [w for w in work if w[0].asks(lo[s] + r0, lo[s] + r1)]
+                    if want:
+                        X = self._read(f, off + r0 * nc, (r1 - r0) * nc).reshape(r1 - r0, nc)
+                        for a, sel, XJ, OJ in want:
+                            a.add(int(lo[s]) + r0, X, XJ, OJ, sel)
+        return [a.finish() for a in todo]
+
+    def _read(self, f, off: int, count: int) -> np.ndarray:  # ``count`` doubles from double ``off`` on
+        f.seek(8 * off)
+        self.bytes_read += 8 * count
+        return np.fromfile(f, np.float64, count)
+
+    def _rows(self, f, off: int, nc: int, idx: np.ndarray) -> np.ndarray:
+        """Rows ``idx`` of the row-major (·, nc) block at ``off`` (doubles), row by row."""
+        out = np.empty((len(idx), nc))
+        for q, r in enumerate(idx):
+            out[q] = self._read(f, off + int(r) * nc, nc)
+        return out
+
+
+class _Asked:
+    """One tile's share of a pass over W (:meth:`SweepStore.passed`): which supernodes its columns reach, the
+    rows it forms (D, in W's order) and sketches, and the products each chunk of W adds to them."""
+
+    def __init__(self, store: SweepStore, rows: np.ndarray, cols: np.ndarray, sketch: "Sketch | None"):
+        ix = store.index
+        pos, parent = ix["pos"], ix["parent"]
+        self.load = store.load
+        self.pj = pos[cols]
+        self.lo, self.hi = ix["lo"], ix["hi"]
+        self.ncols = len(cols)
         if self.load:
             own, optr = ix["ownB"], ix["ownptr"]
             starts = np.unique(np.concatenate([own[optr[c]:optr[c + 1]] for c in cols] + [own[:0]]))
-            pb, sets, sptr, offB = ix["posB"][cols], ix["setsB"], ix["setptr"], ix["offsetB"]
+            self.pb, self.sets, self.sptr = ix["posB"][cols], ix["setsB"], ix["setptr"]
         else:
             starts = np.unique(ix["first"][cols])
-        reached = np.zeros(len(lo), bool)
+        self.reached = np.zeros(len(ix["lo"]), bool)
         for s in starts:
-            while s >= 0 and not reached[s]:
-                reached[s] = True
+            while s >= 0 and not self.reached[s]:
+                self.reached[s] = True
                 s = parent[s]
-        groups = [] if sketch is None else sketch.groups
+        self.groups = groups = [] if sketch is None else sketch.groups
+        self.rows = rows
         asked = np.ones(len(rows), bool) if sketch is None else sketch.formed | np.any([g.rows for g in groups], 0)
         rows_in = np.flatnonzero(asked)
-        order = rows_in[np.argsort(pos[rows[rows_in]])]  # the rows that are formed or sketched, in W's order
-        ps = pos[rows[order]]  # their positions, sorted
+        self.order = order = rows_in[np.argsort(pos[rows[rows_in]])]  # the rows formed or sketched, in W's order
+        self.ps = ps = pos[rows[order]]  # their positions, sorted
         formed = np.ones(len(order), bool) if sketch is None else sketch.formed[order]
-        fbefore = np.concatenate([[0], np.cumsum(formed)])  # formed rows before each sorted row
-        at = np.full(len(rows), -1, np.int64)
-        at[order[formed]] = np.arange(int(fbefore[-1]))  # D's rows: the formed ones, in W's order
-        D = np.zeros((int(fbefore[-1]), len(cols)))
-        scale = np.ones(len(cols)) if self.load else ix["scale"][cols]
-        live = []  # per group: its rows among the sorted ones' positions, the count before each, Ω scaled
+        self.fbefore = np.concatenate([[0], np.cumsum(formed)])  # formed rows before each sorted row
+        self.at = np.full(len(rows), -1, np.int64)
+        self.at[order[formed]] = np.arange(int(self.fbefore[-1]))  # D's rows: the formed ones, in W's order
+        self.D = np.zeros((int(self.fbefore[-1]), len(cols)))
+        self.scale = np.ones(len(cols)) if self.load else ix["scale"][cols]
+        self.live = []  # per group: its rows among the sorted ones' positions, the count before each, Ω scaled
         for g in groups:
             mine = g.rows[order]
             g.Y = np.zeros((int(np.sum(mine)), g.omega.shape[1]))
-            live.append((g, ps[mine], np.concatenate([[0], np.cumsum(mine)]), g.omega * scale[g.q0:g.q1, None]))
-        pf = ps[formed]  # the formed rows' positions
+            self.live.append((g, ps[mine], np.concatenate([[0], np.cumsum(mine)]),
+                              g.omega * self.scale[g.q0:g.q1, None]))
+        self.pf = ps[formed]  # the formed rows' positions
 
-        def add(first, X, XJ, OJ):  # the rows at positions first .. first + len(X): D += X XJᵀ, in slices
-            a, b = np.searchsorted(ps, first), np.searchsorted(ps, first + len(X))
-            for (g, pg, before, _), OJg in zip(live, OJ):
-                y0, y1 = int(before[a]), int(before[b])
-                if y1 > y0 and OJg is not None:  # the group's rows: Y += X_R (X_Jᵀ Ω)
-                    g.Y[y0:y1] += (X if y1 - y0 == len(X) else X[pg[y0:y1] - first]) @ OJg
-            d0, d1 = int(fbefore[a]), int(fbefore[b])
-            if d1 == d0:
-                return
-            Xk = X if d1 - d0 == len(X) else X[pf[d0:d1] - first]
-            step = max(1, READ_BYTES // (8 * max(len(sel), 1)))
-            for q in range(0, len(Xk), step):
-                P = Xk[q:q + step] @ XJ.T
-                if len(sel) == len(cols):
-                    D[d0 + q:d0 + q + len(P)] += P
-                else:
-                    D[d0 + q:d0 + q + len(P), sel] += P
+    def asks(self, first, stop) -> bool:  # whether any of its rows are at positions first .. stop
+        return bool(np.searchsorted(self.ps, first) < np.searchsorted(self.ps, stop))
 
-        def products(XJ):  # per group: X_Jᵀ Ω over the supernode's columns in its range (None: none are)
-            out = []
-            for g, _, _, omega in live:
-                idx = np.flatnonzero((sel >= g.q0) & (sel < g.q1))
-                out.append(XJ[idx].T @ omega[sel[idx] - g.q0] if len(idx) else None)
-            return out
-
-        def read_rows(f, off, nc, idx):  # rows idx of the row-major (·, nc) block at ``off`` (doubles)
-            out = np.empty((len(idx), nc))
-            for q, r in enumerate(idx):
-                f.seek(8 * (off + int(r) * nc))
-                out[q] = np.fromfile(f, np.float64, nc)
-            return out
-
-        with open(self.path, "rb") as f:
-            for s in np.flatnonzero(reached):
-                if np.searchsorted(ps, lo[s]) == np.searchsorted(ps, hi[s]):
-                    continue  # none of its rows asked for
-                m, nc, off = int(hi[s] - lo[s]), int(ncol[s]), int(offset[s])
-                step = max(1, READ_BYTES // (8 * nc))
-                if self.load:  # the panel's columns that reach s: their rows of W_B's block Y_s
-                    cs = sets[sptr[s]:sptr[s + 1]]
-                    k = np.minimum(np.searchsorted(cs, pb), max(len(cs) - 1, 0))
-                    sel = np.flatnonzero(cs[k] == pb) if len(cs) else np.zeros(0, np.int64)
-                    if len(sel) == 0:
-                        continue
-                    if len(cs) <= step:
-                        f.seek(8 * int(offB[s]))
-                        XJ = np.fromfile(f, np.float64, len(cs) * nc).reshape(len(cs), nc)[k[sel]]
-                    else:
-                        XJ = read_rows(f, int(offB[s]), nc, k[sel])
-                else:
-                    sel = np.flatnonzero((pj >= lo[s]) & (pj < hi[s]))
-                    if m <= step:
-                        f.seek(8 * off)
-                        X = np.fromfile(f, np.float64, m * nc).reshape(m, nc)
-                        XJ = X[pj[sel] - lo[s]]
-                        add(int(lo[s]), X, XJ, products(XJ))
-                        continue
-                    XJ = read_rows(f, off, nc, pj[sel] - lo[s])  # the panel's rows of X_s
-                OJ = products(XJ)
-                for r0 in range(0, m, step):
-                    r1 = min(m, r0 + step)
-                    if np.searchsorted(ps, lo[s] + r0) < np.searchsorted(ps, lo[s] + r1):
-                        f.seek(8 * (off + r0 * nc))
-                        add(int(lo[s]) + r0, np.fromfile(f, np.float64, (r1 - r0) * nc).reshape(r1 - r0, nc), XJ, OJ)
+    def sel(self, s: int) -> np.ndarray:
+        """The tile's columns whose rows of supernode s's block it multiplies (P2: those of W_B's columns that
+        reach s, at their rows ``kB`` of its block)."""
         if not self.load:
-            D *= scale[None, :]
-        for g in groups:
-            g.at = np.full(len(rows), -1, np.int64)
-            g.at[order[g.rows[order]]] = np.arange(len(g.Y))
+            return np.flatnonzero((self.pj >= self.lo[s]) & (self.pj < self.hi[s]))
+        cs = self.sets[self.sptr[s]:self.sptr[s + 1]]
+        k = np.minimum(np.searchsorted(cs, self.pb), max(len(cs) - 1, 0))
+        self.kB = k
+        return np.flatnonzero(cs[k] == self.pb) if len(cs) else np.zeros(0, np.int64)
+
+    def products(self, XJ: np.ndarray, sel: np.ndarray) -> list:
+        """Per group: X_Jᵀ Ω over the supernode's columns in its range (None: none are)."""
+        out = []
+        for g, _, _, omega in self.live:
+            idx = np.flatnonzero((sel >= g.q0) & (sel < g.q1))
+            out.append(XJ[idx].T @ omega[sel[idx] - g.q0] if len(idx) else None)
+        return out
+
+    def add(self, first: int, X: np.ndarray, XJ: np.ndarray, OJ: list, sel: np.ndarray) -> None:
+        """The rows at positions first .. first + len(X): D += X XJᵀ (in slices of at most :data:`READ_BYTES`),
+        each group's Y += X_R (X_Jᵀ Ω)."""
+        ps, D = self.ps, self.D
+        a, b = np.searchsorted(ps, first), np.searchsorted(ps, first + len(X))
+        for (g, pg, before, _), OJg in zip(self.live, OJ):
+            y0, y1 = int(before[a]), int(before[b])
+            if y1 > y0 and OJg is not None:
+                g.Y[y0:y1] += (X if y1 - y0 == len(X) else X[pg[y0:y1] - first]) @ OJg
+        d0, d1 = int(self.fbefore[a]), int(self.fbefore[b])
+        if d1 == d0:
+            return
+        Xk = X if d1 - d0 == len(X) else X[self.pf[d0:d1] - first]
+        step = max(1, READ_BYTES // (8 * max(len(sel), 1)))
+        for q in range(0, len(Xk), step):
+            P = Xk[q:q + step] @ XJ.T
+            if len(sel) == self.ncols:
+                D[d0 + q:d0 + q + len(P)] += P
+            else:
+                D[d0 + q:d0 + q + len(P), sel] += P
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.load:
+            self.D *= self.scale[None, :]
+        for g in self.groups:
+            g.at = np.full(len(self.rows), -1, np.int64)
+            g.at[self.order[g.rows[self.order]]] = np.arange(len(g.Y))
+        D, at = self.D, self.at
+        self.D = None  # (the pass hands D on: the tile drops it once compressed)
         return D, at
 
 
@@ -847,7 +909,8 @@ def is_symmetric(factor) -> bool:
 
 
 def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, near=None, sketch: bool = True) -> dict:
-    """One task: the panel of cluster ``column`` and its blocks compressed.  Returns arrays in the
+    """The panel of cluster ``column`` and its blocks compressed (:func:`tiles`, a pass of this tile alone).
+    Returns arrays in the
     reader's layout with offsets relative to this tile (:func:`assemble` shifts them), the low-rank
     index with an eighth column: the block's column cluster J.  Where J is wider than the panel the
     entry is a *piece* Ξ_{I,column} of the block, compressed within ``tol``/2 with V's columns
@@ -857,10 +920,37 @@ def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, 
     ``sketch``: the far blocks :func:`sketches` picks are compressed from sketches taken in the same pass over W
     (:func:`from_sketches`), not formed; one whose sketches cannot show the tolerance is formed after all (the
     tile's ``formed_again``).  False: every block formed (the test's reference)."""
+    return tiles(store, tree, [column], [blocks], tol, near, sketch)[0]
+
+
+def tiles(store: SweepStore, tree: ClusterTree, columns: list[int], plans: list, tol: float, near=None,
+          sketch: bool = True) -> list[dict]:
+    """One task: the panels of clusters ``columns`` (their blocks ``plans``) in one pass over W
+    (:meth:`SweepStore.passed`), then compressed one after the other (:func:`tile`'s results, the same numbers
+    as each tile's own pass), each panel's formed rows dropped once it is.  Each result's ``read_bytes`` is its
+    share of the bytes the pass read; ``pass_tiles`` the pass's tiles."""
     t0 = time.perf_counter()
+    read0 = store.bytes_read
+    plan = [_tile_plan(tree, c, blocks, sketch) for c, blocks in zip(columns, plans)]
+    made = store.passed([(p["rows"], p["dcols"], p["sketch"]) for p in plan])
+    solve = (time.perf_counter() - t0) / max(len(plan), 1)
+    out = []
+    for k, blocks in enumerate(plans):
+        (X, at), p = made[k], plan[k]
+        made[k] = plan[k] = None  # (its formed rows and sketches go once it is compressed)
+        out.append(_tile_compress(store, tree, p, blocks, X, at, tol, near))
+        del X, at, p
+    for t in out:  # (the reads of a block formed after all included)
+        t.update({"solve_s": solve, "read_bytes": (store.bytes_read - read0) / max(len(out), 1),
+                  "pass_tiles": len(out)})
+    return out
+
+
+def _tile_plan(tree: ClusterTree, column: int, blocks, sketch: bool) -> dict:
+    """What tile ``column`` asks of the pass: its rows and columns, the far blocks it sketches (their
+    :class:`SketchGroup`, by column range) and the rows it forms."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)  # one past the last row any block needs
-    rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
     rows = (3 * tree.perm[:, None] + np.arange(3)).ravel()[:3 * upto]  # contact dofs in cluster order
     dcols = (3 * tree.perm[c0:c1, None] + np.arange(3)).ravel()  # the panel's traction columns
     sketched = {(i, j) for i, j, far in blocks if far and sketches(tree, i, j, c0, c1)} if sketch else set()
@@ -880,8 +970,16 @@ def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, 
         for rs in g.samples:
             formed[rs] = True
     band = {ij: (g, b) for g, (q0, q1) in zip(groups, sorted(spans)) for b, (ij, _, _) in enumerate(spans[q0, q1])}
-    X, at = store.sorted_columns(rows, dcols, Sketch(formed, groups))
-    t_solve = time.perf_counter() - t0
+    return {"column": column, "c0": c0, "c1": c1, "rows": rows, "dcols": dcols, "sketched": len(sketched),
+            "band": band, "sketch": Sketch(formed, groups)}
+
+
+def _tile_compress(store: SweepStore, tree: ClusterTree, p: dict, blocks, X: np.ndarray, at: np.ndarray, tol: float,
+                   near) -> dict:
+    """Tile ``p`` (:func:`_tile_plan`) compressed from its pass's formed rows X (``at``) and sketches."""
+    t0 = time.perf_counter()
+    column, c0, c1, rows, dcols, band = p["column"], p["c0"], p["c1"], p["rows"], p["dcols"], p["band"]
+    rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
     dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
     near_index, near_q, near_mask, near_scale = [], [], [], []
     d_off = u_off = v_off = 0
@@ -931,8 +1029,8 @@ def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, 
             "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 8), "U": cat(Us),
             "V": cat(Vs), "near_index": np.array(near_index, np.int64).reshape(-1, 3),
             "near_q": cat(near_q, np.int16), "near_mask": cat(near_mask, np.uint8), "near_scale": cat(near_scale),
-            "solve_s": t_solve, "compress_s": time.perf_counter() - t0 - t_solve, "pid": os.getpid(),
-            "sketched": len(sketched), "formed_again": formed_again}
+            "compress_s": time.perf_counter() - t0, "pid": os.getpid(), "sketched": p["sketched"],
+            "formed_again": formed_again}
 
 
 def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1063,7 +1161,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     dense_index, lowrank_index, near_index = [], [], []
     runs = {"dense": [], "U": [], "V": [], "near_q": [], "near_mask": [], "near_scale": []}
     at = dict.fromkeys(TileStore.FIELDS, 0)
-    times = {"solve_s": 0.0, "compress_s": 0.0, "sketched": 0, "formed_again": 0}
+    times = {"solve_s": 0.0, "compress_s": 0.0, "sketched": 0, "formed_again": 0, "read_bytes": 0.0}
 
     def run(field, name, a, b):  # the next run of a field, joined to the last when it continues it
         last = runs[field][-1] if runs[field] else None
@@ -1095,7 +1193,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
             at[field] += int(ends[-1]) if len(ends) else 0
         lowrank_index.append(entry)
         for k in times:
-            times[k] += type(times[k])(g.attrs.get(k, 0))  # (a tile of an older run has no sketch counts)
+            times[k] += type(times[k])(g.attrs.get(k, 0))  # (a tile of an older run has no sketch or read counts)
     for r0, r1, c0, c1, k, (ua, ub), (va, vb) in merged:
         lowrank_index.append(np.array([[r0, r1, c0, c1, k, at["U"], at["V"]]], np.int64))
         run("U", out_U.name, ua, ub)
@@ -1157,7 +1255,7 @@ class TileStore:
         g = self.file.create_group(f"tile-{t['column']}")
         for k in self.FIELDS:
             g.create_dataset(k, data=t[k])
-        for k in ("solve_s", "compress_s", "pid", "sketched", "formed_again"):
+        for k in ("solve_s", "compress_s", "pid", "sketched", "formed_again", "read_bytes", "pass_tiles"):
             g.attrs[k] = t[k]
         g.attrs["done"] = True
         self.file.flush()
@@ -1253,6 +1351,63 @@ def output_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYT
             formed[3 * int(tree.start[i]):3 * int(tree.stop[i])] = True
     unformed = max(float(np.sum(~formed)) - sampled, 0.0)
     return made + sketch_bytes(tree, column, blocks, chunk) - 8.0 * unformed * 3 * (c1 - c0)
+
+
+def kept_bytes(tree: ClusterTree, column: int, blocks) -> float:
+    """What a tile of a pass (:func:`tiles`) holds while another tile of the pass is worked on (bytes): its
+    formed rows (D: the rows of the blocks it forms and its sketched blocks' samples, by its columns), its
+    indices over the rows it asks (eight numbers a row), its groups' Ω (twice), masks and range sketches, and
+    then, once compressed, its results: at most its formed blocks' areas and, for a sketched block, the
+    sketch's rank times its rows and columns (:func:`from_sketches`)."""
+    c0, c1 = int(tree.start[column]), int(tree.stop[column])
+    width = SKETCH_RANK + SKETCH_TESTS
+    upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)
+    formed, sampled, out = np.zeros(3 * upto, bool), 0, 0.0
+    groups: dict[tuple[int, int], float] = {}
+    for i, j, far in blocks:
+        rows, cols = 3 * tree.size(i), 3 * (min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0))
+        if far and sketches(tree, i, j, c0, c1):
+            sampled += SKETCH_SAMPLES
+            out += SKETCH_RANK * (rows + cols)
+            key = (int(tree.start[j]), int(tree.stop[j]))
+            groups[key] = groups.get(key, 2.0 * cols * width + 4 * 3 * upto) + rows * width
+        else:
+            formed[3 * int(tree.start[i]):3 * int(tree.stop[i])] = True
+            out += rows * cols
+    d_rows = float(np.sum(formed)) + sampled
+    return 8.0 * (d_rows * 3 * (c1 - c0) + 8 * 3 * upto + sum(groups.values()) + out)
+
+
+def pass_bytes(tree: ClusterTree, columns: list[int], plans: list, held: float, n_contact: int, panel: int,
+               widest: int) -> float:
+    """A worker's memory for a pass of tiles ``columns`` (:func:`tiles`): every tile's :func:`kept_bytes` and
+    its rows of the supernode block being read (``widest``: the widest supernode's columns), and the largest
+    tile's own work as one tile alone counts it (:func:`tile_bytes`: its panel, a chunk, its outputs)."""
+    parts = [_pass_part(tree, c, b, held, n_contact, panel, widest) for c, b in zip(columns, plans)]
+    return max((one for one, _ in parts), default=0.0) + sum(kept for _, kept in parts)
+
+
+def _pass_part(tree, column, blocks, held, n_contact, panel, widest) -> tuple[float, float]:
+    return (tile_bytes(held, n_contact, panel, 1, output_bytes(tree, column, blocks, held)),
+            kept_bytes(tree, column, blocks) + 8.0 * 3 * tree.size(column) * widest)
+
+
+def passes(tree: ClusterTree, columns: list[int], plans: dict, budget: float, held: float, n_contact: int,
+           panel: int, widest: int, threads: int) -> list[list[int]]:
+    """The tiles ``columns`` (in position order) cut into passes (:func:`tiles`): runs of neighbouring panels
+    (their columns' paths share the most of W) each within ``budget`` (:func:`pass_bytes`; a tile alone even
+    above it: :func:`check_worker_memory` refuses that), and at least two passes per worker thread where there
+    are enough tiles (so that the last passes do not leave workers idle)."""
+    most = max(1, -(-len(columns) // (2 * max(threads, 1))))
+    out, run, one, kept = [], [], 0.0, 0.0
+    for c in columns:
+        o, k = _pass_part(tree, c, plans[c], held, n_contact, panel, widest)
+        if run and (len(run) >= most or max(one, o) + kept + k > budget):
+            out.append(run)
+            run, one, kept = [], 0.0, 0.0
+        run.append(c)
+        one, kept = max(one, o), kept + k
+    return out + ([run] if run else [])
 
 
 def sketch_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYTES) -> float:
@@ -1460,40 +1615,53 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     raise InputError(f"{sum(not v for v in seen.values())} of {len(seen)} Dask workers cannot read "
                                      f"{source.path} (W's store for the tiles): with --scheduler the artifact's "
                                      "work folder (.work next to -o) must be on a filesystem every worker mounts")
-                attempts = {c: 0 for c in todo}
+                threads = [int(w.get("nthreads") or 1) for w in info]
+                held, widest = source_bytes(source), int(source.index["ncol"].max(initial=0))
+                # half a worker's memory per thread at most: Dask pauses a worker near its limit
+                budget = min([PASS_BYTES] + [m / t / 2 for m, t in zip(limits, threads) if m])
+                groups = passes(tree, todo, plan, budget, held, len(points), panel, widest, sum(threads))
+                stats["passes"] = len(groups)
+                stats["pass_bytes"] = max(pass_bytes(tree, g, [plan[c] for c in g], held, len(points), panel, widest)
+                                          for g in groups)
+                check_worker_memory(limits, stats["pass_bytes"], threads)
+                attempts = {g[0]: 0 for g in groups}
                 done = len(cols) - len(todo)
                 fac = near = None
-                while todo:
+                while groups:
                     check_scheduler(client, scheduler, done, len(cols), store)
                     if fac is None or fac.status != "finished":
                         fac = client.scatter(source, broadcast=True, hash=False)
                     if near is None or near.status != "finished":  # (a lost worker may take it with it)
                         near = client.scatter((np.asarray(points, float)[tree.perm], float(r_max)), broadcast=True,
                                               hash=False)
-                    futures = {client.submit(tile, fac, tree, c, plan[c], tol, near,
-                                             key=f"pmask-tile-{c}-{attempts[c]}", pure=False): c for c in todo}
+                    futures = {client.submit(tiles, fac, tree, g, [plan[c] for c in g], tol, near,
+                                             key=f"pmask-tiles-{'.'.join(map(str, g))}-{attempts[g[0]]}",
+                                             pure=False): g for g in groups}
                     lost = []
                     for fut in as_completed(futures):
-                        c = futures[fut]
+                        g = futures[fut]
                         try:
-                            t = fut.result()
+                            made = fut.result()
                         except Exception as exc:  # a lost worker took every copy of the inputs, or the task failed
                             check_scheduler(client, scheduler, done, len(cols), store)
-                            attempts[c] += 1
-                            if attempts[c] >= TILE_ATTEMPTS or isinstance(exc, (MemoryError, InputError)):
+                            attempts[g[0]] += 1
+                            if attempts[g[0]] >= TILE_ATTEMPTS or isinstance(exc, (MemoryError, InputError)):
                                 raise
-                            log.warning("tile %d failed on its worker (%s: %s); running it again", c,
-                                        type(exc).__name__, exc)
-                            lost.append(c)
+                            log.warning("the pass of tiles %s failed on its worker (%s: %s); running it again",
+                                        ", ".join(map(str, g)), type(exc).__name__, exc)
+                            lost.append(g)
                             continue
                         fut.release()  # the result is in the store: a lost worker must not make dask recompute it
-                        ts.put(t)
-                        done += 1
-                        if done * 10 // len(cols) > (done - 1) * 10 // len(cols):
-                            log.info("compressed Ξ: %d of %d tiles, %.0f s", done, len(cols), time.perf_counter() - t0)
-                        if on_tile is not None:
-                            on_tile(t)
-                    todo = lost
+                        for t in made:
+                            ts.put(t)
+                            done += 1
+                            if done * 10 // len(cols) > (done - 1) * 10 // len(cols):
+                                log.info("compressed Ξ: %d of %d tiles, %.0f s", done, len(cols),
+                                         time.perf_counter() - t0)
+                            if on_tile is not None:
+                                on_tile(t)
+                        del made
+                    groups = lost
             for p in (w_path, SweepStore.index_path(w_path)):  # every tile is in the store: W is not needed again
                 p.unlink(missing_ok=True)
         finally:  # the workers go before the assembly
@@ -1520,6 +1688,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                   "dense_bytes": int(8 * (3 * len(points)) ** 2),
                   "max_rank": int(out["lowrank_index"][:, 4].max()) if len(out["lowrank_index"]) else 0})
     stats["ratio"] = stats["dense_bytes"] / max(stats["stored_bytes"], 1)
+    if stats.get("W_bytes"):  # how many times the tiles read W's store, all their passes together
+        stats["W_reads"] = stats["read_bytes"] / stats["W_bytes"]
     log.info("compressed Ξ: %d tiles (%d reused), %d dense + %d low-rank blocks, %.1fx smaller than dense, %.1f s",
              stats["tiles"], stats["tiles_reused"], stats["dense_blocks"], stats["lowrank_blocks"], stats["ratio"],
              stats["seconds"])

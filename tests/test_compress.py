@@ -488,8 +488,9 @@ def test_both_loaders_refuse_a_damaged_compressed_table_for_the_same_reason(pair
 
 
 def _tile_trace(path: str):
-    """A Dask worker plugin (test code, not the library's): each tile task that starts executing appends
-    "column pid" to a file, so a test that kills a worker can read who ran what.  A local class, so that
+    """A Dask worker plugin (test code, not the library's): each pass of tiles that starts executing appends
+    "column pid" for each of its tiles to a file, so a test that kills a worker can read who ran
+    what.  A local class, so that
     cloudpickle sends it by value (the workers cannot import this test module)."""
     from distributed.diagnostics.plugin import WorkerPlugin
 
@@ -497,11 +498,11 @@ def _tile_trace(path: str):
         name = "pmask-tile-trace"
 
         def transition(self, key, start, finish, **kwargs):
-            if finish == "executing" and isinstance(key, str) and key.startswith("pmask-tile-"):
+            if finish == "executing" and isinstance(key, str) and key.startswith("pmask-tiles-"):
                 import os
 
                 with open(path, "a") as f:
-                    f.write(f"{int(key.split('-')[2])} {os.getpid()}\n")
+                    f.writelines(f"{c} {os.getpid()}\n" for c in key.split("-")[2].split("."))
 
     return TileTrace()
 
@@ -726,6 +727,84 @@ def test_a_tile_holds_no_more_than_the_memory_check_counts(tmp_path, monkeypatch
                 model = compress.tile_bytes(held, len(pts), panel, 1, made)
                 assert worst <= model <= 2 * worst, (len(pts), read_bytes, panel, worst, model)
     assert sum(t["sketched"] for t, _ in runs) > 0  # the kidney's tiles did sketch
+
+
+def _rchar() -> int:
+    """Bytes this process has read through read() so far (Linux's /proc/self/io: the kernel's count, page cache
+    or disk, apart from the store's own)."""
+    with open("/proc/self/io") as f:
+        return int(next(line for line in f if line.startswith("rchar")).split()[1])
+
+
+@pytest.mark.parametrize("element", ["P1", "P2"])
+def test_a_pass_of_tiles_reads_w_once_and_gives_each_tile_its_own_numbers(tmp_path, monkeypatch, element):
+    """#27 item 2 (W read a bounded number of times): the tiles of a pass (compress.tiles) share each read of W's
+    blocks.  Each tile's arrays are its own pass's bit for bit (a pass shares the reads, not the arithmetic:
+    each tile's products are the same, in the same order).  All the tiles in one pass read W's store once with
+    whole blocks, and at most twice with blocks read in chunks of a few rows (each tile also reads its own
+    columns' rows of a block too large to read whole: each row once more); alone, each tile reads the blocks
+    on its columns' paths, the top separators' every time (16 tiles: 3.7x and 11.6x the pass's reads, by hand).
+    With whole blocks the kernel's count of bytes read
+    agrees (within 1.5x: stdio reads ahead of each seek)."""
+    factor, pts = _small_factor(element)
+    tree = compress.cluster_tree(pts)
+    sym = element == "P1"
+    cols = compress.panels(tree, 48)
+    plans = [[b for b in compress.partition(tree, c, R_MAX) if not sym or tree.start[b[0]] <= tree.start[b[1]]]
+             for c in cols]
+    near = (pts[tree.perm], R_MAX)
+    for read_bytes, most in ((compress.READ_BYTES, 1.0), (8 * 3 * 60, 2.0)):  # whole blocks; ~3 rows a read
+        monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
+        store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
+        size = store.path.stat().st_size
+        k0 = _rchar()
+        alone = [compress.tile(store, tree, c, p, TOL, near) for c, p in zip(cols, plans)]
+        k1, by_tile = _rchar(), store.bytes_read
+        store.bytes_read = 0
+        one_pass = compress.tiles(store, tree, cols, plans, TOL, near)
+        k2 = _rchar()
+        for a, b in zip(alone, one_pass):
+            assert all(np.array_equal(a[k], b[k]) for k in compress.TileStore.FIELDS), a["column"]
+        assert len(cols) >= 8 and all(t["pass_tiles"] == len(cols) for t in one_pass)
+        assert sum(t["read_bytes"] for t in one_pass) == pytest.approx(store.bytes_read)
+        assert store.bytes_read <= most * size and by_tile > 3 * store.bytes_read, (store.bytes_read, size, by_tile)
+        if most == 1.0:
+            assert k2 - k1 <= 1.5 * size and k1 - k0 >= 5 * size, (k2 - k1, k1 - k0, size)
+
+
+def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch):
+    """#27 items 2 and 3: a worker's memory for a pass of tiles as the client counts it when it cuts the tiles
+    into passes (compress.pass_bytes: each tile's formed rows, indices, sketches and results, and the largest
+    tile's own work) against tracemalloc's peak over compress.tiles: never above it, and within 3x of it (each
+    tile is counted with both its formed rows and its results, which it never holds together, and the largest
+    with its whole panel); passes of 2, half and all the tiles, whole blocks and a few rows a read.  And
+    compress.passes keeps each pass within the budget it is given (a tile alone may exceed it: the worker check
+    refuses that) and at most ⌈tiles / 2 threads⌉ long."""
+    factor, pts = _small_factor()
+    tree = compress.cluster_tree(pts)
+    near = (pts[tree.perm], R_MAX)
+    for read_bytes in (compress.READ_BYTES, 8 * 3 * 60):
+        monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
+        store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
+        held, widest = compress.source_bytes(store), int(store.index["ncol"].max())
+        for panel in (48, 128):
+            cols = compress.panels(tree, panel)
+            plans = {c: [b for b in compress.partition(tree, c, R_MAX) if tree.start[b[0]] <= tree.start[b[1]]]
+                     for c in cols}
+            for group in (cols[:2], cols[:len(cols) // 2], cols):
+                _, peak = traced_peak(compress.tiles, store, tree, group, [plans[c] for c in group], TOL, near)
+                model = compress.pass_bytes(tree, group, [plans[c] for c in group], held, len(pts), panel, widest)
+                assert peak <= model <= 3 * peak, (read_bytes, panel, len(group), peak, model)
+            for budget in (compress.pass_bytes(tree, cols[:3], [plans[c] for c in cols[:3]], held, len(pts), panel,
+                                               widest), 1.0):
+                cut = compress.passes(tree, cols, plans, budget, held, len(pts), panel, widest, 2)
+                assert [c for g in cut for c in g] == cols
+                for g in cut:
+                    assert len(g) <= -(-len(cols) // 4)
+                    assert len(g) == 1 or compress.pass_bytes(tree, g, [plans[c] for c in g], held, len(pts), panel,
+                                                              widest) <= budget
+                if budget == 1.0:
+                    assert all(len(g) == 1 for g in cut)
 
 
 def test_the_sweep_in_batches_holds_its_budget_and_writes_the_same_store(tmp_path):
