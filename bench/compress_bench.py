@@ -412,7 +412,8 @@ def eight_workers(size, work: Path) -> dict:
     per = sorted(m.per[p] / 2**20 for p in pids if p in m.per)
     return {"workers": 8, "memory_limit_mib": 1024, "tiles": st["tiles"], "seconds": secs,
             "peak_rss_per_worker_mib": per, "factor_mib": compress.factor_bytes(factor) / 2**20,
-            "tile_estimate_mib": st["tile_bytes"] / 2**20}
+            "tile_estimate_mib": st["tile_bytes"] / 2**20, "passes": st.get("passes"),
+            "pass_estimate_mib": st.get("pass_bytes", 0) / 2**20}
 
 
 def main(out: Path) -> dict:
@@ -612,6 +613,8 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
               f"{g['params']['interior'] * 1e3:.0f} mm ({g['contact']:,} contact vertices, {g['dofs']:,} dofs), "
               f"compressed on 2 local workers through `pmask precompute`: whole run {g['total_s'] / 60:.1f} min "
               f"(GF stage {g['greens_s'] / 60:.1f} min: W sweep {st['sweep_s']:.0f} s, {st['tiles']} tiles"
+              + (f" in {st['passes']} passes over W (each within {st['pass_bytes'] / 2**30:.2f} GiB by the memory "
+                 f"model), which read W's store {st['W_reads']:.1f} times in all" if "passes" in st else "")
               + (f", {st['sketched']:,} far blocks or pieces from their sketches, {st['formed_again']:,} of them formed "
                  "after all" if "sketched" in st else "") + "), "
               f"**peak RSS {g['peak_rss_gib']:.2f} GiB** (process tree; largest processes "
@@ -762,7 +765,9 @@ def markdown(res: dict) -> str:
     L += ["", f"8 simulated workers (LocalCluster, 1 GiB each, on 2 cores), {e['tiles']} tiles of the default kidney "
               f"in {e['seconds']:.1f} s: peak RSS per worker {min(e['peak_rss_per_worker_mib']):.0f}–"
               f"{max(e['peak_rss_per_worker_mib']):.0f} MiB (a tile estimated "
-              f"{e['tile_estimate_mib']:.0f} MiB)."]
+              f"{e['tile_estimate_mib']:.0f} MiB" + (f"; {e['passes']} passes over W, each estimated at most "
+                                                       f"{e['pass_estimate_mib']:.0f} MiB" if e.get("passes") else "")
+              + ")."]
     return "\n".join(L)
 
 
