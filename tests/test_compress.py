@@ -779,7 +779,7 @@ def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch
     tile is counted with both its formed rows and its results, which it never holds together, and the largest
     with its whole panel); passes of 2, half and all the tiles, whole blocks and a few rows a read.  And
     compress.passes keeps each pass within the budget it is given (a tile alone may exceed it: the worker check
-    refuses that) and at most ⌈tiles / 2 threads⌉ long."""
+    refuses that) and within half a tile's work of an equal share (PASSES_PER_THREAD per thread)."""
     factor, pts = _small_factor()
     tree = compress.cluster_tree(pts)
     near = (pts[tree.perm], R_MAX)
@@ -799,8 +799,10 @@ def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch
                                                widest), 1.0):
                 cut = compress.passes(tree, cols, plans, budget, held, len(pts), panel, widest, 2)
                 assert [c for g in cut for c in g] == cols
+                work = {c: compress.tile_work(tree, c, plans[c]) for c in cols}
+                share = sum(work.values()) / (2 * compress.PASSES_PER_THREAD)
                 for g in cut:
-                    assert len(g) <= -(-len(cols) // 4)
+                    assert len(g) == 1 or sum(work[c] for c in g) <= share + max(work.values()) / 2
                     assert len(g) == 1 or compress.pass_bytes(tree, g, [plans[c] for c in g], held, len(pts), panel,
                                                               widest) <= budget
                 if budget == 1.0:
