@@ -56,8 +56,9 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
    was refused on a 24 GiB machine.
 4. **Dask**: the tasks run on ``dask.distributed``: by default a LocalCluster of worker processes on
    this machine, or a real cluster (``--scheduler ADDRESS``; the work folder must then be on a
-   filesystem every worker sees, for W's store: checked before the tiles).  The client writes each
-   finished tile into a tile store in the run's work folder (HDF5) as its pass arrives.  A lost worker's
+   filesystem every worker sees, for W's store and the passes' tiles: checked before the tiles).  A pass writes
+   each tile to a file in the work folder as it is compressed, and the client moves them into a tile store in the
+   run's work folder (HDF5) one at a time as the pass arrives.  A lost worker's
    passes are run again (by the scheduler, or here if the task's inputs went with it); finished tiles
    are in the store and are never recomputed, also by a rerun after a crash.  The artifact's arrays
    are then filled from the store one tile at a time (:func:`assemble`).
@@ -925,11 +926,14 @@ def tile(store: SweepStore, tree: ClusterTree, column: int, blocks, tol: float, 
 
 
 def tiles(store: SweepStore, tree: ClusterTree, columns: list[int], plans: list, tol: float, near=None,
-          sketch: bool = True) -> list[dict]:
+          sketch: bool = True, folder: Path | None = None) -> list[dict]:
     """One task: the panels of clusters ``columns`` (their blocks ``plans``) in one pass over W
     (:meth:`SweepStore.passed`), then compressed one after the other (:func:`tile`'s results, the same numbers
     as each tile's own pass), each panel's formed rows dropped once it is.  Each result's ``read_bytes`` is its
-    share of the bytes the pass read; ``pass_tiles`` the pass's tiles."""
+    share of the bytes the pass read; ``pass_tiles`` the pass's tiles.  ``folder``: each tile's arrays are
+    written there as it is compressed (:func:`_tile_file`), and its result names the file (``path``) in their
+    place, so that neither the worker nor the client holds a whole pass's results (the client reads them one
+    tile at a time: :func:`read_tile`)."""
     t0 = time.perf_counter()
     read0 = store.bytes_read
     plan = [_tile_plan(tree, c, blocks, sketch) for c, blocks in zip(columns, plans)]
@@ -941,10 +945,30 @@ def tiles(store: SweepStore, tree: ClusterTree, columns: list[int], plans: list,
         made[k] = plan[k] = None  # (its formed rows and sketches go once it is compressed)
         out.append(_tile_compress(store, tree, p, blocks, X, at, tol, near))
         del X, at, p
+        if folder is not None:
+            out[-1] = _tile_file(out[-1], Path(folder))
     for t in out:  # (the reads of a block formed after all included)
         t.update({"solve_s": solve, "read_bytes": (store.bytes_read - read0) / max(len(out), 1),
                   "pass_tiles": len(out)})
     return out
+
+
+def _tile_file(t: dict, folder: Path) -> dict:
+    """Tile ``t``'s arrays written to ``folder``/tile-C.npz (whole, or not at all: written under another name and
+    renamed), and ``t`` without them, naming the file."""
+    path = folder / f"tile-{t['column']}.npz"
+    part = folder / f"tile-{t['column']}.part.npz"
+    np.savez(part, **{k: t[k] for k in TileStore.FIELDS})
+    os.replace(part, path)
+    return {**{k: v for k, v in t.items() if k not in TileStore.FIELDS}, "path": str(path)}
+
+
+def read_tile(t: dict) -> dict:
+    """A tile's result with its arrays, read back from the file a pass wrote (:func:`tiles` with a folder)."""
+    if "path" not in t:
+        return t
+    with np.load(t["path"]) as z:
+        return {**{k: v for k, v in t.items() if k != "path"}, **{k: z[k] for k in TileStore.FIELDS}}
 
 
 def _tile_plan(tree: ClusterTree, column: int, blocks, sketch: bool) -> dict:
@@ -1571,6 +1595,11 @@ def _sweep_on_worker(client, source, path: Path, key: str, scheduler: str | None
             fut.release()
 
 
+def _shares_work_folder(w_path: str, folder: str) -> bool:
+    """Whether this worker reads W's store and writes to the passes' folder (the run's work folder)."""
+    return os.path.exists(w_path) and os.access(folder, os.W_OK)
+
+
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
                       key: str, scheduler: str | None = None, workers: int | None = None,
                       memory_limit: int | None = None, panel: int | None = None, client=None, dtype=np.float64,
@@ -1599,6 +1628,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     t0 = time.perf_counter()
     own = client is None
     w_path = store.with_name(f"W-{store.stem}.bin")
+    passed = store.with_name(f"{store.stem}-passes")  # the passes' tiles on their way to the tile store
     source = factor
     report = None  # what factor_and_sweep reported
     try:
@@ -1633,11 +1663,15 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                          report["host"], report["pid"], report["blas_threads"], report["seconds"])
                 check_tiles(source_bytes(source), 1)
                 stats["workers"] = len(limits)
-                seen = client.run(os.path.exists, str(source.path))
+                passed.mkdir(exist_ok=True)  # each pass's tiles, a file each, until the client has stored them
+                for old in passed.glob("tile-*.npz"):  # a stopped run's (its tiles not stored: run again)
+                    old.unlink()
+                seen = client.run(_shares_work_folder, str(source.path), str(passed))
                 if not all(seen.values()):
                     raise InputError(f"{sum(not v for v in seen.values())} of {len(seen)} Dask workers cannot read "
-                                     f"{source.path} (W's store for the tiles): with --scheduler the artifact's "
-                                     "work folder (.work next to -o) must be on a filesystem every worker mounts")
+                                     f"{source.path} (W's store for the tiles) or write to {passed}: with --scheduler "
+                                     "the artifact's work folder (.work next to -o) must be on a filesystem every "
+                                     "worker mounts")
                 threads = [int(w.get("nthreads") or 1) for w in info]
                 held, widest = source_bytes(source), int(source.index["ncol"].max(initial=0))
                 # half a worker's memory per thread at most: Dask pauses a worker near its limit
@@ -1659,7 +1693,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                                               hash=False)
                     size = {g[0]: sum(tile_work(tree, c, plan[c]) for c in g) for g in groups}
                     rank = {f: r for r, f in enumerate(sorted(size, key=size.get))}  # the largest pass first
-                    futures = {client.submit(tiles, fac, tree, g, [plan[c] for c in g], tol, near,
+                    futures = {client.submit(tiles, fac, tree, g, [plan[c] for c in g], tol, near, True, passed,
                                              key=f"pmask-tiles-{'.'.join(map(str, g))}-{attempts[g[0]]}",
                                              pure=False, priority=rank[g[0]]): g for g in groups}
                     lost = []
@@ -1677,18 +1711,25 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                             lost.append(g)
                             continue
                         fut.release()  # the result is in the store: a lost worker must not make dask recompute it
-                        for t in made:
+                        for info in made:  # one tile's arrays at a time in the client
+                            t = read_tile(info)
                             ts.put(t)
+                            Path(info["path"]).unlink()
                             done += 1
                             if done * 10 // len(cols) > (done - 1) * 10 // len(cols):
                                 log.info("compressed Ξ: %d of %d tiles, %.0f s", done, len(cols),
                                          time.perf_counter() - t0)
                             if on_tile is not None:
                                 on_tile(t)
+                            t = None
                         del made
                     groups = lost
             for p in (w_path, SweepStore.index_path(w_path)):  # every tile is in the store: W is not needed again
                 p.unlink(missing_ok=True)
+            if passed.is_dir():
+                for left in passed.glob("tile-*"):  # (none: each is removed once stored)
+                    left.unlink()
+                passed.rmdir()
         finally:  # the workers go before the assembly
             if own and client is not None:
                 cluster = getattr(client, "cluster", None)

@@ -745,7 +745,8 @@ def test_a_pass_of_tiles_reads_w_once_and_gives_each_tile_its_own_numbers(tmp_pa
     columns' rows of a block too large to read whole: each row once more); alone, each tile reads the blocks
     on its columns' paths, the top separators' every time (16 tiles: 3.7x and 11.6x the pass's reads, by hand).
     With whole blocks the kernel's count of bytes read
-    agrees (within 1.5x: stdio reads ahead of each seek)."""
+    agrees (within 1.5x: stdio reads ahead of each seek).  Written to files as the route runs it (each tile's
+    arrays as it is compressed, so that no process holds a whole pass's results), the tiles read back the same."""
     factor, pts = _small_factor(element)
     tree = compress.cluster_tree(pts)
     sym = element == "P1"
@@ -770,6 +771,14 @@ def test_a_pass_of_tiles_reads_w_once_and_gives_each_tile_its_own_numbers(tmp_pa
         assert store.bytes_read <= most * size and by_tile > 3 * store.bytes_read, (store.bytes_read, size, by_tile)
         if most == 1.0:
             assert k2 - k1 <= 1.5 * size and k1 - k0 >= 5 * size, (k2 - k1, k1 - k0, size)
+            # as the route runs a pass: each tile written to a file as it is compressed, read back one at a time
+            (tmp_path / "passed").mkdir()
+            written = compress.tiles(store, tree, cols, plans, TOL, near, folder=tmp_path / "passed")
+            assert all(set(t) & set(compress.TileStore.FIELDS) == set() for t in written)
+            for a, t in zip(one_pass, written):
+                b = compress.read_tile(t)
+                assert all(np.array_equal(a[k], b[k]) for k in compress.TileStore.FIELDS), a["column"]
+            assert len(list((tmp_path / "passed").glob("tile-*.npz"))) == len(cols)
 
 
 def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch):
