@@ -108,8 +108,9 @@ SCHEDULER_WAIT = 10.0
 #: tolerances at least this large store the far field's factors in float32 (:func:`far_dtype`)
 FLOAT32_TOLERANCE = 1e-5
 #: a pass of tiles (:func:`tiles`) holds at most this much on a worker thread (less where the worker's memory
-#: limit per thread is smaller): more tiles a pass read W fewer times (measured by hand at 20,427 vertices: 16
-#: tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB, and took 31 s against 36 s)
+#: limit per thread is smaller): the more tiles a pass holds, the fewer times W is read (by hand at 20,427
+#: vertices: 16 tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB; the bench page compares
+#: the whole run's tiles both ways)
 PASS_BYTES = 3 * 2**30
 #: a tile is run again at most this often when workers are lost (then the run stops with the error)
 TILE_ATTEMPTS = 4
