@@ -1409,7 +1409,10 @@ def pass_bytes(tree: ClusterTree, columns: list[int], plans: list, held: float, 
     """A worker's memory for a pass of tiles ``columns`` (:func:`tiles`): every tile's :func:`kept_bytes` and
     its rows of the supernode block being read (``widest``: the widest supernode's columns), and the largest
     tile's own work as one tile alone counts it (:func:`tile_bytes`: its panel, a chunk, its outputs)."""
-    parts = [_pass_part(tree, c, b, held, n_contact, panel, widest) for c, b in zip(columns, plans)]
+    return _pass_total([_pass_part(tree, c, b, held, n_contact, panel, widest) for c, b in zip(columns, plans)])
+
+
+def _pass_total(parts) -> float:
     return max((one for one, _ in parts), default=0.0) + sum(kept for _, kept in parts)
 
 
@@ -1439,23 +1442,33 @@ PASSES_PER_THREAD = 3
 
 
 def passes(tree: ClusterTree, columns: list[int], plans: dict, budget: float, held: float, n_contact: int,
-           panel: int, widest: int, threads: int) -> list[list[int]]:
+           panel: int, widest: int, threads: int, estimates: dict | None = None) -> list[list[int]]:
     """The tiles ``columns`` (in position order) cut into passes (:func:`tiles`): runs of neighbouring panels
     (their columns' paths share the most of W), each about an equal share of the work (:func:`tile_work`,
     :data:`PASSES_PER_THREAD` passes per worker thread) and within ``budget`` (:func:`pass_bytes`; a tile alone
     even above it: :func:`check_worker_memory` refuses that).  A pass ends at the tile that would take it more
-    than half that tile's work past its share."""
-    work = [tile_work(tree, c, plans[c]) for c in columns]
-    share = sum(work) / max(1, PASSES_PER_THREAD * max(threads, 1))
+    than half that tile's work past its share.  ``estimates``: :func:`tile_estimates` of these tiles, when the
+    caller has them."""
+    est = estimates or tile_estimates(tree, columns, plans, held, n_contact, panel, widest)
+    share = sum(est[c][0] for c in columns) / max(1, PASSES_PER_THREAD * max(threads, 1))
     out, run, one, kept, done = [], [], 0.0, 0.0, 0.0
-    for c, w in zip(columns, work):
-        o, k = _pass_part(tree, c, plans[c], held, n_contact, panel, widest)
+    for c in columns:
+        w, (o, k) = est[c]
         if run and (done + w / 2 > share or max(one, o) + kept + k > budget):
             out.append(run)
             run, one, kept, done = [], 0.0, 0.0, 0.0
         run.append(c)
         one, kept, done = max(one, o), kept + k, done + w
     return out + ([run] if run else [])
+
+
+def tile_estimates(tree: ClusterTree, columns: list[int], plans: dict, held: float, n_contact: int, panel: int,
+                   widest: int) -> dict[int, tuple[float, tuple[float, float]]]:
+    """Each tile's :func:`tile_work` and its two parts of a pass's memory (alone, and kept while the others are
+    worked on: :func:`pass_bytes`), worked out once: the client cuts the passes, checks them and ranks them
+    from these."""
+    return {c: (tile_work(tree, c, plans[c]), _pass_part(tree, c, plans[c], held, n_contact, panel, widest))
+            for c in columns}
 
 
 def sketch_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYTES) -> float:
@@ -1677,10 +1690,10 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 held, widest = source_bytes(source), int(source.index["ncol"].max(initial=0))
                 # half a worker's memory per thread at most: Dask pauses a worker near its limit
                 budget = min([PASS_BYTES] + [m / t / 2 for m, t in zip(limits, threads) if m])
-                groups = passes(tree, todo, plan, budget, held, len(points), panel, widest, sum(threads))
+                est = tile_estimates(tree, todo, plan, held, len(points), panel, widest)
+                groups = passes(tree, todo, plan, budget, held, len(points), panel, widest, sum(threads), est)
                 stats["passes"] = len(groups)
-                stats["pass_bytes"] = max(pass_bytes(tree, g, [plan[c] for c in g], held, len(points), panel, widest)
-                                          for g in groups)
+                stats["pass_bytes"] = max(_pass_total([est[c][1] for c in g]) for g in groups)
                 check_worker_memory(limits, stats["pass_bytes"], threads)
                 attempts = {g[0]: 0 for g in groups}
                 done = len(cols) - len(todo)
@@ -1692,7 +1705,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                     if near is None or near.status != "finished":  # (a lost worker may take it with it)
                         near = client.scatter((np.asarray(points, float)[tree.perm], float(r_max)), broadcast=True,
                                               hash=False)
-                    size = {g[0]: sum(tile_work(tree, c, plan[c]) for c in g) for g in groups}
+                    size = {g[0]: sum(est[c][0] for c in g) for g in groups}
                     rank = {f: r for r, f in enumerate(sorted(size, key=size.get))}  # the largest pass first
                     futures = {client.submit(tiles, fac, tree, g, [plan[c] for c in g], tol, near, True, passed,
                                              key=f"pmask-tiles-{'.'.join(map(str, g))}-{attempts[g[0]]}",
