@@ -420,7 +420,7 @@ def deep_pushes(model, stiff, levels="auto", n_sites: int = DEEP_SITES) -> dict:
                 steps, scale = [], 1.0
                 for p in probes:
                     steps.append(h.step(p))
-                    scale = max(scale, h._state().deep_scale)
+                    scale = max(scale, h._state().hold_scale)
                 status = np.array([int(st) for _, st in steps])
                 depth = below(probes) * np.sign(s)
                 m = push_metrics(np.array([f for f, _ in steps]), status, depth)

@@ -127,7 +127,7 @@ def test_the_deep_hold_only_takes_energy_out(model, stiff):
             F, scale = [], []
             for p in path:
                 F.append(h.step(p)[0])
-                scale.append(h._state().deep_scale)
+                scale.append(h._state().hold_scale)
             F, scale = np.array(F), np.array(scale)
             given = np.einsum("ij,ij->i", F[:-1], np.diff(path, axis=0))
             press = -given[:len(probes) - 1].sum()

@@ -154,13 +154,13 @@ def render(c, states, active, geo, ubar, result) -> None:
         gain = delta - st.depth
         if (full and gain > 0.0 and (delta >= dlin or 4.0 * gain * gain >= mx * mx + my * my + mz * mz)
                 and bx * mx + by * my + bz * mz > 0.0):
-            hs = st.deep_peak / bm if st.deep_peak > bm else 1.0
+            hs = st.hold_peak / bm if st.hold_peak > bm else 1.0
         else:
-            hs = 1.0 + (st.deep_scale - 1.0) * DEEP_RELEASE
+            hs = 1.0 + (st.hold_scale - 1.0) * DEEP_RELEASE
         bx, by, bz = hs * bx, hs * by, hs * bz
         if not (math.isfinite(bx) and math.isfinite(by) and math.isfinite(bz)):
             raise FloatingPointError("non-finite contact force")  # never sent to a device
-        st.deep_scale, st.deep_peak = hs, hs * bm
+        st.hold_scale, st.hold_peak = hs, hs * bm
         if c._trace is not None:
             c._trace.append((l, f, (bx, by, bz), delta, lam))
         st.body_force = (bx, by, bz)

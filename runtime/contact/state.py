@@ -74,8 +74,9 @@ class ContactState:
         self.frozen = False               # past δ_t: increments of depth at the stiffness k* where it began
         self.frozen_depth = 0.0           # δ*: δ_t, or δ when it froze past δ_t (law.py)
         self.frozen_stiffness = 0.0       # k* = k there
-        self.deep_scale = 1.0             # past δ_lin: the factor on the force that keeps a deeper press from
-        self.deep_peak = 0.0              # feeling softer, and the magnitude it held (output.py)
+        self.hold_scale = 1.0             # the deep hold (past δ_lin, or short of it on a press): the factor on
+        self.hold_peak = 0.0              # the force that keeps a deeper press from feeling softer, and the
+        #                                   magnitude it held (output.py)
         self.in_contact = False
         self.above = False                # the probe was seen outside the body since tracking began
         self.sliding = False
@@ -115,6 +116,6 @@ def release(st: ContactState, status: Status = Status.NO_CONTACT) -> None:
     st.sliding = False
     st.anchor = None
     st.frozen = False
-    st.deep_scale, st.deep_peak = 1.0, 0.0
+    st.hold_scale, st.hold_peak = 1.0, 0.0
     st.slip = 0.0
     st.status = status

@@ -166,15 +166,15 @@ int pm__render(pm_servo *S, int32_t na)
         if (full && gain > 0.0
             && (delta >= g->dlin || 4.0 * gain * gain >= mv[0] * mv[0] + mv[1] * mv[1] + mv[2] * mv[2])
             && bx * mv[0] + by * mv[1] + bz * mv[2] > 0.0)
-            hs = st->deep_peak > bm ? st->deep_peak / bm : 1.0;
+            hs = st->hold_peak > bm ? st->hold_peak / bm : 1.0;
         else
-            hs = 1.0 + (st->deep_scale - 1.0) * DEEP_RELEASE;
+            hs = 1.0 + (st->hold_scale - 1.0) * DEEP_RELEASE;
         bx = hs * bx;
         by = hs * by;
         bz = hs * bz;
         if (!(isfinite(bx) && isfinite(by) && isfinite(bz))) return -1;
-        st->deep_scale = hs;
-        st->deep_peak = hs * bm;
+        st->hold_scale = hs;
+        st->hold_peak = hs * bm;
         st->body_force[0] = bx;
         st->body_force[1] = by;
         st->body_force[2] = bz;

@@ -168,8 +168,8 @@ typedef struct {
     int in_contact, above, sliding;
     int frozen;                   /* past δ_t: increments of depth at the stiffness where they began */
     double frozen_depth, frozen_stiffness;  /* δ* and k* */
-    double deep_scale, deep_peak; /* past δ_lin: the factor that keeps a deeper press from feeling softer, the
-                                     magnitude it held (output.c) */
+    double hold_scale, hold_peak; /* the deep hold (past δ_lin, or short of it on a press): the factor that keeps a
+                                     deeper press from feeling softer, the magnitude it held (output.c) */
     double slip;
     int has_last;
     double last[3], move[3], vel[3];
@@ -392,13 +392,20 @@ static inline double pm__largest_curvature(const double *Sm)
 
 #define RECKON_FROM 0.4
 
+/* the tracking depth min(δ, FOCAL_FRACTION / κ_max) from κ_max, which the two shares below need too
+   (linalg3._depth) */
+static inline double pm__tracking_depth(double kmax, double delta)
+{
+    return kmax * delta > FOCAL_FRACTION ? FOCAL_FRACTION / kmax : delta;
+}
+
 /* the share w of the proxy's move made by dead reckoning, 0 up to κ_max δ = RECKON_FROM, 1 from FOCAL_FRACTION, a
    smoothstep between; *d the tracking depth (linalg3.reckoning) */
 static inline double pm__reckoning(const double *Sm, double delta, double *d)
 {
     double kmax = pm__largest_curvature(Sm);
     double x = kmax * delta;
-    *d = x > FOCAL_FRACTION ? FOCAL_FRACTION / kmax : delta;
+    *d = pm__tracking_depth(kmax, delta);
     if (x <= RECKON_FROM) return 0.0;
     if (x >= FOCAL_FRACTION) return 1.0;
     double u = (x - RECKON_FROM) / (FOCAL_FRACTION - RECKON_FROM);
@@ -408,13 +415,12 @@ static inline double pm__reckoning(const double *Sm, double delta, double *d)
 #define LAG_TO 0.8
 
 /* the share of the proxy-offset term the force keeps: 1 up to κ_max δ = FOCAL_FRACTION, 0 from LAG_TO, a
-   smoothstep between; *d the tracking depth min(δ, FOCAL_FRACTION / κ_max), from the same κ_max
-   (linalg3.lag_weight) */
+   smoothstep between; *d the tracking depth, from the same κ_max (linalg3.lag_weight) */
 static inline double pm__lag_weight(const double *Sm, double delta, double *d)
 {
     double kmax = pm__largest_curvature(Sm);
     double x = kmax * delta;
-    *d = x > FOCAL_FRACTION ? FOCAL_FRACTION / kmax : delta;
+    *d = pm__tracking_depth(kmax, delta);
     if (x <= FOCAL_FRACTION) return 1.0;
     if (x >= LAG_TO) return 0.0;
     double u = (x - FOCAL_FRACTION) / (LAG_TO - FOCAL_FRACTION);

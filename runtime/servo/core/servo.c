@@ -14,7 +14,7 @@ void pm__state_reset(cstate *s)
     memset(s, 0, sizeof *s);
     s->tri = -1;
     s->b[0] = 1.0;
-    s->deep_scale = 1.0;
+    s->hold_scale = 1.0;
     s->status = PM_NO_CONTACT;
 }
 
@@ -280,8 +280,8 @@ void pm__release(cstate *st, int32_t status)
     st->sliding = 0;
     st->has_anchor = 0;
     st->frozen = 0;
-    st->deep_scale = 1.0;
-    st->deep_peak = 0.0;
+    st->hold_scale = 1.0;
+    st->hold_peak = 0.0;
     st->slip = 0.0;
     st->status = status;
 }
