@@ -1725,10 +1725,10 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                             lost.append(g)
                             continue
                         fut.release()  # the result is in the store: a lost worker must not make dask recompute it
-                        for info in made:  # one tile's arrays at a time in the client
-                            t = read_tile(info)
+                        for written in made:  # one tile's arrays at a time in the client
+                            t = read_tile(written)
                             ts.put(t)
-                            Path(info["path"]).unlink()
+                            Path(written["path"]).unlink()
                             done += 1
                             if done * 10 // len(cols) > (done - 1) * 10 // len(cols):
                                 log.info("compressed Ξ: %d of %d tiles, %.0f s", done, len(cols),
