@@ -135,7 +135,7 @@ class Contacts:
             raise InputError(f"device must be a pmask.runtime.Device, got {device!r}")
         self.passivity = bool(passivity)
         self._frictionless = self.friction == 0.0 and self.dynamic_friction == 0.0
-        self._pair_blocks = {}  # (a, b) -> (triangle a, triangle b, their vertex-pair blocks): coupling.py
+        self._pair_blocks = {}  # (a, b) -> (mesh triangle a, mesh triangle b, their vertex-pair blocks): coupling.py
         if normal_radius is not None:
             normal_radius = _num("normal_radius", normal_radius)
         levels = _levels(levels)

@@ -182,7 +182,9 @@ def coupling_blocks(c, states, active):
     """C_lk (symmetrised, 9 floats row-major) for every ordered pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy
     over the pair's vertex-pair blocks (:meth:`pmask.runtime.contact.ContactSurface.pair_blocks` of their mesh
     triangles, φ their barycentrics there), which are kept in ``c._pair_blocks`` while both contacts stay on the
-    same triangles."""
+    same mesh triangles (on a subdivided surface a contact crosses many of its triangles inside one of the mesh's).
+    The C core also keeps the blocks of the vertex pairs a move keeps (a move to a neighbouring triangle keeps six of
+    the nine); the values are the same, so the forces are too."""
     srf = c.surface
     cache = c._pair_blocks
     out = {}
@@ -190,9 +192,10 @@ def coupling_blocks(c, states, active):
         for b in active:
             if a < b:
                 ta, tb = states[a].tri, states[b].tri
+                ma, mb = srf._parent[ta], srf._parent[tb]
                 hit = cache.get((a, b))
-                if hit is None or hit[0] != ta or hit[1] != tb:
-                    hit = cache[(a, b)] = (ta, tb, srf.pair_blocks(srf._parent[ta], srf._parent[tb]))
+                if hit is None or hit[0] != ma or hit[1] != mb:
+                    hit = cache[(a, b)] = (ma, mb, srf.pair_blocks(ma, mb))
                 P, (a0, a1, a2), (b0, b1, b2) = hit[2], states[a].b, states[b].b
                 if srf._mapped:  # a subdivided surface: φ on the mesh triangles, where ζ lives
                     _, a0, a1, a2 = srf.mesh_point(ta, a0, a1, a2)

@@ -282,34 +282,17 @@ void pm__greens_zeta(const pm_greens *x, int64_t m, int64_t i, double *Z)
 int pm__greens_pairs(void *user, int64_t ta, int64_t tb, double *P)
 {
     const pm_table *t = user;
-    const pm_greens *x = &t->xi;
     if (ta < 0 || ta >= t->nmt || tb < 0 || tb >= t->nmt) return -1;
-    const int64_t *ia = t->mT + 3 * ta, *ib = t->mT + 3 * tb;
-    for (int k = 0; k < 81; k++) P[k] = 0.0;
-    for (int a = 0; a < 3; a++) {
-        const int64_t ri = t->row[ia[a]];
-        for (int b = 0; b < 3; b++) {
-            const int64_t rm = t->row[ib[b]];
-            if (ri < 0 || rm < 0) continue;
-            double z1[9], z2[9];  /* ζ_y(x) and ζ_x(y) */
-            pm__greens_zeta(x, rm, ri, z1);
-            pm__greens_zeta(x, ri, rm, z2);
-            double *o = P + 27 * a + 9 * b;
-            for (int r = 0; r < 3; r++)
-                for (int c = 0; c < 3; c++) o[3 * r + c] = 0.5 * (z1[3 * r + c] + z2[3 * c + r]);
-        }
-    }
+    pm__triangle_pairs(t, ta, tb, -1, -1, P);
     return 0;
 }
 
 int pm_table_pair_blocks(const pm_table *t, int64_t ta, int64_t tb, double *P)
 {
     if (ta < 0 || ta >= t->nmt || tb < 0 || tb >= t->nmt) return -1;
-    if (t->zeta) {
-        pm__zeta_pairs(t, ta, tb, P);
-        return 0;
-    }
-    return t->xi.n ? pm__greens_pairs((void *)t, ta, tb, P) : -1;
+    if (!t->zeta && !t->xi.n) return -1;
+    pm__triangle_pairs(t, ta, tb, -1, -1, P);
+    return 0;
 }
 
 /* y += B v for a 3x3 block B (row-major), and y += (Bᵀ v) s */

@@ -143,8 +143,11 @@ PM_HIDDEN int pm__want(const pm_section *secs, int32_t nsec, const char *name, u
 /* the xi_* sections, checked (0: absent or read; -1: a message in err), and what they own */
 PM_HIDDEN int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *err, size_t errlen);
 PM_HIDDEN void pm__greens_free(pm_table *t);
-/* the nine vertex-pair blocks of two mesh triangles from the ζ table (coupling.c) */
-PM_HIDDEN void pm__zeta_pairs(const pm_table *tb, int64_t ta, int64_t tbi, double *P);
+/* the nine vertex-pair blocks of mesh triangles ta, tbi (81 doubles, x of ta outer: P_xy = ½ (ζ_y(x) + ζ_x(y)ᵀ),
+ * zero where either vertex has no row; ContactSurface.pair_blocks) from the ζ table or a compressed Ξ's sections
+ * (coupling.c).  P holding those of mesh triangles oa, ob (≥ 0; -1: none), the vertex pairs the two pairs share
+ * are moved, not read again: a contact moving to a neighbouring triangle keeps six of the nine. */
+PM_HIDDEN void pm__triangle_pairs(const pm_table *tb, int64_t ta, int64_t tbi, int64_t oa, int64_t ob, double *P);
 /* a pm_pair_fn over the table's compressed Ξ (user: the table) */
 PM_HIDDEN int pm__greens_pairs(void *user, int64_t ta, int64_t tb, double *P);
 /* ζ_m(i) (3x3, row-major) for contact vertices m, i */
@@ -230,7 +233,7 @@ struct pm_servo {
     lres *res;        /* n */
     double *gsf;      /* 3n: Gauss-Seidel forces */
     double *cpl;      /* n*n*9 coupling blocks */
-    int64_t *pair_tri; /* n*n*2: the triangles each pair's kept vertex-pair blocks are for (-1: none) */
+    int64_t *pair_tri; /* n*n*2: the mesh triangles each pair's kept vertex-pair blocks are for (-1: none) */
     double *pair_P;   /* n*n*81: those blocks (coupling.c) */
     pm_pair_fn pairs;   /* those blocks without the table's ζ section (pm_servo_create_paired), and its user */
     void *pairs_user;
