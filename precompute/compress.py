@@ -311,7 +311,9 @@ class SketchGroup:
     r"""The sketched blocks of a tile that share a column range, columns ``q0:q1`` of the tile's (the panel's
     share of J): ``rows`` marks their rows among the asked rows; ``omega`` ((q1 - q0) x (k + t)) is the range
     map, its last t columns the test's; ``samples[b]`` the rows of block b (among the asked rows) that are formed
-    too.  The pass sets ``Y`` (a row's :math:`\Xi_{r,J}\Omega` at row ``at[r]``)."""
+    too.  The pass sets ``Y`` (the group's rows' :math:`\Xi_{r,J}\Omega`, in W's order) and ``at`` (its rows
+    sorted, and where each is in Y: two numbers a row of the group, not one for every asked row, since a tile has
+    several groups and its asked rows are most of 3n: :meth:`y`)."""
 
     q0: int
     q1: int
@@ -319,7 +321,13 @@ class SketchGroup:
     omega: np.ndarray
     samples: list
     Y: np.ndarray | None = None
-    at: np.ndarray | None = None
+    at: tuple | None = None
+
+    def y(self, r0: int, r1: int) -> np.ndarray:
+        """Y's rows of the asked rows r0 .. r1 (one block's, all of them the group's), in that order."""
+        rows, where = self.at
+        k = int(np.searchsorted(rows, r0))
+        return self.Y[where[k:k + r1 - r0]]
 
 
 @dataclass
@@ -526,12 +534,11 @@ class _Asked:
         self.at[order[formed]] = np.arange(int(self.fbefore[-1]))  # D's rows: the formed ones, in W's order
         self.D = np.zeros((int(self.fbefore[-1]), len(cols)))
         self.scale = np.ones(len(cols)) if self.load else ix["scale"][cols]
-        self.live = []  # per group: its rows among the sorted ones' positions, the count before each, Ω scaled
+        self.live = []  # per group: its rows' positions (sorted: Y's rows are in W's order), Ω scaled
         for g in groups:
-            mine = g.rows[order]
-            g.Y = np.zeros((int(np.sum(mine)), g.omega.shape[1]))
-            self.live.append((g, ps[mine], np.concatenate([[0], np.cumsum(mine)]),
-                              g.omega * self.scale[g.q0:g.q1, None]))
+            pg = ps[g.rows[order]]
+            g.Y = np.zeros((len(pg), g.omega.shape[1]))
+            self.live.append((g, pg, g.omega * self.scale[g.q0:g.q1, None]))
         self.pf = ps[formed]  # the formed rows' positions
 
     def asks(self, first, stop) -> bool:  # whether any of its rows are at positions first .. stop
@@ -550,7 +557,7 @@ class _Asked:
     def products(self, XJ: np.ndarray, sel: np.ndarray) -> list:
         """Per group: X_Jᵀ Ω over the supernode's columns in its range (None: none are)."""
         out = []
-        for g, _, _, omega in self.live:
+        for g, _, omega in self.live:
             idx = np.flatnonzero((sel >= g.q0) & (sel < g.q1))
             out.append(XJ[idx].T @ omega[sel[idx] - g.q0] if len(idx) else None)
         return out
@@ -560,8 +567,8 @@ class _Asked:
         each group's Y += X_R (X_Jᵀ Ω)."""
         ps, D = self.ps, self.D
         a, b = np.searchsorted(ps, first), np.searchsorted(ps, first + len(X))
-        for (g, pg, before, _), OJg in zip(self.live, OJ):
-            y0, y1 = int(before[a]), int(before[b])
+        for (g, pg, _), OJg in zip(self.live, OJ):
+            y0, y1 = int(np.searchsorted(pg, first)), int(np.searchsorted(pg, first + len(X)))  # its rows here
             if y1 > y0 and OJg is not None:
                 g.Y[y0:y1] += (X if y1 - y0 == len(X) else X[pg[y0:y1] - first]) @ OJg
         d0, d1 = int(self.fbefore[a]), int(self.fbefore[b])
@@ -580,8 +587,9 @@ class _Asked:
         if not self.load:
             self.D *= self.scale[None, :]
         for g in self.groups:
-            g.at = np.full(len(self.rows), -1, np.int64)
-            g.at[self.order[g.rows[self.order]]] = np.arange(len(g.Y))
+            mine = self.order[g.rows[self.order]]  # the asked rows of Y's rows, in Y's order
+            by_row = np.argsort(mine)
+            g.at = (mine[by_row], by_row)
         D, at = self.D, self.at
         self.D = None  # (the pass hands D on: the tile drops it once compressed)
         return D, at
@@ -1019,7 +1027,7 @@ def _tile_compress(store: SweepStore, tree: ClusterTree, p: dict, blocks, X: np.
         if (i, j) in band:  # from its sketches; formed after all where they cannot show the tolerance
             g, b = band[i, j]
             rs = g.samples[b]
-            uv = from_sketches(g.Y[g.at[3 * r0:3 * r1]], X[at[rs], 3 * (b0 - c0):3 * (b1 - c0)], rs - 3 * r0, g.omega,
+            uv = from_sketches(g.y(3 * r0, 3 * r1), X[at[rs], 3 * (b0 - c0):3 * (b1 - c0)], rs - 3 * r0, g.omega,
                                tol / 2 if piece else tol)
             if uv is None:
                 formed_again += 1
@@ -1382,26 +1390,28 @@ def output_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYT
 def kept_bytes(tree: ClusterTree, column: int, blocks) -> float:
     """What a tile of a pass (:func:`tiles`) holds while another tile of the pass is worked on (bytes): its
     formed rows (D: the rows of the blocks it forms and its sketched blocks' samples, by its columns), its
-    indices over the rows it asks (eight numbers a row), its groups' Ω (twice), masks and range sketches, and
-    then, once compressed, its results: at most its formed blocks' areas and, for a sketched block, the
-    sketch's rank times its rows and columns (:func:`from_sketches`)."""
+    indices over the rows it asks (eight numbers a row), and for each of its groups Ω (twice), a mask over the
+    asked rows, and per row of the group its range sketch and three indices (:class:`SketchGroup`).  Not its
+    results: the route's passes write each tile as it is compressed (:func:`tiles` with a folder), so a tile's
+    results are held only while it is the one worked on, which :func:`tile_bytes` counts (``made``); where the
+    D and sketches of a pass's tiles all exist, at the end of its pass over W, none is compressed yet.
+    (Counting each tile's results as well, as this did before, counted 14 of the 43 GiB of all the passes'
+    tiles at 51,519 vertices, and cut them into 22 passes where 15 hold.)"""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     width = SKETCH_RANK + SKETCH_TESTS
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)
-    formed, sampled, out = np.zeros(3 * upto, bool), 0, 0.0
+    formed, sampled = np.zeros(3 * upto, bool), 0
     groups: dict[tuple[int, int], float] = {}
     for i, j, far in blocks:
         rows, cols = 3 * tree.size(i), 3 * (min(int(tree.stop[j]), c1) - max(int(tree.start[j]), c0))
         if far and sketches(tree, i, j, c0, c1):
             sampled += SKETCH_SAMPLES
-            out += SKETCH_RANK * (rows + cols)
             key = (int(tree.start[j]), int(tree.stop[j]))
-            groups[key] = groups.get(key, 2.0 * cols * width + 4 * 3 * upto) + rows * width
+            groups[key] = groups.get(key, 2.0 * cols * width + 3 * upto / 4) + rows * (width + 3)
         else:
             formed[3 * int(tree.start[i]):3 * int(tree.stop[i])] = True
-            out += rows * cols
     d_rows = float(np.sum(formed)) + sampled
-    return 8.0 * (d_rows * 3 * (c1 - c0) + 8 * 3 * upto + sum(groups.values()) + out)
+    return 8.0 * (d_rows * 3 * (c1 - c0) + 8 * 3 * upto + sum(groups.values()))
 
 
 def pass_bytes(tree: ClusterTree, columns: list[int], plans: list, held: float, n_contact: int, panel: int,
@@ -1473,8 +1483,8 @@ def tile_estimates(tree: ClusterTree, columns: list[int], plans: dict, held: flo
 
 def sketch_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYTES) -> float:
     """What a tile's sketches take (bytes, :class:`SketchGroup`): for each group Ω and its copy scaled by the
-    areas, its masks, counts and positions over the asked rows (at most four numbers a row) and its range sketch
-    Y; a chunk's rows of a group copied for their product (at most ``chunk``); and the largest block's
+    areas, its masks over the asked rows (a byte a row: one, and a copy in W's order), and per row of the group its
+    range sketch Y and four indices (its position; Y's rows sorted, where each is, and their sort); a chunk's rows of a group copied for their product (at most ``chunk``); and the largest block's
     work (:func:`from_sketches`: its Y, its SVD, the test's product; X and its SVD)."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     width, total, one = SKETCH_RANK + SKETCH_TESTS, 0.0, 0.0
@@ -1484,7 +1494,7 @@ def sketch_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYT
             groups.setdefault((int(tree.start[j]), int(tree.stop[j])), []).append(3 * tree.size(i))
     for (j0, j1), rows in groups.items():
         cols, n_sk = 3 * (min(j1, c1) - max(j0, c0)), float(sum(rows))
-        total += 2 * cols * width + 4 * 3 * len(tree.perm) + n_sk * width
+        total += 2 * cols * width + 3 * len(tree.perm) / 4 + n_sk * (width + 4)
         one = max(one, max(4 * m * width + 4 * SKETCH_RANK * cols for m in rows))
     return 8.0 * (total + one) + (float(chunk) if groups else 0.0)
 

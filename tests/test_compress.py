@@ -8,6 +8,7 @@ a finished tile.
 """
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import subprocess
@@ -672,6 +673,17 @@ def _small_factor(element="P1"):
     return factor, mesh.points[surf.vertices[surf.regions.contact]]
 
 
+@functools.lru_cache(maxsize=1)
+def _kidney_factor():
+    """The default kidney's P1 factor and contact points (its tiles of 128 or more vertices sketch far blocks)."""
+    from pmask.pipeline import stages
+
+    spec = Spec(model="kidney", r_max=R_MAX, element="P1")
+    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
+    surf = stages.surface_stage(spec, mesh)
+    return stages.factor_stage(spec, mesh, surf)[0], mesh.points[surf.vertices[surf.regions.contact]]
+
+
 def test_w_store_columns_are_the_dense_routes_in_chunks_too(tmp_path, monkeypatch):
     """The tiles' source: Ξ's columns from W's supernode blocks on the columns' tree paths, read whole and
     in row chunks of a few rows, against the dense route's Ξ (the native selected inversion's syrk over all
@@ -704,14 +716,8 @@ def test_a_tile_holds_no_more_than_the_memory_check_counts(tmp_path, monkeypatch
     rows, the widest panel and the largest outputs of any tile), with W read whole and a few rows at a time; and
     on the default kidney, whose tiles of 512 vertices sketch some far blocks (their sketches counted, the rows
     they leave unformed taken off)."""
-    from pmask.pipeline import stages
-
-    spec = Spec(model="kidney", r_max=R_MAX, element="P1")
-    mesh = stages.support_stage(spec, stages.mesh_stage(spec))
-    surf = stages.surface_stage(spec, mesh)
-    kidney = stages.factor_stage(spec, mesh, surf)[0], mesh.points[surf.vertices[surf.regions.contact]]
     for (factor, pts), sizes, reads in ((_small_factor(), (48, 128, 512), (compress.READ_BYTES, 8 * 3 * 60)),
-                                        (kidney, (512,), (compress.READ_BYTES,))):
+                                        (_kidney_factor(), (512,), (compress.READ_BYTES,))):
         tree = compress.cluster_tree(pts)
         for read_bytes in reads:
             monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
@@ -783,10 +789,12 @@ def test_a_pass_of_tiles_reads_w_once_and_gives_each_tile_its_own_numbers(tmp_pa
 
 def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch):
     """#27 items 2 and 3: a worker's memory for a pass of tiles as the client counts it when it cuts the tiles
-    into passes (compress.pass_bytes: each tile's formed rows, indices, sketches and results, and the largest
-    tile's own work) against tracemalloc's peak over compress.tiles: never above it, and within 3x of it (each
-    tile is counted with both its formed rows and its results, which it never holds together, and the largest
-    with its whole panel); passes of 2, half and all the tiles, whole blocks and a few rows a read.  And
+    into passes (compress.pass_bytes: each tile's formed rows, indices and sketches, and the largest tile's own
+    work, its results included) against tracemalloc's peak over compress.tiles as the route runs it (each tile
+    written to a file as it is compressed): never above it, and within 3x of it (the largest tile is counted with
+    its whole panel and every tile's formed rows over all its columns); passes of 2, half and all the tiles, whole
+    blocks and a few rows a read; and all the default kidney's tiles of 128 vertices in one pass, some of whose far
+    blocks are sketched (the sketches' share of a pass grows with n: at 51,519 vertices a third of the model).  And
     compress.passes keeps each pass within the budget it is given (a tile alone may exceed it: the worker check
     refuses that) and within half a tile's work of an equal share (PASSES_PER_THREAD per thread)."""
     factor, pts = _small_factor()
@@ -800,8 +808,11 @@ def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch
             cols = compress.panels(tree, panel)
             plans = {c: [b for b in compress.partition(tree, c, R_MAX) if tree.start[b[0]] <= tree.start[b[1]]]
                      for c in cols}
-            for group in (cols[:2], cols[:len(cols) // 2], cols):
-                _, peak = traced_peak(compress.tiles, store, tree, group, [plans[c] for c in group], TOL, near)
+            for k, group in enumerate((cols[:2], cols[:len(cols) // 2], cols)):
+                folder = tmp_path / f"passed-{read_bytes}-{panel}-{k}"
+                folder.mkdir()
+                _, peak = traced_peak(compress.tiles, store, tree, group, [plans[c] for c in group], TOL, near, True,
+                                      folder)
                 model = compress.pass_bytes(tree, group, [plans[c] for c in group], held, len(pts), panel, widest)
                 assert peak <= model <= 3 * peak, (read_bytes, panel, len(group), peak, model)
             for budget in (compress.pass_bytes(tree, cols[:3], [plans[c] for c in cols[:3]], held, len(pts), panel,
@@ -816,6 +827,18 @@ def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch
                                                               widest) <= budget
                 if budget == 1.0:
                     assert all(len(g) == 1 for g in cut)
+    factor, pts = _kidney_factor()
+    tree, panel = compress.cluster_tree(pts), 128
+    store = compress.sweep(factor, tmp_path / "W-kidney.bin", key="k")
+    held, widest = compress.source_bytes(store), int(store.index["ncol"].max())
+    cols = compress.panels(tree, panel)
+    plans = [[b for b in compress.partition(tree, c, R_MAX) if tree.start[b[0]] <= tree.start[b[1]]] for c in cols]
+    (tmp_path / "passed-kidney").mkdir()
+    made, peak = traced_peak(compress.tiles, store, tree, cols, plans, TOL, (pts[tree.perm], R_MAX), True,
+                             tmp_path / "passed-kidney")
+    model = compress.pass_bytes(tree, cols, plans, held, len(pts), panel, widest)
+    assert sum(t["sketched"] for t in made) > 0
+    assert peak <= model <= 3 * peak, (peak, model)
 
 
 def test_the_sweep_in_batches_holds_its_budget_and_writes_the_same_store(tmp_path):
