@@ -113,6 +113,26 @@ def errors(size, work: Path) -> dict:
     return out
 
 
+def speed_reference(repeats: int = 7) -> float:
+    """This machine's speed now (seconds): a 1024 x 1024 matrix product on one BLAS thread, the least of
+    ``repeats``.  The GF stage is mostly such products (the sweep's and the tiles'), and a virtual machine's
+    speed drifts over a day by more than a code change moves it (the 51,519-vertex run meshed in 25 s at one
+    hour and 51 s at another, the same code), so each organ-scale run takes it before and after, the page gives
+    it beside the run's times, and the refit (:func:`refit_numbers`) scales one run's times by the two runs'
+    references."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    A, B = rng.standard_normal((1024, 1024)), rng.standard_normal((1024, 1024))
+    best = float("inf")
+    with threadpool_limits(1, user_api="blas"):
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            A @ B
+            best = min(best, time.perf_counter() - t0)
+    return best
+
+
 def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX, element: str = ELEMENT) -> dict:
     """The organ-scale run: a kidney with ~20,000 contact vertices, compressed on 2 local workers through
     the whole pipeline (masks up to ``r_max``), peak RSS of the process tree; the dense route's refusal (and
@@ -125,15 +145,17 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX, elem
 
     spec = stages.Spec(model="kidney", params=params, r_max=r_max, compress=TOL, workers=2, element=element)
     p = work / "large.h5"
+    before = speed_reference()
     with PeakRSS() as m:
         s = stages.run(spec, p, force=True)
+    reference = [before, speed_reference()]
     out = {"params": params, "r_max_m": r_max, "greens_s": s["timings"]["greens"], "total_s": sum(s["timings"].values()),
            "timings": s["timings"], "peak_rss_gib": m.peak / 2**30,
            "peak_rss_per_process_gib": sorted((v / 2**30 for v in m.per.values()), reverse=True)[:4],
            "client_peak_rss_gib": m.per.get(os.getpid(), 0) / 2**30,  # this process: the pipeline's client
            "sweep_worker_peak_rss_gib": m.per.get(s["factor_stats"]["compress"].get("sweep_pid"), 0) / 2**30,
            "bytes": p.stat().st_size, "stats": s["factor_stats"]["compress"], "dofs": s["factor_stats"]["dofs"],
-           "element": element}
+           "element": element, "speed_reference_s": reference}
     eager = []
     for _ in range(3):  # the near field read (and checked) at open, as every artifact was before
         t0 = time.perf_counter()
@@ -578,8 +600,12 @@ def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
     if not (g and o and "near_bytes" in g and "near_bytes" in o):
         return None
     ln = np.log(o["contact"] / g["contact"])
-    exp = {k: float(np.log(o[k] / g[k]) / ln) for k in ("near_bytes", "far_bytes", "greens_s")}
-    exp["sweep_s"] = float(np.log(o["stats"]["sweep_s"] / g["stats"]["sweep_s"]) / ln)
+    # the smaller run's times at the organ run's speed, where both took the speed reference (speed_reference)
+    speed = (float(np.mean(o["speed_reference_s"]) / np.mean(g["speed_reference_s"]))
+             if g.get("speed_reference_s") and o.get("speed_reference_s") else None)
+    exp = {k: float(np.log(o[k] / g[k]) / ln) for k in ("near_bytes", "far_bytes")}
+    exp["greens_s"] = float(np.log(o["greens_s"] / (g["greens_s"] * (speed or 1.0))) / ln)
+    exp["sweep_s"] = float(np.log(o["stats"]["sweep_s"] / (g["stats"]["sweep_s"] * (speed or 1.0))) / ln)
     peaks = [k for k in ("client_peak_rss_gib", "sweep_worker_peak_rss_gib") if g.get(k) and o.get(k)]
     exp.update({k: float(np.log(o[k] / g[k]) / ln) for k in peaks})  # the processes' peaks (runs after #27's move)
     ratio = o["disk_stored_bytes"] / o["compressed_stored_bytes"] if "disk_stored_bytes" in o else None
@@ -587,7 +613,8 @@ def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
     def at(value, key, n):
         return value * (n / o["contact"]) ** exp[key]
 
-    out = {"exponents": exp, "from": [g["contact"], o["contact"]], "dates": [res.get("date", ""), o.get("date", "")]}
+    out = {"exponents": exp, "from": [g["contact"], o["contact"]], "dates": [res.get("date", ""), o.get("date", "")],
+           "speed": speed}
     for n in sizes:
         near, far = at(o["near_bytes"], "near_bytes", n), at(o["far_bytes"], "far_bytes", n)
         sweep = at(o["stats"]["sweep_s"], "sweep_s", n)
@@ -618,8 +645,11 @@ def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
                  f"sweeps ~{x['sweep_worker_peak_rss_gib']:.2f} GiB" if "sweep_worker_peak_rss_gib" in x else "")
         rows.append(f"{n:,}: ~{x['stored_bytes'] / 2**30:.2f} GiB stored ({x['near_bytes'] / 2**30:.2f} near, "
                     f"{x['far_bytes'] / 2**30:.2f} far{disk}), GF stage ~{times} workers{peaks}")
+    speed = (f"the first run's times scaled by the runs' speed references, x{r['speed']:.2f}" if r.get("speed")
+             else "no speed reference in the first run (it predates them): the time exponents carry any change in "
+                  "the machine's speed between the runs")
     return (f" Refitted through the {n_g:,}- and {n_o:,}-vertex runs (measured {r['dates'][0]} and "
-            f"{r['dates'][1]}; each quantity a power of n: "
+            f"{r['dates'][1]}; {speed}; each quantity a power of n: "
             f"near field n^{exp['near_bytes']:.2f}, far field n^{exp['far_bytes']:.2f}, GF stage "
             f"n^{exp['greens_s']:.2f} of which the W sweep (one worker) n^{exp['sweep_s']:.2f}; N workers divide "
             f"the rest "
@@ -649,7 +679,11 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
               f"volume graded to "
               f"{g['params']['interior'] * 1e3:.0f} mm ({g['contact']:,} contact vertices, {g['dofs']:,} dofs), "
               f"compressed on 2 local workers through `pmask precompute`: whole run {g['total_s'] / 60:.1f} min "
-              f"(GF stage {g['greens_s'] / 60:.1f} min: W sweep {st['sweep_s']:.0f} s, {st['tiles']} tiles"
+              + (f"(the machine's speed reference, a one-thread 1024² matrix product, "
+                 f"{1e3 * g['speed_reference_s'][0]:.0f} ms before the run and {1e3 * g['speed_reference_s'][1]:.0f} "
+                 "ms after; "
+                 if g.get("speed_reference_s") else "(")
+              + f"GF stage {g['greens_s'] / 60:.1f} min: W sweep {st['sweep_s']:.0f} s, {st['tiles']} tiles"
               + (f" in {st['passes']} passes over W (each within {st['pass_bytes'] / 2**30:.2f} GiB by the memory "
                  f"model), which read W's store {st['W_reads']:.1f} times in all" if "passes" in st else "")
               + (f", {st['sketched']:,} far blocks or pieces from their sketches, {st['formed_again']:,} of them formed "
