@@ -1395,8 +1395,9 @@ def kept_bytes(tree: ClusterTree, column: int, blocks) -> float:
     results: the route's passes write each tile as it is compressed (:func:`tiles` with a folder), so a tile's
     results are held only while it is the one worked on, which :func:`tile_bytes` counts (``made``); where the
     D and sketches of a pass's tiles all exist, at the end of its pass over W, none is compressed yet.
-    (Counting each tile's results as well, as this did before, counted 14 of the 43 GiB of all the passes'
-    tiles at 51,519 vertices, and cut them into 22 passes where 15 hold.)"""
+    (Counting each tile's results as well, and index arrays over all the asked rows for each group, as this did
+    before, counted 18 of the 43 GiB of all the tiles at 51,519 vertices and cut them into 22 passes; the bench
+    page's organ row gives the passes now.)"""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     width = SKETCH_RANK + SKETCH_TESTS
     upto = max((int(tree.stop[i]) for i, _, _ in blocks), default=0)
