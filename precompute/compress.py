@@ -1485,8 +1485,9 @@ def tile_estimates(tree: ClusterTree, columns: list[int], plans: dict, held: flo
 def sketch_bytes(tree: ClusterTree, column: int, blocks, chunk: float = READ_BYTES) -> float:
     """What a tile's sketches take (bytes, :class:`SketchGroup`): for each group Ω and its copy scaled by the
     areas, its masks over the asked rows (a byte a row: one, and a copy in W's order), and per row of the group its
-    range sketch Y and four indices (its position; Y's rows sorted, where each is, and their sort); a chunk's rows of a group copied for their product (at most ``chunk``); and the largest block's
-    work (:func:`from_sketches`: its Y, its SVD, the test's product; X and its SVD)."""
+    range sketch Y and four indices (its position; Y's rows sorted, where each is, and their sort); a chunk's
+    rows of a group copied for their product (at most ``chunk``); and the largest block's work
+    (:func:`from_sketches`: its Y, its SVD, the test's product; X and its SVD)."""
     c0, c1 = int(tree.start[column]), int(tree.stop[column])
     width, total, one = SKETCH_RANK + SKETCH_TESTS, 0.0, 0.0
     groups: dict[tuple[int, int], list] = {}
