@@ -15,8 +15,8 @@ The form (near field exact, far field in low-rank blocks over a cluster tree) an
 3. **Tiles**: the columns are cut into panels (clusters of at most ``panel`` vertices, fewer for large
    n so that a panel stays near :data:`PANEL_BYTES`).  A tile computes the columns of Ξ its panel holds and
    compresses its share of each block; one task, a *pass* (:func:`tiles`), runs a run of neighbouring tiles
-   together, reading each of W's blocks once for all of them (:func:`passes`: as many as :data:`PASS_BYTES`, or
-   half the worker's memory per thread, holds by :func:`pass_bytes`; about equal shares of the work, at least
+   together, reading each of W's blocks once for all of them (:func:`passes`: as many as :data:`PASS_SHARE` of the
+   worker's memory per thread holds by :func:`pass_bytes`, :func:`pass_budget`; about equal shares of the work, at least
    :data:`PASSES_PER_THREAD` per thread, the largest handed out first).  A far
    block wide and tall enough (:func:`sketches`: most of the far field's entries) is never formed: the pass takes
    its range sketch :math:`B\Omega` (64 columns, 16 of them a test) and forms 64 of its rows, and
@@ -107,11 +107,18 @@ TILE_LAYOUT = "tree blocks, pieces per panel, near = a pair within r_max, dense 
 SCHEDULER_WAIT = 10.0
 #: tolerances at least this large store the far field's factors in float32 (:func:`far_dtype`)
 FLOAT32_TOLERANCE = 1e-5
-#: a pass of tiles (:func:`tiles`) holds at most this much on a worker thread (less where the worker's memory
-#: limit per thread is smaller): the more tiles a pass holds, the fewer times W is read (by hand at 20,427
-#: vertices: 16 tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB; the bench page compares
-#: the whole run's tiles both ways)
-PASS_BYTES = 3 * 2**30
+#: a pass of tiles (:func:`tiles`) holds at most this share of its worker's memory limit per thread, by its model
+#: (:func:`pass_budget`): the more tiles a pass holds, the fewer times W is read (by hand at 20,427 vertices: 16
+#: tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB; the bench page compares the whole run's
+#: tiles both ways).  The workers' peaks came to 0.88-0.90 of the model at 51,519 vertices (the bench page), so
+#: a pass stays near a third of the limit, well below where Dask pauses a worker (80 %), which leaves the worker its
+#: own few hundred MiB; two local workers on this 24 GiB machine (12 GiB each) hold 4.8 GiB passes, their tree
+#: within issue #27's 12 GiB.  (A fixed 3 GiB, as before, cut the 51,519-vertex run into 13 passes, 7 now.)
+PASS_SHARE = 0.4
+#: a pass's memory where no worker has a memory limit (a scheduler's workers started without one)
+UNLIMITED_PASS_BYTES = 3 * 2**30
+#: a cap on a pass's memory below its share (None: none; the bench's one tile a task sets 0)
+PASS_BYTES: float | None = None
 #: a tile is run again at most this often when workers are lost (then the run stops with the error)
 TILE_ATTEMPTS = 4
 
@@ -1359,10 +1366,10 @@ def check_scheduler(client, scheduler: str | None, done: int, total: int, store:
 
 
 def tile_bytes(held: float, n_contact: int, panel: int = PANEL, copies: int = 1, made: float = 0.0) -> float:
-    """A worker's memory for one tile: the panel (3n x 3·panel doubles, ``copies`` of it), one slice of a product (at most :data:`READ_BYTES`,
-    :meth:`SweepStore.sorted_columns`), ``held`` bytes (:func:`source_bytes`: what the panel's columns are
-    computed from) and ``made`` (:func:`output_bytes`, the largest over the tiles; not known before the
-    partition)."""
+    """A worker's memory for one tile: the panel (3n x 3·panel doubles, ``copies`` of it), one slice of a product
+    (at most :data:`READ_BYTES`, :meth:`SweepStore.sorted_columns`), ``held`` bytes (:func:`source_bytes`: what
+    the panel's columns are computed from) and ``made`` (:func:`output_bytes`, the largest over the tiles; not
+    known before the partition)."""
     columns = 8.0 * (3 * n_contact) * (3 * panel)
     return copies * columns + min(float(READ_BYTES), columns) + held + made
 
@@ -1421,6 +1428,15 @@ def pass_bytes(tree: ClusterTree, columns: list[int], plans: list, held: float, 
     its rows of the supernode block being read (``widest``: the widest supernode's columns), and the largest
     tile's own work as one tile alone counts it (:func:`tile_bytes`: its panel, a chunk, its outputs)."""
     return _pass_total([_pass_part(tree, c, b, held, n_contact, panel, widest) for c, b in zip(columns, plans)])
+
+
+def pass_budget(limits: list[int | None], threads: list[int]) -> float:
+    """What a pass may hold (bytes, by :func:`pass_bytes`): :data:`PASS_SHARE` of the smallest memory limit per
+    thread among the workers that have one (:data:`UNLIMITED_PASS_BYTES` where none has), at most
+    :data:`PASS_BYTES` where that is set."""
+    shares = [PASS_SHARE * m / max(t, 1) for m, t in zip(limits, threads) if m]
+    budget = min(shares) if shares else float(UNLIMITED_PASS_BYTES)
+    return budget if PASS_BYTES is None else min(budget, float(PASS_BYTES))
 
 
 def _pass_total(parts) -> float:
@@ -1700,8 +1716,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                                      "worker mounts")
                 threads = [int(w.get("nthreads") or 1) for w in info]
                 held, widest = source_bytes(source), int(source.index["ncol"].max(initial=0))
-                # half a worker's memory per thread at most: Dask pauses a worker near its limit
-                budget = min([PASS_BYTES] + [m / t / 2 for m, t in zip(limits, threads) if m])
+                budget = pass_budget(limits, threads)
                 est = tile_estimates(tree, todo, plan, held, len(points), panel, widest)
                 groups = passes(tree, todo, plan, budget, held, len(points), panel, widest, sum(threads), est)
                 stats["passes"] = len(groups)
@@ -1763,8 +1778,9 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 if cluster is not None:
                     cluster.close()
         stats["assembly_bytes"] = assembly_bytes(tree, ts, far_dtype(tol, dtype))
-        check_phase_memory("assembly", stats["assembly_bytes"] + WRITE_BYTES, f"every tile is kept in {store}: run again where "
-                           "more memory is free (the tiles are reused), or with a larger tolerance (--compress TOL)")
+        check_phase_memory("assembly", stats["assembly_bytes"] + WRITE_BYTES,
+                           f"every tile is kept in {store}: run again where more memory is free (the tiles are "
+                           "reused), or with a larger tolerance (--compress TOL)")
         out, times = assemble(tree, ts, tol, dtype, far_dtype(tol, dtype))
         if job:  # the factor's scale and stats as the worker reported them (every tile stored: its checkpoint's)
             report = report or factor.summary()
