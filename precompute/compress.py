@@ -945,28 +945,55 @@ def tiles(store: SweepStore, tree: ClusterTree, columns: list[int], plans: list,
           sketch: bool = True, folder: Path | None = None) -> list[dict]:
     """One task: the panels of clusters ``columns`` (their blocks ``plans``) in one pass over W
     (:meth:`SweepStore.passed`), then compressed one after the other (:func:`tile`'s results, the same numbers
-    as each tile's own pass), each panel's formed rows dropped once it is.  Each result's ``read_bytes`` is its
-    share of the bytes the pass read; ``pass_tiles`` the pass's tiles.  ``folder``: each tile's arrays are
-    written there as it is compressed (:func:`_tile_file`), and its result names the file (``path``) in their
-    place, so that neither the worker nor the client holds a whole pass's results (the client reads them one
-    tile at a time: :func:`read_tile`)."""
+    as each tile's own pass), each panel's formed rows dropped once it is.  The sketched blocks whose sketches
+    cannot show the tolerance are formed after all in one more pass over W for all the tiles' (each block's
+    products its own, so the same numbers as a tile alone), not in a read of W each (at 51,519 vertices, 7 passes
+    read W's store 7.9 times in all at r_max = 5 mm, where 40 blocks were formed after all one by one, and 5.6
+    times at 10 mm, where 1 was: the bench rows of 2026-11-29 23:01 and 23:20).
+    Each result's ``read_bytes`` is its share of the bytes the passes read; ``pass_tiles`` the pass's tiles.
+    ``folder``: each tile's arrays are written there once compressed (:func:`_tile_file`), and its result names
+    the file (``path``) in their place, so that neither the worker nor the client holds a whole pass's results
+    (the client reads them one tile at a time: :func:`read_tile`); a tile with blocks formed after all is written
+    after that pass."""
     t0 = time.perf_counter()
     read0 = store.bytes_read
     plan = [_tile_plan(tree, c, blocks, sketch) for c, blocks in zip(columns, plans)]
     made = store.passed([(p["rows"], p["dcols"], p["sketch"]) for p in plan])
     solve = (time.perf_counter() - t0) / max(len(plan), 1)
-    out = []
+    out, later, held = [], [], 0
     for k, blocks in enumerate(plans):
         (X, at), p = made[k], plan[k]
         made[k] = plan[k] = None  # (its formed rows and sketches go once it is compressed)
-        out.append(_tile_compress(store, tree, p, blocks, X, at, tol, near))
-        del X, at, p
-        if folder is not None:
-            out[-1] = _tile_file(out[-1], Path(folder))
-    for t in out:  # (the reads of a block formed after all included)
+        held += X.nbytes
+        tile_out, again = _tile_compress(tree, p, blocks, X, at, tol, near)
+        del X, at
+        if again:  # (its blocks formed after all, below)
+            later.append((k, tile_out, again))
+            out.append(None)
+        else:
+            out.append(_tile_done(tile_out, folder))
+    # the blocks formed after all: one more pass over W for all of them, or as many as it takes to form at a
+    # time no more than the pass's formed rows held (one a block at most, as each alone would)
+    asks = [(tile_out, ij, rows, cols) for _, tile_out, again in later for ij, rows, cols in again]
+    while asks:
+        n, size = 1, 8 * len(asks[0][2]) * len(asks[0][3])
+        while n < len(asks) and size + 8 * len(asks[n][2]) * len(asks[n][3]) <= held:
+            size += 8 * len(asks[n][2]) * len(asks[n][3])
+            n += 1
+        batch, asks = asks[:n], asks[n:]
+        for (tile_out, ij, _, _), (D, at) in zip(batch, store.passed([(r, c, None) for _, _, r, c in batch])):
+            tile_out.put(*ij, D[at])
+    for k, tile_out, _ in later:
+        out[k] = _tile_done(tile_out, folder)
+    for t in out:
         t.update({"solve_s": solve, "read_bytes": (store.bytes_read - read0) / max(len(out), 1),
                   "pass_tiles": len(out)})
     return out
+
+
+def _tile_done(tile_out: "_TileOut", folder: Path | None) -> dict:
+    t = tile_out.result()
+    return t if folder is None else _tile_file(t, Path(folder))
 
 
 def _tile_file(t: dict, folder: Path) -> dict:
@@ -1015,63 +1042,92 @@ def _tile_plan(tree: ClusterTree, column: int, blocks, sketch: bool) -> dict:
             "band": band, "sketch": Sketch(formed, groups)}
 
 
-def _tile_compress(store: SweepStore, tree: ClusterTree, p: dict, blocks, X: np.ndarray, at: np.ndarray, tol: float,
-                   near) -> dict:
-    """Tile ``p`` (:func:`_tile_plan`) compressed from its pass's formed rows X (``at``) and sketches."""
+def _tile_compress(tree: ClusterTree, p: dict, blocks, X: np.ndarray, at: np.ndarray, tol: float,
+                   near) -> tuple["_TileOut", list]:
+    """Tile ``p`` (:func:`_tile_plan`) compressed from its pass's formed rows X (``at``) and sketches, and the
+    blocks its sketches could not show within the tolerance, to be formed after all: ``((i, j, far), rows,
+    cols)``, its rows and columns of Ξ (:func:`tiles` forms them and puts them in)."""
     t0 = time.perf_counter()
-    column, c0, c1, rows, dcols, band = p["column"], p["c0"], p["c1"], p["rows"], p["dcols"], p["band"]
-    rng = np.random.default_rng(column)  # reproducible: the same tile, the same factors
-    dense_index, dense, lr_index, Us, Vs = [], [], [], [], []
-    near_index, near_q, near_mask, near_scale = [], [], [], []
-    d_off = u_off = v_off = 0
-    at_near = np.zeros(3, np.int64)  # offsets in near_q, near_mask, near_scale
-    formed_again = 0
+    c0, c1, rows, dcols, band = p["c0"], p["c1"], p["rows"], p["dcols"], p["band"]
+    out = _TileOut(tree, p, tol, near)
+    again = []
     for i, j, far in blocks:
         r0, r1 = int(tree.start[i]), int(tree.stop[i])
         b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
-        piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
-        uv = B = None
         if (i, j) in band:  # from its sketches; formed after all where they cannot show the tolerance
             g, b = band[i, j]
             rs = g.samples[b]
+            piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
             uv = from_sketches(g.y(3 * r0, 3 * r1), X[at[rs], 3 * (b0 - c0):3 * (b1 - c0)], rs - 3 * r0, g.omega,
                                tol / 2 if piece else tol)
             if uv is None:
-                formed_again += 1
-                B = store.columns(rows[3 * r0:3 * r1], dcols[3 * (b0 - c0):3 * (b1 - c0)])
+                again.append(((i, j, far), rows[3 * r0:3 * r1], dcols[3 * (b0 - c0):3 * (b1 - c0)]))
+            else:
+                out.put(i, j, far, uv=uv)
         else:
-            B = X[at[3 * r0:3 * r1], 3 * (b0 - c0):3 * (b1 - c0)]
+            out.put(i, j, far, X[at[3 * r0:3 * r1], 3 * (b0 - c0):3 * (b1 - c0)])
+    out.formed_again = len(again)
+    out.seconds += time.perf_counter() - t0
+    return out, again
+
+
+class _TileOut:
+    """A tile's arrays as its blocks are put in (:func:`_tile_compress`), in the reader's layout with offsets
+    relative to the tile (:func:`tile`)."""
+
+    def __init__(self, tree: ClusterTree, p: dict, tol: float, near):
+        self.tree, self.column, self.c0, self.c1 = tree, int(p["column"]), int(p["c0"]), int(p["c1"])
+        self.sketched, self.tol, self.near = p["sketched"], tol, near
+        self.rng = np.random.default_rng(self.column)  # reproducible: the same tile, the same factors
+        self.dense_index, self.dense, self.lr_index, self.Us, self.Vs = [], [], [], [], []
+        self.near_index, self.near_q, self.near_mask, self.near_scale = [], [], [], []
+        self.d_off = self.u_off = self.v_off = 0
+        self.at_near = np.zeros(3, np.int64)  # offsets in near_q, near_mask, near_scale
+        self.formed_again, self.seconds = 0, 0.0
+
+    def put(self, i: int, j: int, far: bool, B: np.ndarray | None = None, uv: tuple | None = None) -> None:
+        """Block (I, J)'s share of the panel: its low-rank factors ``uv``, or formed (``B``): a far block
+        compressed within the tolerance (a piece of a block wider than the panel within half of it), else stored
+        dense (the near field pair by pair: :func:`tile`), a piece that does not compress as its exact columns."""
+        t0 = time.perf_counter()
+        tree, c0, c1, tol = self.tree, self.c0, self.c1, self.tol
+        r0, r1 = int(tree.start[i]), int(tree.stop[i])
+        b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
+        piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
         if uv is None and far:
-            uv = low_rank(B, tol / 2 if piece else tol, rng)
+            uv = low_rank(B, tol / 2 if piece else tol, self.rng)
         if uv is None and piece:  # a piece is merged in low-rank form: its exact columns, V = I
             uv = (np.array(B), np.eye(B.shape[1]))
-        if uv is None and near is not None:
-            pts, r_max = near
+        if uv is None and self.near is not None:
+            pts, r_max = self.near
             exact = np.linalg.norm(pts[r0:r1, None] - pts[None, b0:b1], axis=2) <= r_max * (1.0 + 1e-9)  # (close)
             parts = encode_near(B, exact, tol)
-            dense_index.append((r0, r1, b0, b1, d_off))
-            near_index.append(tuple(at_near))
-            for lst, arr in zip((dense, near_q, near_scale, near_mask), parts):
+            self.dense_index.append((r0, r1, b0, b1, self.d_off))
+            self.near_index.append(tuple(self.at_near))
+            for lst, arr in zip((self.dense, self.near_q, self.near_scale, self.near_mask), parts):
                 lst.append(arr)
-            d_off += len(parts[0])
-            at_near += [len(parts[1]), len(parts[3]), len(parts[2])]
+            self.d_off += len(parts[0])
+            self.at_near += [len(parts[1]), len(parts[3]), len(parts[2])]
         elif uv is None:
-            dense_index.append((r0, r1, b0, b1, d_off))
-            dense.append(np.ascontiguousarray(B).ravel())
-            d_off += B.size
+            self.dense_index.append((r0, r1, b0, b1, self.d_off))
+            self.dense.append(np.ascontiguousarray(B).ravel())
+            self.d_off += B.size
         else:
             U, V = uv
-            lr_index.append((r0, r1, b0, b1, U.shape[1], u_off, v_off, j))
-            Us.append(U.ravel()), Vs.append(V.ravel())
-            u_off += U.size
-            v_off += V.size
-    cat = lambda parts, dt=np.float64: np.concatenate(parts) if parts else np.zeros(0, dt)  # noqa: E731
-    return {"column": int(column), "dense_index": np.array(dense_index, np.int64).reshape(-1, 5),
-            "dense": cat(dense), "lowrank_index": np.array(lr_index, np.int64).reshape(-1, 8), "U": cat(Us),
-            "V": cat(Vs), "near_index": np.array(near_index, np.int64).reshape(-1, 3),
-            "near_q": cat(near_q, np.int16), "near_mask": cat(near_mask, np.uint8), "near_scale": cat(near_scale),
-            "compress_s": time.perf_counter() - t0, "pid": os.getpid(), "sketched": p["sketched"],
-            "formed_again": formed_again}
+            self.lr_index.append((r0, r1, b0, b1, U.shape[1], self.u_off, self.v_off, j))
+            self.Us.append(U.ravel()), self.Vs.append(V.ravel())
+            self.u_off += U.size
+            self.v_off += V.size
+        self.seconds += time.perf_counter() - t0
+
+    def result(self) -> dict:
+        cat = lambda parts, dt=np.float64: np.concatenate(parts) if parts else np.zeros(0, dt)  # noqa: E731
+        return {"column": self.column, "dense_index": np.array(self.dense_index, np.int64).reshape(-1, 5),
+                "dense": cat(self.dense), "lowrank_index": np.array(self.lr_index, np.int64).reshape(-1, 8),
+                "U": cat(self.Us), "V": cat(self.Vs), "near_index": np.array(self.near_index, np.int64).reshape(-1, 3),
+                "near_q": cat(self.near_q, np.int16), "near_mask": cat(self.near_mask, np.uint8),
+                "near_scale": cat(self.near_scale), "compress_s": self.seconds, "pid": os.getpid(),
+                "sketched": self.sketched, "formed_again": self.formed_again}
 
 
 def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tuple[np.ndarray, np.ndarray]:
