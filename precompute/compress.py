@@ -110,10 +110,11 @@ FLOAT32_TOLERANCE = 1e-5
 #: a pass of tiles (:func:`tiles`) holds at most this share of its worker's memory limit per thread, by its model
 #: (:func:`pass_budget`): the more tiles a pass holds, the fewer times W is read (by hand at 20,427 vertices: 16
 #: tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB; the bench page compares the whole run's
-#: tiles both ways).  The workers' peaks came to 0.88-0.90 of the model at 51,519 vertices (the bench page), so
-#: a pass stays near a third of the limit, well below where Dask pauses a worker (80 %), which leaves the worker its
-#: own few hundred MiB; two local workers on this 24 GiB machine (12 GiB each) hold 4.8 GiB passes, their tree
-#: within issue #27's 12 GiB.  (A fixed 3 GiB, as before, cut the 51,519-vertex run into 13 passes, 7 now.)
+#: tiles both ways).  The workers peaked at 0.88-0.97 of the model at 51,519 vertices (the organ rows of
+#: 2026-11-29, 3 and 4.7 GiB passes), so a pass stays below 0.4 of the limit, well below where Dask pauses a worker
+#: (80 %), which leaves the worker its own few hundred MiB; two local workers on this 24 GiB machine (12 GiB each)
+#: hold 4.8 GiB passes, their process tree within issue #27's 12 GiB.  (A fixed 3 GiB, as before, cut the
+#: 51,519-vertex run into 13 passes.)
 PASS_SHARE = 0.4
 #: a pass's memory where no worker has a memory limit (a scheduler's workers started without one)
 UNLIMITED_PASS_BYTES = 3 * 2**30

@@ -392,7 +392,8 @@ static PyObject *Table_display_deform(TableObject *self, PyObject *args)
 
 static PyObject *Table_display_counts(TableObject *self, PyObject *unused)
 {
-    return Py_BuildValue("LL", (long long)pm_display_vertices(self->table), (long long)pm_display_triangles(self->table));
+    return Py_BuildValue("LL", (long long)pm_display_vertices(self->table),
+                         (long long)pm_display_triangles(self->table));
 }
 
 static PyMethodDef Table_methods[] = {
@@ -726,8 +727,10 @@ static PyMethodDef Servo_methods[] = {
     {"running", (PyCFunction)Servo_running, METH_NOARGS, "whether the thread runs"},
     {"set_probes", (PyCFunction)Servo_set_probes, METH_O, "the probes the thread uses from its next tick"},
     {"read", (PyCFunction)Servo_read, METH_NOARGS, "(forces, statuses, (ticks, late, max_lateness, step_max, idle))"},
-    {"start_exchange", (PyCFunction)Servo_start_exchange, METH_VARARGS, "start_exchange(rate[, spin]): the thread on exchanged samples"},
-    {"exchange", (PyCFunction)Servo_exchange, METH_VARARGS, "exchange(probes, timeout) -> (forces, statuses) of the tick that used them"},
+    {"start_exchange", (PyCFunction)Servo_start_exchange, METH_VARARGS,
+     "start_exchange(rate[, spin]): the thread on exchanged samples"},
+    {"exchange", (PyCFunction)Servo_exchange, METH_VARARGS,
+     "exchange(probes, timeout) -> (forces, statuses) of the tick that used them"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject ServoType = {
@@ -803,8 +806,10 @@ PyMODINIT_FUNC PyInit__core(void)
     if (!m) return NULL;
     Py_INCREF(&TableType);
     Py_INCREF(&ServoType);
-    if (PyModule_AddObject(m, "Table", (PyObject *)&TableType) || PyModule_AddObject(m, "Servo", (PyObject *)&ServoType) ||
-        PyModule_AddIntConstant(m, "TABLE_MAJOR", PM_TABLE_MAJOR) || PyModule_AddIntConstant(m, "TABLE_MINOR", PM_TABLE_MINOR)) {
+    if (PyModule_AddObject(m, "Table", (PyObject *)&TableType) ||
+        PyModule_AddObject(m, "Servo", (PyObject *)&ServoType) ||
+        PyModule_AddIntConstant(m, "TABLE_MAJOR", PM_TABLE_MAJOR) ||
+        PyModule_AddIntConstant(m, "TABLE_MINOR", PM_TABLE_MINOR)) {
         Py_DECREF(m);
         return NULL;
     }

@@ -15,8 +15,8 @@
  * layout (little-endian): a 64-byte header ("PMASKTBL", major, minor, size, section count, a CRC-32 of
  * header and directory), a directory of named sections with a CRC-32 each, the sections.  A foreign,
  * truncated or corrupt file, a 1.0 table (without the 1.1 law's sections), a newer major version and
- * stiffnesses that are not positive definite are refused with a message.  Loading builds a bounding-volume hierarchy of the triangles, which restarts
- * contact tracking in O(log n) whatever the probe's depth.
+ * stiffnesses that are not positive definite are refused with a message.  Loading builds a bounding-volume
+ * hierarchy of the triangles, which restarts contact tracking in O(log n) whatever the probe's depth.
  *
  * Threads: a table is read-only after loading and may be shared.  A servo (contact state for n
  * instruments) is used by one thread at a time, except in thread mode (pm_servo_start,

@@ -69,7 +69,8 @@ int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, 
         return -1;
     }
 #define FIN(x) isfinite(x)
-    if (!(FIN(o.friction) && o.friction >= 0.0)) return bad_option(err, errlen, "friction", o.friction, "finite and >= 0");
+    if (!(FIN(o.friction) && o.friction >= 0.0))
+        return bad_option(err, errlen, "friction", o.friction, "finite and >= 0");
     if (!(FIN(o.dynamic_friction) && o.dynamic_friction >= 0.0))
         return bad_option(err, errlen, "dynamic_friction", o.dynamic_friction, "finite and >= 0");
     if (!(FIN(o.damping) && o.damping >= 0.0)) return bad_option(err, errlen, "damping", o.damping, "finite and >= 0");
@@ -78,8 +79,10 @@ int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, 
     if (!(FIN(o.slip_length) && o.slip_length > 0.0))
         return bad_option(err, errlen, "slip_length", o.slip_length, "finite and > 0");
     if (!(FIN(o.rate) && o.rate > 0.0)) return bad_option(err, errlen, "rate", o.rate, "finite and > 0");
-    if (!(FIN(o.max_jump) && o.max_jump > 0.0)) return bad_option(err, errlen, "max_jump", o.max_jump, "finite and > 0");
-    if (!(FIN(o.decay) && o.decay >= 0.0 && o.decay < 1.0)) return bad_option(err, errlen, "decay", o.decay, "in [0, 1)");
+    if (!(FIN(o.max_jump) && o.max_jump > 0.0))
+        return bad_option(err, errlen, "max_jump", o.max_jump, "finite and > 0");
+    if (!(FIN(o.decay) && o.decay >= 0.0 && o.decay < 1.0))
+        return bad_option(err, errlen, "decay", o.decay, "in [0, 1)");
     if (!(FIN(o.proxy_speed) && o.proxy_speed >= 1.0))
         return bad_option(err, errlen, "proxy_speed", o.proxy_speed, "finite and >= 1");
     if (o.reset_after < 1) return bad_option(err, errlen, "reset_after", o.reset_after, ">= 1");

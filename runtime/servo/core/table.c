@@ -450,7 +450,8 @@ int pm_table_from_sections(const pm_section *sections, int32_t n, pm_table **out
             return -1;
         }
         uint64_t item = s->dtype == DT_BYTES ? 1 : 8;
-        if (s->rows < 0 || s->cols < 0 || (s->cols != 0 && (uint64_t)s->rows > (uint64_t)PTRDIFF_MAX / (uint64_t)s->cols / 8)) {
+        if (s->rows < 0 || s->cols < 0 ||
+            (s->cols != 0 && (uint64_t)s->rows > (uint64_t)PTRDIFF_MAX / (uint64_t)s->cols / 8)) {
             fmt(err, errlen, "pm_table_from_sections: section '%s' has a bad shape (%lld x %lld)", name,
                 (long long)s->rows, (long long)s->cols);
             return -1;
