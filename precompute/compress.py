@@ -983,7 +983,9 @@ def tiles(store: SweepStore, tree: ClusterTree, columns: list[int], plans: list,
             n += 1
         batch, asks = asks[:n], asks[n:]
         for (tile_out, ij, _, _), (D, at) in zip(batch, store.passed([(r, c, None) for _, _, r, c in batch])):
+            t1 = time.perf_counter()
             tile_out.put(*ij, D[at])
+            tile_out.seconds += time.perf_counter() - t1
     for k, tile_out, _ in later:
         out[k] = _tile_done(tile_out, folder)
     for t in out:
@@ -1090,7 +1092,6 @@ class _TileOut:
         """Block (I, J)'s share of the panel: its low-rank factors ``uv``, or formed (``B``): a far block
         compressed within the tolerance (a piece of a block wider than the panel within half of it), else stored
         dense (the near field pair by pair: :func:`tile`), a piece that does not compress as its exact columns."""
-        t0 = time.perf_counter()
         tree, c0, c1, tol = self.tree, self.c0, self.c1, self.tol
         r0, r1 = int(tree.start[i]), int(tree.stop[i])
         b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
@@ -1119,7 +1120,6 @@ class _TileOut:
             self.Us.append(U.ravel()), self.Vs.append(V.ravel())
             self.u_off += U.size
             self.v_off += V.size
-        self.seconds += time.perf_counter() - t0
 
     def result(self) -> dict:
         cat = lambda parts, dt=np.float64: np.concatenate(parts) if parts else np.zeros(0, dt)  # noqa: E731
