@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -34,8 +35,22 @@ def gmsh_volume(path, solids, size: float) -> Path:
 
 
 def build(tmp_path_factory, name: str, spec: Spec) -> Path:
-    out = tmp_path_factory.mktemp(name) / f"{name}.h5"
-    run(spec, out)
+    """The artifact ``name`` of ``spec``, precomputed once for the whole session: under ``make test``'s two
+    processes (pytest-xdist) in their shared temporary folder, the first to ask building it under a file lock and
+    the other reading the same file (each built its own before: the default kidney alone took 18 s a process)."""
+    import fcntl
+    import os
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's folder, above each process's own
+    folder = root / "artifacts"
+    folder.mkdir(exist_ok=True)
+    out = folder / f"{name}.h5"
+    with open(folder / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not out.exists():  # (the pipeline writes it whole or not at all: runtime.files.atomic_write)
+            run(spec, out)
     return out
 
 
