@@ -74,12 +74,35 @@ def halfspace_small(tmp_path_factory) -> Path:
                  Spec(model="halfspace", params={"h_load": 0.0025, "far": 10.0}, reactions=True))
 
 
+class _Permuted:
+    """A factor of P A Pᵀ solving A x = b: x[p] = (P A Pᵀ)⁻¹ b[p]."""
+
+    def __init__(self, lu, p):
+        self.lu, self.p = lu, p
+
+    def solve(self, b):
+        b = np.asarray(b, float)
+        x = np.empty_like(b)
+        x[self.p] = self.lu.solve(b[self.p])
+        return x
+
+
 def spd_lu(A):
-    """SuperLU of a symmetric positive definite system (a stiffness with its support held): the minimum degree
-    ordering of A + Aᵀ and no pivoting, symmetric mode (SPD needs none: the same accuracy as a Cholesky factor).
-    With SuperLU's default (COLAMD, partial pivoting) the half-space's P2 system took 52 s to factorise, and the
-    test that uses it 59 s; with this the test takes 30 s (by hand).  Still SuperLU: independent of pmask's CHOLMOD."""
-    return spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    """SuperLU of a symmetric positive definite system (a stiffness with its support held), ordered by approximate
+    minimum degree (AMD, cvxopt's: a permutation only) and factorised without pivoting in symmetric mode (SPD
+    needs none: the same accuracy as a Cholesky factor).  SuperLU's own orderings were slower on the same fill:
+    the 32,928-dof P2 half-space system of ``test_contacts`` took 21 s with its minimum degree on A + Aᵀ (and 52 s
+    with its default, COLAMD with partial pivoting) against 11 s ordered by AMD (by hand, 58 M entries of L + U in
+    both).  Still SuperLU: independent of pmask's CHOLMOD factorisation."""
+    import cvxopt
+    import cvxopt.amd
+
+    A = A.tocsc()
+    low = sp.tril(A).tocoo()
+    p = np.array(list(cvxopt.amd.order(cvxopt.spmatrix(low.data, low.row.tolist(), low.col.tolist(), size=A.shape))),
+                 np.int64)
+    lu = spla.splu(A[p][:, p].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return _Permuted(lu, p)
 
 
 def full_solve(points, tets, E, nu, fixed_vertices, loads):
