@@ -46,7 +46,8 @@ precompute: venv
 	$(BIN)/pmask precompute $(MODEL) $(ARGS)
 
 # the suites run on two processes (pytest-xdist), one test file per process at a time so that a file's
-# module fixtures (a precomputed model, a LocalCluster) are built once; JOBS=1 runs them serially
+# module fixtures (a precomputed model, a LocalCluster) are built once, but the files tests/conftest.py names
+# in SPREAD_FILES test by test; JOBS=1 runs them serially
 JOBS   ?= 2
 XDIST  := $(if $(filter 1,$(JOBS)),,-n $(JOBS) --dist loadfile)
 

@@ -384,3 +384,22 @@ def surface(stiff):
 def kidney_top(tmp_path_factory) -> Path:
     """The default kidney with a contact region (the upper half, z > 0): Ξ only there, widened by r_max."""
     return build(tmp_path_factory, "kidney_top", Spec(model="kidney", contact="z>0"))
+
+
+#: test files whose tests share no fixture and are handed out one by one (``make test`` otherwise sends a whole file
+#: to one process, so that its module fixtures, a precomputed model or a LocalCluster, are built once): the slow
+#: corpus, a minute a test at most, which as one file kept one process busy long after the other had finished
+SPREAD_FILES = ("tests/test_corpus.py",)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` as pytest-xdist schedules it, but test by test in :data:`SPREAD_FILES`."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class Scheduling(LoadFileScheduling):
+        def _split_scope(self, nodeid):
+            return nodeid if nodeid.split("::", 1)[0] in SPREAD_FILES else super()._split_scope(nodeid)
+
+    return Scheduling(config, log)
