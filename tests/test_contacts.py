@@ -46,7 +46,7 @@ def fe_displacements(model, stiff, points, forces):
             cols, rho = stiff.masks.row(row_of[int(m_vertex)])
             for j, w in zip(cols, rho):
                 tractions[model.contact[j], :, 0] += phi * w * np.asarray(f)
-    system = FullSystem(model.path)
+    system = FullSystem.of(model.path)
     u, r = system.solve(tractions)
     return u[system.vi, :, 0], r
 
@@ -101,7 +101,7 @@ def test_a_grasp_is_in_equilibrium_with_the_support_reactions(model, stiff):
     np.testing.assert_allclose(react.sum(axis=0) + f.sum(axis=0), 0.0, atol=1e-9 * scale)
     # moments: the tractions act over the masks, not at the contact points: take the nodal forces the element
     # makes of them (P2: the consistent load on corners and edge midpoints) from the independent route
-    system = FullSystem(model.path)
+    system = FullSystem.of(model.path)
     tractions = np.zeros((len(xs), 3, 1))
     tractions[model.contact, :, 0] = traction.reshape(-1, 3)
     F = system.loads(tractions)[:, 0].reshape(-1, 3)
@@ -269,7 +269,7 @@ def fe_compliance(model, stiff, points):
             for j, w in zip(cols, rho):
                 for a in range(3):
                     tractions[model.contact[j], a, 3 * l + a] += phi * w
-    system = FullSystem(model.path)
+    system = FullSystem.of(model.path)
     u, _ = system.solve(tractions)
     us = u[system.vi]
     C = np.vstack([np.einsum("i,iak->ak", b, us[model.triangles[t]]) for t, b in points])
@@ -355,7 +355,7 @@ def test_between_vertices_the_full_solve_ripples_with_the_mesh_and_the_law_does_
     stiff = model.stiffness("linear", 2 * 0.0025)
     r = stiff.masks.radius
     P, T, contact = model.points, model.triangles, model.contact
-    system = FullSystem(model.path)
+    system = FullSystem.of(model.path)
     assert system.element == "P2"  # the quadratic read-out, exact for a linear field (u = x at every node)
     x = np.vstack([system.points, system.points[system.edges].mean(axis=1)]).reshape(-1, 1)
     np.testing.assert_allclose(system.value_at(x, system.vi[T[0]], [0.2, 0.3, 0.5]).ravel(),
@@ -399,7 +399,7 @@ def test_between_vertices_the_full_solve_is_stiffer_than_the_law_on_the_kidney(m
     from pmask.runtime.contact.tracking import normal
 
     P, T, contact = model.points, model.triangles, model.contact
-    system = FullSystem(model.path)
+    system = FullSystem.of(model.path)
     assert system.element == "P2"  # the quadratic read-out
     a, r = system.areas, stiff.masks.radius
     row_of = {int(v): k for k, v in enumerate(contact[stiff.masks.centres])}
