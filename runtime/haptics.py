@@ -170,6 +170,8 @@ class Contacts:
             elif engine == "native":
                 raise InputError("engine='native' but the native servo core is not built (no compiler at "
                                  "install time?); pip install the package again with a C compiler present")
+        if self._native is None:
+            s.python_views()  # the Python steps' plain-Python copies now, not on the first tick
 
     # ------------------------------------------------------------------ public
     def reset(self) -> None:

@@ -24,6 +24,7 @@ force keeps growing and its direction stays near the normal there).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 
@@ -46,6 +47,11 @@ DEEP_MASK_RADII = 1.5
 log = logging.getLogger(__name__)
 
 
+def _rows(a) -> list:
+    """An array's rows as a list of tuples of Python floats or ints."""
+    return [tuple(r) for r in a.tolist()]
+
+
 class ContactSurface:
     """What the contact algorithm reads of a stiffness: the mesh, triangle frames and neighbours, contact
     normals, per-vertex rendered K, taper λ, normal stiffness k, its gradient ∇k, the shape operator S and
@@ -55,19 +61,46 @@ class ContactSurface:
 
     stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
     normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
-    levels : the contact surface, see :class:`Contacts`: None (default) the automatic choice, n the mesh's Loop
+    levels : the contact surface, see :class:`Contacts`: None (default) or "auto" the automatic choice, n the mesh's Loop
     subdivision surface after n levels (:mod:`pmask.runtime.contact.subdivision`), its creases rounded, 0 the mesh.  The
     mesh's vertices keep their indices, and their positions away from creases (:attr:`mesh_points`); ``mesh_T``,
     ``parent`` and ``corners`` map a contact point to the mesh
     (:meth:`mesh_point`), where ζ, the deformation and the model's own arrays live.
     """
 
+    # plain-Python copies of the arrays for the Python engine's per-tick code, made when it first reads them
+    # (:meth:`python_views`): the native core reads the arrays, and making them took 0.5 s of the 1.2 s a
+    # contact surface of the default kidney takes to build (by hand)
+    _tri = functools.cached_property(lambda self: _rows(self.tri_geom))
+    _nb = functools.cached_property(lambda self: _rows(self.neighbours))
+    _idx = functools.cached_property(lambda self: _rows(self.T))
+    _P = functools.cached_property(lambda self: _rows(self.P))
+    _N = functools.cached_property(lambda self: _rows(self.vertex_normals))
+    _K = functools.cached_property(lambda self: _rows(self.K))
+    _lam = functools.cached_property(lambda self: self.taper.tolist())
+    _k = functools.cached_property(lambda self: self.normal_stiffness.tolist())
+    _G = functools.cached_property(lambda self: _rows(self.gradient))
+    _S = functools.cached_property(lambda self: _rows(self.shape))
+    _dlin = functools.cached_property(lambda self: self.linear_depth.tolist())
+    _mesh_idx = functools.cached_property(lambda self: _rows(self.mesh_T))
+    _parent = functools.cached_property(lambda self: self.parent.tolist())
+    _corners = functools.cached_property(lambda self: _rows(self.corners))
+    _VIEWS = ("_tri", "_nb", "_idx", "_P", "_N", "_K", "_lam", "_k", "_G", "_S", "_dlin", "_mesh_idx", "_parent",
+              "_corners")
+
+    def python_views(self) -> "ContactSurface":
+        """Make the plain-Python copies the Python engine reads every tick now, so that its first tick does not
+        (:class:`pmask.runtime.haptics.Contacts` calls it when it runs the Python steps)."""
+        for name in self._VIEWS:
+            getattr(self, name)
+        return self
+
     def __init__(self, stiffness, normal_radius: float | None = None, levels: int | None = None):
         P0 = np.asarray(stiffness.points, float)
         T0 = np.asarray(stiffness.triangles, np.int64)
         e = np.linalg.norm(P0[T0[:, 1]] - P0[T0[:, 0]], axis=1)
         mean_edge = float(e.mean()) if len(e) else 1.0  # the mesh's: the contact's scales do not change with levels
-        if levels is None:
+        if levels is None or (isinstance(levels, str) and levels == "auto"):
             levels = choose_levels(P0, T0)
         elif not (isinstance(levels, (int, np.integer)) and 0 <= levels <= MAX_LEVELS
                   and (levels == 0 or 4 ** levels * len(T0) <= MAX_TRIANGLES)):
@@ -191,21 +224,6 @@ class ContactSurface:
         self.grid = grid
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
         self.mean_edge, self.diag, self.normal_radius = float(mean_edge), float(diag), float(normal_radius)
-        # plain-Python views for the per-tick code
-        self._tri = [tuple(r) for r in self.tri_geom.tolist()]
-        self._nb = [tuple(r) for r in self.neighbours.tolist()]
-        self._idx = [tuple(r) for r in self.T.tolist()]
-        self._P = [tuple(r) for r in self.P.tolist()]
-        self._N = [tuple(r) for r in self.vertex_normals.tolist()]
-        self._K = [tuple(r) for r in self.K.tolist()]
-        self._lam = self.taper.tolist()
-        self._k = self.normal_stiffness.tolist()
-        self._G = [tuple(r) for r in self.gradient.tolist()]
-        self._S = [tuple(r) for r in self.shape.tolist()]
-        self._dlin = self.linear_depth.tolist()
-        self._mesh_idx = [tuple(r) for r in self.mesh_T.tolist()]
-        self._parent = self.parent.tolist()
-        self._corners = [tuple(r) for r in self.corners.tolist()]
         self._coupling = None
         self._row = None
         self._block = None
