@@ -14,6 +14,18 @@ def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
 
 
+def scatter_add(index, values, n: int) -> np.ndarray:
+    """``np.add.at(zeros, index, values)`` (n rows, one per index, any trailing columns) by ``np.bincount`` a
+    column at a time: the same sums in the same order, so bit for bit the same, several times faster."""
+    index = np.asarray(index, np.int64).ravel()
+    v = np.asarray(values, float)
+    if v.ndim == 1:
+        return np.bincount(index, v, minlength=n)
+    cols = v.reshape(len(index), int(np.prod(v.shape[1:])))
+    return np.stack([np.bincount(index, cols[:, c], minlength=n) for c in range(cols.shape[1])],
+                    axis=1).reshape(n, *v.shape[1:])
+
+
 def vertex_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     r"""Vertex areas :math:`a_i = \int_\Gamma \phi_i\, d\Gamma` (paper eq. 10).
 
@@ -22,9 +34,7 @@ def vertex_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     surface area.  This is the lumped boundary mass that turns a traction
     :math:`p_j` into the nodal force :math:`a_j p_j`.
     """
-    a = np.zeros(len(points))
-    np.add.at(a, triangles.ravel(), np.repeat(triangle_areas(points, triangles) / 3.0, 3))
-    return a
+    return scatter_add(triangles, np.repeat(triangle_areas(points, triangles) / 3.0, 3), len(points))
 
 
 def triangle_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -52,9 +62,7 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals."""
     p = points[triangles]
     n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # 2 x area x unit normal
-    vn = np.zeros_like(points, dtype=float)
-    for k in range(3):
-        np.add.at(vn, triangles[:, k], n)
+    vn = scatter_add(np.asarray(triangles).T, np.tile(n, (3, 1)), len(points))  # corner 0's, 1's, then 2's
     norm = np.linalg.norm(vn, axis=1, keepdims=True)
     return vn / np.where(norm > 0, norm, 1.0)
 

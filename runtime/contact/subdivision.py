@@ -56,7 +56,7 @@ import math
 
 import numpy as np
 
-from pmask.runtime.geometry import crease_edges, triangle_normals, vertex_normals
+from pmask.runtime.geometry import crease_edges, scatter_add, triangle_normals, vertex_normals
 
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
@@ -221,16 +221,11 @@ def _creases(P, T, E_open, crease_deg):
 
 
 def _valence(n, E):
-    val = np.zeros(n, np.int64)
-    np.add.at(val, E.ravel(), 1)
-    return val
+    return np.bincount(np.asarray(E, np.int64).ravel(), minlength=n)
 
 
 def _neighbour_sum(n, E, P):
-    s = np.zeros((n, P.shape[1]))
-    np.add.at(s, E[:, 0], P[E[:, 1]])
-    np.add.at(s, E[:, 1], P[E[:, 0]])
-    return s
+    return scatter_add(np.concatenate([E[:, 0], E[:, 1]]), np.concatenate([P[E[:, 1]], P[E[:, 0]]]), n)
 
 
 def _beta(val):
@@ -254,8 +249,7 @@ def _split(P, T, crease, parent, corners, fixed):
     is_crease = _crease_flags(E, crease)
     # the vertex opposite each side, gathered per edge (two for an interior edge)
     opp = np.roll(T, -2, axis=1).ravel()
-    opp_sum = np.zeros((len(E), P.shape[1]))
-    np.add.at(opp_sum, side.ravel(), P[opp])
+    opp_sum = scatter_add(side, P[opp], len(E))
     odd = np.where(is_crease[:, None], 0.5 * (P[E[:, 0]] + P[E[:, 1]]),
                    0.375 * (P[E[:, 0]] + P[E[:, 1]]) + 0.125 * opp_sum)
     even = _smooth_or_crease(P, E, is_crease, fixed, _even_smooth, _even_crease)

@@ -30,8 +30,8 @@ import math
 
 import numpy as np
 
-from pmask.runtime.geometry import (contact_normals, crease_blend, triangle_areas, triangle_frames, triangle_neighbours,
-                                    vertex_normals)
+from pmask.runtime.geometry import (contact_normals, crease_blend, scatter_add, triangle_areas, triangle_frames,
+                                    triangle_neighbours, vertex_normals)
 from pmask.errors import InputError
 from pmask.runtime.contact.subdivision import (MAX_LEVELS, MAX_TRIANGLES, choose_levels, mesh_point, round_creases,
                                                subdivide)
@@ -406,9 +406,7 @@ def linear_depths(shape, mask_radius: float) -> np.ndarray:
 def _vertex_mean(P, T, per_triangle) -> np.ndarray:
     """Area-weighted mean over each vertex's triangles of a per-triangle quantity (n_t, m)."""
     area = triangle_areas(P, T)
-    out = np.zeros((len(P), per_triangle.shape[1]))
-    w = np.zeros(len(P))
-    for c in range(3):
-        np.add.at(out, T[:, c], area[:, None] * per_triangle)
-        np.add.at(w, T[:, c], area)
+    corner = np.asarray(T).T  # corner 0's triangles, then 1's, then 2's: the order the sums ran in
+    out = scatter_add(corner, np.tile(area[:, None] * per_triangle, (3, 1)), len(P))
+    w = scatter_add(corner, np.tile(area, 3), len(P))
     return out / np.maximum(w, 1e-300)[:, None]
