@@ -206,8 +206,12 @@ def mesh_point(parent, corners, t, b0, b1, b2):
 def _edges(T):
     """(unique edges (e, 2) sorted, edge of each triangle side (m, 3): side k joins corners k and k+1, the open
     edges (b, 2)).  Raises ValueError on an edge of more than two triangles."""
-    sides = np.stack([T, np.roll(T, -1, axis=1)], axis=2).reshape(-1, 2)
-    E, inv, count = np.unique(np.sort(sides, axis=1), axis=0, return_inverse=True, return_counts=True)
+    sides = np.sort(np.stack([T, np.roll(T, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    w = int(sides.max()) + 1 if len(sides) else 1
+    # each edge as one integer key: np.unique's sort of the rows as records (axis=0) took ~5x as long
+    key, inv, count = np.unique(sides[:, 0].astype(np.int64) * w + sides[:, 1], return_inverse=True,
+                                return_counts=True)
+    E = np.stack(np.divmod(key, w), axis=1).astype(sides.dtype, copy=False)
     if np.any(count > 2):
         raise ValueError("an edge is shared by more than two triangles")
     return E, inv.reshape(-1, 3), E[count == 1]
