@@ -21,7 +21,8 @@ MENDED = {"meshfix": {"touching shells", "touching at a point", "holes", "flippe
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(CASES, key=lambda name: (len(CASES[name][1]) < 100_000, name)))  # the largest first: no process waits on it at the end
+# the largest cases first, so that no process is left waiting on one at the end
+@pytest.mark.parametrize("name", sorted(CASES, key=lambda name: (len(CASES[name][1]) < 100_000, name)))
 @pytest.mark.parametrize("repair", [None, "meshfix", "voxel"])
 def test_every_corpus_case_is_an_artifact_or_one_line(tmp_path, capsys, name, repair):
     import meshio

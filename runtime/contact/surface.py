@@ -61,11 +61,11 @@ class ContactSurface:
 
     stiffness : a :class:`pmask.runtime.stiffness.Stiffness` (or any ``SurfaceStiffness``).
     normal_radius : see :class:`Contacts` (default 3 mask radii, or 6 mean edges without masks).
-    levels : the contact surface, see :class:`Contacts`: None (default) or "auto" the automatic choice, n the mesh's Loop
-    subdivision surface after n levels (:mod:`pmask.runtime.contact.subdivision`), its creases rounded, 0 the mesh.  The
-    mesh's vertices keep their indices, and their positions away from creases (:attr:`mesh_points`); ``mesh_T``,
-    ``parent`` and ``corners`` map a contact point to the mesh
-    (:meth:`mesh_point`), where ζ, the deformation and the model's own arrays live.
+    levels : the contact surface, see :class:`Contacts`: None (default) or "auto" the automatic choice, n the mesh's
+    Loop subdivision surface after n levels (:mod:`pmask.runtime.contact.subdivision`), its creases rounded, 0 the
+    mesh.  The mesh's vertices keep their indices, and their positions away from creases (:attr:`mesh_points`);
+    ``mesh_T``, ``parent`` and ``corners`` map a contact point to the mesh (:meth:`mesh_point`), where ζ, the
+    deformation and the model's own arrays live.
     """
 
     # plain-Python copies of the arrays for the Python engine's per-tick code, made when it first reads them
