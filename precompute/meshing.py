@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pmask.errors import InputError
-from pmask.runtime.geometry import triangle_areas
+from pmask.runtime.geometry import triangle_areas, unique_rows
 
 log = logging.getLogger("pmask.precompute.meshing")  # also when run as the remesh worker (__main__)
 
@@ -132,8 +132,8 @@ def edge_defects(tris: np.ndarray) -> dict:
     triangle: holes), non-manifold edges (in more than two) and inconsistently oriented edges (the same
     directed edge in two triangles)."""
     directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    _, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
-    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    _, counts = unique_rows(np.sort(directed, axis=1), return_counts=True)
+    _, dcounts = unique_rows(directed, return_counts=True)
     return {"boundary_edges": int(np.sum(counts == 1)), "non_manifold_edges": int(np.sum(counts > 2)),
             "inconsistent_edges": int(np.sum(dcounts > 1))}
 
@@ -455,7 +455,7 @@ def pinched_vertices(tris: np.ndarray) -> np.ndarray:
     g = coo_matrix((np.ones(len(src)), (src, dst)), shape=(3 * n_t, 3 * n_t))
     _, label = connected_components(g, directed=False)
     vertex = tris.ravel()
-    pairs = np.unique(np.stack([vertex, label], axis=1), axis=0)
+    pairs = unique_rows(np.stack([vertex, label], axis=1))
     fans = np.bincount(pairs[:, 0], minlength=int(vertex.max()) + 1)
     return np.flatnonzero(fans > 1)
 

@@ -67,15 +67,34 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return vn / np.where(norm > 0, norm, 1.0)
 
 
+def unique_rows(rows, return_inverse: bool = False, return_counts: bool = False):
+    """``np.unique(rows, axis=0, ...)`` for rows of non-negative integers (edges, faces, (vertex, label)
+    pairs): the same rows in the same (lexicographic) order, the same inverse and counts, from one integer key
+    per row, r_0·w^(m-1) + … + r_(m-1) with w = max + 1, which orders as the rows do.  numpy sorts rows as records,
+    ~25x slower: 6,000,000 faces of a 300,000-vertex volume took 19 s against 0.7 s (by hand).  Rows whose key
+    would not fit in 63 bits, or with a negative entry, go to numpy's own."""
+    rows = np.asarray(rows)
+    m = rows.shape[1] if rows.ndim == 2 else 0
+    w = int(rows.max()) + 1 if rows.size else 1
+    if not rows.size or m == 0 or rows.dtype.kind not in "iu" or int(rows.min()) < 0 or w ** m >= 2 ** 63:
+        return np.unique(rows, axis=0, return_inverse=return_inverse, return_counts=return_counts)
+    key = rows[:, 0].astype(np.int64)
+    for c in range(1, m):
+        key = key * w + rows[:, c]
+    out = np.unique(key, return_inverse=return_inverse, return_counts=return_counts)
+    key, rest = (out[0], out[1:]) if isinstance(out, tuple) else (out, ())
+    cols = []
+    for _ in range(m):
+        key, r = np.divmod(key, w)
+        cols.append(r)
+    u = np.stack(cols[::-1], axis=1).astype(rows.dtype, copy=False)
+    return (u, *rest) if rest else u
+
+
 def edges(triangles: np.ndarray) -> np.ndarray:
-    """Unique undirected edges (E, 2), smaller index first, in lexicographic order (each edge one integer key
-    a·n + b for np.unique, by hand 0.02 s at 43,000 triangles against 0.09 s for unique rows)."""
+    """Unique undirected edges (E, 2), smaller index first, in lexicographic order (:func:`unique_rows`)."""
     e = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    if not e.size:
-        return e.reshape(0, 2)
-    n = int(e.max()) + 1
-    key = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1])
-    return np.stack([key // n, key % n], axis=1).astype(e.dtype, copy=False)
+    return unique_rows(e) if e.size else e.reshape(0, 2)
 
 
 def mean_edge_length(points: np.ndarray, triangles: np.ndarray) -> float:
@@ -204,7 +223,7 @@ def crease_edges(points: np.ndarray, triangles: np.ndarray, crease_deg: float = 
     sharp = np.einsum("ij,ij->i", fn[t[ok]], fn[other[ok]]) < np.cos(np.deg2rad(crease_deg))
     tt, kk = t[ok][sharp], k[ok][sharp]  # edge k joins vertices (k+1)%3 and (k+2)%3
     pairs = np.sort(np.c_[T[tt, (kk + 1) % 3], T[tt, (kk + 2) % 3]], axis=1)
-    return np.unique(pairs, axis=0) if len(pairs) else pairs.reshape(0, 2)
+    return unique_rows(pairs) if len(pairs) else pairs.reshape(0, 2)
 
 
 def crease_blend(points: np.ndarray, triangles: np.ndarray, radius: float, crease_deg: float = 30.0):

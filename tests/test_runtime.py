@@ -324,3 +324,26 @@ def test_edges_are_each_shared_edge_once(model, dtype):
     assert np.all(e[:, 0] < e[:, 1])
     np.testing.assert_array_equal(e, np.unique(sides, axis=0))
     assert edges(np.zeros((0, 3), dtype)).shape == (0, 2)
+
+
+def test_unique_rows_are_numpys_unique_rows():
+    """geometry.unique_rows (one integer key per row) gives np.unique(axis=0)'s rows, order, inverse, counts, shapes
+    and dtype, for one to four columns of each integer type, duplicates many or none, empty and one row; rows whose
+    key would pass 63 bits, or with a negative entry, or of floats, take numpy's own way to the same answer."""
+    from pmask.runtime.geometry import unique_rows
+
+    rng = np.random.default_rng(3)
+    cases = [rng.integers(0, hi, (n, m)).astype(dt) for dt in (np.int16, np.int32, np.int64, np.uint32)
+             for m in (1, 2, 3, 4) for n, hi in ((0, 5), (1, 5), (300, 3), (3000, 30000))]
+    cases += [np.array([[2 ** 40, 1, 3], [0, 0, 0], [2 ** 40, 1, 3]]), np.array([[-1, 2], [3, 4], [-1, 2]]),
+              np.array([[0.5, 1.0], [0.5, 1.0]])]
+    for R in cases:
+        for inverse in (False, True):
+            for counts in (False, True):
+                want = np.unique(R, axis=0, return_inverse=inverse, return_counts=counts)
+                got = unique_rows(R, return_inverse=inverse, return_counts=counts)
+                want, got = (x if isinstance(x, tuple) else (x,) for x in (want, got))
+                assert len(got) == len(want)
+                for g, w in zip(got, want):
+                    assert g.dtype == w.dtype and g.shape == w.shape, (R.dtype, R.shape, g.dtype, w.dtype)
+                    np.testing.assert_array_equal(g, w)

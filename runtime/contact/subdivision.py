@@ -56,7 +56,7 @@ import math
 
 import numpy as np
 
-from pmask.runtime.geometry import crease_edges, scatter_add, triangle_normals, vertex_normals
+from pmask.runtime.geometry import crease_edges, scatter_add, triangle_normals, unique_rows, vertex_normals
 
 #: the largest angle between a triangle's normal and its vertices' normals (away from creases) that the
 #: automatic choice of levels accepts (:func:`facet_angle`; each level halves it).  On the default kidney (the
@@ -207,11 +207,7 @@ def _edges(T):
     """(unique edges (e, 2) sorted, edge of each triangle side (m, 3): side k joins corners k and k+1, the open
     edges (b, 2)).  Raises ValueError on an edge of more than two triangles."""
     sides = np.sort(np.stack([T, np.roll(T, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-    w = int(sides.max()) + 1 if len(sides) else 1
-    # each edge as one integer key: np.unique's sort of the rows as records (axis=0) took ~5x as long
-    key, inv, count = np.unique(sides[:, 0].astype(np.int64) * w + sides[:, 1], return_inverse=True,
-                                return_counts=True)
-    E = np.stack(np.divmod(key, w), axis=1).astype(sides.dtype, copy=False)
+    E, inv, count = unique_rows(sides, return_inverse=True, return_counts=True)
     if np.any(count > 2):
         raise ValueError("an edge is shared by more than two triangles")
     return E, inv.reshape(-1, 3), E[count == 1]
@@ -221,7 +217,7 @@ def _creases(P, T, E_open, crease_deg):
     """The edges kept as creases: the open ones and those whose facets meet at more than crease_deg (the test
     the contact normals blend by, :func:`pmask.runtime.geometry.crease_edges`)."""
     sharp = np.vstack([E_open, crease_edges(P, T, crease_deg)])
-    return np.unique(sharp, axis=0) if len(sharp) else sharp
+    return unique_rows(sharp) if len(sharp) else sharp
 
 
 def _valence(n, E):
