@@ -11,7 +11,8 @@ API (every answer is JSON; an error is ``{"error": "one line saying what to fix"
     sets the servo thread's probes (null: lifted) and returns each contact's force on the hand [N], status,
     penetration depth, proxy point and ‖K(x)‖ at the proxy, the servo's timing, and with ``deform`` the
     surface displacement (eq. 16, float32, base64) that meets every contact.  One page owns the probes at a
-    time: the one that touches first, until it lets go or goes silent for :data:`OWNER_LEASE` seconds; the
+    time: the one that touches first, until it lets go or goes silent for :data:`OWNER_LEASE` seconds (counted
+    from the server's answer to its last request, so that a slow answer is not the page's silence); the
     others' probes are not applied, and their replies (``"owner": false`` and a ``notice``) show the owner's
     contacts and say why.
 ``POST /api/radius`` ``{"radius": r}`` (the reply also counts the masks that reach no neighbour)
@@ -146,6 +147,7 @@ class ViewerSession:
             contacts = Contacts(stiffness, N_PROBES, engine=self.engine, max_jump=2.0 * self.diag, levels=self.levels)
             contacts.start(self.rate, spin=self.spin)
             contacts.set_probes([self.park] * N_PROBES)
+            contacts.surface.python_views()  # what the replies read per contact (the proxy point), made now
             masked = _norms(stiffness.K_vertex)
             rest = np.array(contacts.surface.mesh_points)  # the mesh where the contact surface has its vertices
             with self.lock:
@@ -224,6 +226,10 @@ class ViewerSession:
             reply["notice"] = NOT_OWNER
         if u is not None:
             reply["deformation"] = _b64(u, np.float32)
+        if owner:
+            with self.lock:  # the page's silence counts from this answer, not from when the server began it
+                if self.owner == client:
+                    self.owner_seen = time.monotonic()
         return reply
 
     # ------------------------------------------------------------------ requests
