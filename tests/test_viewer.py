@@ -509,8 +509,9 @@ def test_a_slow_answer_is_not_the_owners_silence(session, monkeypatch):
     """The lease counts the owner's silence from the server's answer to its last request: an answer that takes
     longer than OWNER_LEASE (here a deformation made slow; the first answer on a new contact surface took 0.14 s
     on the default kidney by hand, and a run of the suite on a loaded machine once lost the owner test above to
-    a slow answer) leaves the probes with the page that asked, and a second page asking at once is told another
-    page is probing."""
+    a slow answer) leaves the probes with the page that asked, though a third page that does not touch asks all
+    the while (an open tab polls: one that came in as the slow answer ended took the lapsed lease and left the
+    probes free), and a second page asking next is told another page is probing."""
     from pmask.viewer.server import OWNER_LEASE
 
     core = session.model.contact[session.model.core]
@@ -527,9 +528,22 @@ def test_a_slow_answer_is_not_the_owners_silence(session, monkeypatch):
         assert status == 200
         return json.loads(body)
 
+    done = threading.Event()
+
+    def poll():  # the open tab
+        while not done.is_set():
+            post("page-c", None)
+            time.sleep(0.005)
+
     monkeypatch.setattr(session.contacts, "deformation", slow)
-    assert post("page-a", probe, deform=True)["owner"]
-    rb = post("page-b", probe)
+    tab = threading.Thread(target=poll, daemon=True)
+    tab.start()
+    try:
+        assert post("page-a", probe, deform=True)["owner"]
+        rb = post("page-b", probe)
+    finally:
+        done.set()
+        tab.join()
     assert not rb["owner"] and "another page is probing" in rb["notice"]
     assert post("page-a", None)["owner"]  # a lets go, and the probes are free again
 

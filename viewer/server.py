@@ -208,6 +208,8 @@ class ViewerSession:
             states = c.states
             stats = c.tick_stats()
             u = c.deformation() if deform else None
+            if owner:  # the page's silence counts from here, not from when the server began its answer
+                self.owner_seen = time.monotonic()
         out = []
         for k, (f, s, st) in enumerate(zip(forces, statuses, states)):
             f = [float(x) for x in f]
@@ -226,10 +228,6 @@ class ViewerSession:
             reply["notice"] = NOT_OWNER
         if u is not None:
             reply["deformation"] = _b64(u, np.float32)
-        if owner:
-            with self.lock:  # the page's silence counts from this answer, not from when the server began it
-                if self.owner == client:
-                    self.owner_seen = time.monotonic()
         return reply
 
     # ------------------------------------------------------------------ requests
