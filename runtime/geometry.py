@@ -78,9 +78,10 @@ def unique_rows(rows, return_inverse: bool = False, return_counts: bool = False)
     w = int(rows.max()) + 1 if rows.size else 1
     if not rows.size or m == 0 or rows.dtype.kind not in "iu" or int(rows.min()) < 0 or w ** m >= 2 ** 63:
         return np.unique(rows, axis=0, return_inverse=return_inverse, return_counts=return_counts)
-    key = rows[:, 0].astype(np.int64)
+    R = rows.astype(np.int64, copy=False)  # (uint64 with int64 would promote to float64)
+    key = R[:, 0].copy()
     for c in range(1, m):
-        key = key * w + rows[:, c]
+        key = key * w + R[:, c]
     out = np.unique(key, return_inverse=return_inverse, return_counts=return_counts)
     key, rest = (out[0], out[1:]) if isinstance(out, tuple) else (out, ())
     cols = []

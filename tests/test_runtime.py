@@ -333,7 +333,7 @@ def test_unique_rows_are_numpys_unique_rows():
     from pmask.runtime.geometry import unique_rows
 
     rng = np.random.default_rng(3)
-    cases = [rng.integers(0, hi, (n, m)).astype(dt) for dt in (np.int16, np.int32, np.int64, np.uint32)
+    cases = [rng.integers(0, hi, (n, m)).astype(dt) for dt in (np.int16, np.int32, np.int64, np.uint32, np.uint64)
              for m in (1, 2, 3, 4) for n, hi in ((0, 5), (1, 5), (300, 3), (3000, 30000))]
     cases += [np.array([[2 ** 40, 1, 3], [0, 0, 0], [2 ** 40, 1, 3]]), np.array([[-1, 2], [3, 4], [-1, 2]]),
               np.array([[0.5, 1.0], [0.5, 1.0]])]
