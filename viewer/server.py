@@ -147,7 +147,8 @@ class ViewerSession:
             contacts = Contacts(stiffness, N_PROBES, engine=self.engine, max_jump=2.0 * self.diag, levels=self.levels)
             contacts.start(self.rate, spin=self.spin)
             contacts.set_probes([self.park] * N_PROBES)
-            contacts.surface.python_views()  # what the replies read per contact (the proxy point), made now
+            # what the replies read per contact (the proxy point and the mesh point under it), made now
+            contacts.surface.python_views(contacts.surface.POINT_VIEWS)
             masked = _norms(stiffness.K_vertex)
             rest = np.array(contacts.surface.mesh_points)  # the mesh where the contact surface has its vertices
             with self.lock:
