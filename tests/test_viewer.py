@@ -181,6 +181,19 @@ def test_the_force_the_page_shows_is_the_runtimes_for_that_probe(browser, server
     assert np.allclose(f_page, f_ref[0], rtol=1e-5, atol=1e-5 * np.linalg.norm(f_ref[0]))
 
 
+def test_what_the_page_hides_is_not_shown(browser, server):
+    """Every element the page marks hidden is not drawn: `#panel label {display: block}` once overrode the
+    attribute, so a model without a display surface showed its checkbox, "the scan's surface ( triangles)" (in
+    the README's screenshot); the small kidney has no display surface, so that box is among them."""
+    url, _ = server
+    _open(browser, url)
+    shown = browser.execute_script(
+        "return [...document.querySelectorAll('[hidden]')].filter(e => getComputedStyle(e).display !== 'none')"
+        ".map(e => e.id || e.tagName)")
+    assert browser.execute_script("return document.getElementById('scanBox').hidden")
+    assert shown == []
+
+
 def test_after_a_release_the_surface_springs_back(browser, server, session):
     """#28: after a release the surface often stayed deformed: the page asked for the deformation once, and
     the reply raced the servo's release.  It now asks until the servo reports the surface flat: pressed, the
