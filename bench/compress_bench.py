@@ -142,6 +142,7 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX, elem
     from pmask.pipeline import stages
     from pmask.precompute import compress, elements
     from pmask.runtime import Model
+    from pmask.runtime.compressed import PAIR_WORDS
 
     spec = stages.Spec(model="kidney", params=params, r_max=r_max, compress=TOL, workers=2, element=element)
     p = work / "large.h5"
@@ -178,19 +179,21 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX, elem
     n = len(c.contact)
     out["contact"] = n
     # the dense blocks (the pairs of leaves that hold a pair within r_max): format 1.6 stores those pairs exactly
-    # and the blocks' other pairs in 16 bits, split here
+    # (1.7: in fixed point, 56 bytes a pair) and the blocks' other pairs in 16 bits, split here
     out["near_bytes"] = int(c.Xi.near_nbytes)
     out["near_exact_bytes"] = int(c.Xi.dense.nbytes)
     out["near_16bit_bytes"] = int(c.Xi.near_nbytes - c.Xi.dense.nbytes)
     out["far_bytes"] = int(c.Xi.U.nbytes + c.Xi.V.nbytes)
     out["dense_Xi_bytes"] = 8 * (3 * n) ** 2
-    # the least any format that keeps every pair within r_max exact stores: those pairs' 3x3 blocks, once per
-    # symmetric pair (the leaf blocks' near field holds pairs up to r_max plus two leaves' diagonals apart)
+    # the least this format stores while it keeps every pair within r_max exact: those pairs' 3x3 blocks, once per
+    # symmetric pair, at its bytes a pair (the leaf blocks' near field holds pairs up to r_max plus two leaves'
+    # diagonals apart)
     from scipy.spatial import cKDTree
 
     Pc = c.points[c.contact]
     within = int(cKDTree(Pc).query_ball_point(Pc, r_max, return_length=True).sum())  # ordered pairs, i = j too
-    out["pairs_within_r_max_bytes"] = 72 * (within + n) // 2
+    out["exact_pair_bytes"] = 2 * PAIR_WORDS if c.Xi.fixed else 9 * c.Xi.dense.dtype.itemsize
+    out["pairs_within_r_max_bytes"] = out["exact_pair_bytes"] * (within + n) // 2
     out["compressed_stored_bytes"] = c.Xi.nbytes
     out.update(disk_bytes(p))
     dense = stages.Spec(model="kidney", params=params, r_max=r_max, element=element)
@@ -657,11 +660,12 @@ def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
 
 
 def exact_floor(g: dict) -> int:
-    """The bytes of the pairs within r_max, which any format keeping them exact stores: ``pairs_within_r_max_bytes``
-    counts each unordered pair (i = j included) once, which a symmetric Ξ stores; a non-symmetric one (P2) stores
-    both ways, every pair but i = j twice."""
+    """The bytes of the pairs within r_max, which the format keeping them exact stores (``exact_pair_bytes`` a
+    pair: 56 in fixed point, format 1.7; 72 in float64 before): ``pairs_within_r_max_bytes`` counts each unordered
+    pair (i = j included) once, which a symmetric Ξ stores; a non-symmetric one (P2) stores both ways, every pair
+    but i = j twice."""
     once = int(g["pairs_within_r_max_bytes"])
-    return once if g["stats"].get("symmetric") else 2 * once - 72 * int(g["contact"])
+    return once if g["stats"].get("symmetric") else 2 * once - int(g.get("exact_pair_bytes", 72)) * int(g["contact"])
 
 
 def organ_paragraph(g: dict, res: dict, title: str) -> str:
@@ -701,8 +705,8 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
                     f"with their scales and mask {g['near_16bit_bytes'] / 2**30:.2f})"
                     if "near_exact_bytes" in g else "")
                  + f", far field {g['far_bytes'] / 2**30:.2f}"
-                 + (f"; the pairs within r_max alone, which any format that keeps them exact must store, are "
-                    f"{exact_floor(g) / 2**30:.2f} GiB"
+                 + (f"; the pairs within r_max alone, which the format stores exactly "
+                    f"({int(g.get('exact_pair_bytes', 72))} bytes a pair), are {exact_floor(g) / 2**30:.2f} GiB"
                     + ("" if st.get("symmetric") else " (both ways: Ξ is not symmetric)")
                     + ((" (the exact part holds those within a diagonal leaf block both ways)"
                         if st.get("symmetric") else "")

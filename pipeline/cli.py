@@ -250,8 +250,9 @@ def cmd_info(args) -> int:
                f"compressed, tolerance {a['tolerance']:g}: {len(d['greens/hmatrix/dense_index'])} dense and "
                f"{len(d['greens/hmatrix/lowrank_index'])} low-rank blocks, "
                + (f"{d['greens/hmatrix/dense'].dtype}" if d.get("greens/hmatrix/dense") is not None else
-                  f"pairs within r_max in {d['greens/hmatrix/near_exact'].dtype}, the dense blocks' others in "
-                  "16 bits")),
+                  ("pairs within r_max in 48-bit fixed point" if d.get("greens/hmatrix/near_exact48") is not None
+                   else f"pairs within r_max in {d['greens/hmatrix/near_exact'].dtype}")
+                  + ", the dense blocks' others in 16 bits")),
         "input_hash": a["input_hash"],
         "libraries": a["provenance"].get("libraries"), "timings": a["timings"],
     }

@@ -79,7 +79,7 @@ import scipy.sparse as sp
 from pmask.errors import InputError, ResourceError
 from pmask.runtime.artifact import READ_BLOCK_BYTES
 from pmask.runtime.files import Background
-from pmask.runtime.compressed import encode_near
+from pmask.runtime.compressed import PAIR_WORDS, encode_near, pack_exact
 
 log = logging.getLogger(__name__)
 
@@ -1215,6 +1215,34 @@ class Concatenated:
         return whole if dtype is None else whole.astype(dtype)
 
 
+class FixedPointPairs:
+    """A float64 near field's exact pairs (a :class:`Concatenated` of nine values a pair) in fixed point, as format
+    1.7 stores them (:func:`pmask.runtime.compressed.pack_exact`, :data:`~pmask.runtime.compressed.PAIR_WORDS`
+    uint16 words a pair), packed a slice at a time as the writer reads it."""
+
+    def __init__(self, values: Concatenated):
+        self.values = values
+        self.dtype = np.dtype(np.uint16)
+        self.shape, self.ndim = (len(values) // 9 * PAIR_WORDS,), 1
+        self.size, self.nbytes = self.shape[0], self.shape[0] * self.dtype.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not isinstance(key, slice) or key.step not in (None, 1):
+            raise TypeError("the fixed-point pairs are read in contiguous slices")
+        start, stop, _ = key.indices(len(self))
+        if stop <= start:
+            return np.zeros(0, self.dtype)
+        p0, p1 = start // PAIR_WORDS, -(-stop // PAIR_WORDS)  # the whole pairs the slice's words lie in
+        return pack_exact(self.values[9 * p0:9 * p1])[start - PAIR_WORDS * p0:stop - PAIR_WORDS * p0]
+
+    def __array__(self, dtype=None, copy=None):
+        whole = self[0:len(self)]
+        return whole if dtype is None else whole.astype(dtype)
+
+
 def _append(ds, values: np.ndarray) -> tuple[int, int]:
     """Append ``values`` to the growing 1-d dataset ``ds`` (cast to its dtype); the run they fill."""
     a = int(ds.shape[0])
@@ -1298,12 +1326,17 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
         run("V", out_V.name, va, vb)
         at["U"] += ub - ua
         at["V"] += vb - va
+    near = Concatenated(store.path, dtype, runs["dense"])
+    if near_index and near.dtype == np.float64:  # (format 1.7: the exact pairs in fixed point, 56 bytes where 72)
+        near_name, near = "near_exact48", FixedPointPairs(near)
+    else:  # (float32 values, --float32, stay as they are: fewer bytes than fixed point)
+        near_name = "near_exact" if near_index else "dense"
     out = {"perm": tree.perm.astype(np.int64), "leaves": tree.leaves,
            "dense_index": np.concatenate(dense_index).astype(np.int64) if dense_index else np.zeros((0, 5), np.int64),
            "lowrank_index": np.concatenate(lowrank_index) if lowrank_index else np.zeros((0, 7), np.int64),
            # (pair by pair under another name than whole blocks: a reader of format 1.5 refuses it as missing
            # "dense" where it would misread it)
-           ("near_exact" if near_index else "dense"): Concatenated(store.path, dtype, runs["dense"]),
+           near_name: near,
            **{k: Concatenated(store.path, lowrank_dtype, runs[k]) for k in ("U", "V")},
            "near_index": np.concatenate(near_index) if near_index else np.zeros((0, 3), np.int64),
            **{k: Concatenated(store.path, dt, runs[k])
@@ -1848,8 +1881,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
         ts.close()
     stats.update({"seconds": time.perf_counter() - t0, **times,
                   "dense_blocks": len(out["dense_index"]), "lowrank_blocks": len(out["lowrank_index"]),
-                  "stored_bytes": int(sum(out[k].nbytes for k in ("dense", "near_exact", "U", "V", "near_q",
-                                                                 "near_mask", "near_scale") if k in out)),
+                  "stored_bytes": int(sum(out[k].nbytes for k in ("dense", "near_exact", "near_exact48", "U", "V",
+                                                                 "near_q", "near_mask", "near_scale") if k in out)),
                   "dense_bytes": int(8 * (3 * len(points)) ** 2),
                   "max_rank": int(out["lowrank_index"][:, 4].max()) if len(out["lowrank_index"]) else 0})
     stats["ratio"] = stats["dense_bytes"] / max(stats["stored_bytes"], 1)

@@ -19,6 +19,13 @@ Layout (format 1.x)::
     /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
+Format 1.7 stores a compressed Ξ's exact pairs in fixed point (``/greens/hmatrix/near_exact48`` in place of
+``near_exact``: :func:`pmask.runtime.compressed.pack_exact`), each pair's nine values as 48-bit integers times
+one power of two, within 1.4e-14 of the pair's largest magnitude, 56 bytes a pair where float64 took 72 (the
+pairs within r_max are most of a large organ's bytes).  A 1.6 reader refuses such a file as missing its near
+field; a 1.6 file (``near_exact``) is read as before, and so is a 1.7 file written with ``--float32``, whose
+exact pairs stay float32 in ``near_exact``.
+
 Format 1.6 stores a compressed Ξ's dense blocks pair by pair (``/greens/hmatrix/near_index``, ``near_exact``,
 ``near_mask``, ``near_q``, ``near_scale`` in place of ``dense``: :mod:`pmask.runtime.compressed`): the pairs
 within r_max exactly, the others in 16 bits within the tolerance.  A 1.5 reader refuses such a file as missing
@@ -71,7 +78,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.6.0"
+FORMAT_VERSION = "1.7.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -86,13 +93,13 @@ SURFACE = ("surface/points", "surface/triangles", "surface/vertex_areas", "surfa
 RUNTIME = SURFACE + ("greens/Xi",)
 HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V",
                                                  "scale", "near_index", "near_exact", "near_mask", "near_q",
-                                                 "near_scale"))
+                                                 "near_scale", "near_exact48"))
 #: the datasets a reader may leave in the file and read in slices without their SHA-256 (a large organ's far
 #: field: :class:`FileArray`); only these carry HDF5's Fletcher-32 (format 1.5)
 SLICED = ("greens/hmatrix/U", "greens/hmatrix/V")
 #: the exact near field, which a reader may read when first needed, a block at a time, each block checked by its
 #: SHA-256 (:class:`BlocksOnDemand`)
-NEAR = ("greens/hmatrix/dense", "greens/hmatrix/near_exact", "greens/hmatrix/near_q")
+NEAR = ("greens/hmatrix/dense", "greens/hmatrix/near_exact", "greens/hmatrix/near_exact48", "greens/hmatrix/near_q")
 #: how the near field is stored: in chunks of about 1 MiB through HDF5's byte shuffle and deflate (level 1),
 #: lossless, which every HDF5 reader undoes as it reads (h5py's wheels always have both filters).  The exact
 #: values' exponent bytes repeat, their mantissas do not: 13 % fewer bytes on the float64 pairs within r_max and
@@ -107,7 +114,7 @@ BLOCK_DIGEST_BYTES = 64 << 20
 #: by pair, near_exact and the others in place of dense, whole blocks: the reader needs one of the two)
 HMATRIX_OPTIONAL = ("greens/hmatrix/scale", "greens/hmatrix/dense", "greens/hmatrix/near_index",
                     "greens/hmatrix/near_exact", "greens/hmatrix/near_mask", "greens/hmatrix/near_q",
-                    "greens/hmatrix/near_scale")
+                    "greens/hmatrix/near_scale", "greens/hmatrix/near_exact48")
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
 #: the display surface (optional, format 1.3): read only when asked for (Model.display)

@@ -14,9 +14,10 @@ blocks over pairs of tree clusters (I, J) (a hierarchical matrix): a pair with n
 ``r_max`` of a vertex of J, whose bounding boxes are farther apart than the larger box's diagonal / η, is
 *admissible* and stored as :math:`U V^T` with :math:`\|\Xi_{IJ} - U V^T\|_F \le \varepsilon \|\Xi_{IJ}\|_F`
 (ε: the artifact's ``tolerance``, default 1e-4); every other block (all of the near field among them) is stored
-densely, every pair within r_max exactly as the dense route computes it (format 1.6: the others in 16 bits,
-below).  Every block's rows and columns are whole leaf clusters, so a block is found from two leaf indices
-(:meth:`CompressedXi.owner`).  Built by :mod:`pmask.precompute.compress`.
+densely, every pair within r_max as the dense route computes it to round-off (format 1.7: in 48-bit fixed point,
+within 1.4e-14 of the pair's largest magnitude; format 1.6: the others in 16 bits, below).  Every block's rows
+and columns are whole leaf clusters, so a block is found from two leaf indices (:meth:`CompressedXi.owner`).
+Built by :mod:`pmask.precompute.compress`.
 
 Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in vertices)::
 
@@ -33,8 +34,12 @@ Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in 
                             below is :math:`\Xi_{JI} = \mathrm{diag}(a_J)^{-1}\,\Xi_{IJ}^T\,\mathrm{diag}(a_I)`
     near_index     (nd, 3)  optional (format 1.6): the dense blocks are stored pair by pair, offsets of block b
                             in near_q (values), near_mask (bytes) and near_scale (values); see below
-    near_exact     (·,)     with near_index, in place of ``dense``: the exact pairs' values (a format 1.5
-                            reader, which would read them as whole blocks, refuses the file as missing ``dense``)
+    near_exact48   (·,)     with near_index, in place of ``dense`` (format 1.7): the exact pairs in fixed point,
+                            28 uint16 words a pair (:func:`pack_exact`: within 1.4e-14 of the pair's largest
+                            magnitude); a 1.6 reader refuses the file as missing its near field
+    near_exact     (·,)     in its place in format 1.6, and in 1.7 where the values are float32 (``--float32``):
+                            the exact pairs' values (a format 1.5 reader, which would read them as whole
+                            blocks, refuses the file as missing ``dense``)
     near_mask      (·,)     uint8: for each dense block, one bit per vertex pair (row-major over its m x w
                             pairs, ``numpy.packbits`` order, each block from a whole byte): set where the pair
                             is stored exactly
@@ -42,10 +47,11 @@ Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in 
     near_scale     (·,)     ... one scale per column of the block (3w values)
 
 With ``near_index`` a dense block is stored at the granularity of its vertex pairs (:func:`encode_near`): every
-pair within r_max (what K_i read: eq. 12) as its nine float64 values in ``near_exact`` (at ``dense_index``'s
-offset, pair after pair), the block's other pairs in 16 bits per value, ``value = q * scale[column]`` with each
-column's scale its largest magnitude / 32767, kept only where the block then stays within half the tolerance of its
-norm (``‖Ξ_IJ − Ξ̃_IJ‖_F ≤ ε/2 ‖Ξ_IJ‖_F``; else every pair of the block is stored exactly).  A leaf block holds
+pair within r_max (what K_i read: eq. 12) as its nine values (``dense_index``'s offset counts them, pair after
+pair: in ``near_exact48`` a pair's words start at offset / 9 × 28), the block's other pairs in 16 bits per
+value, ``value = q * scale[column]`` with each column's scale its largest magnitude / 32767, kept only where the
+block then stays within half the tolerance of its norm (``‖Ξ_IJ − Ξ̃_IJ‖_F ≤ ε/2 ‖Ξ_IJ‖_F``; else every pair of
+the block is stored exactly).  A leaf block holds
 pairs up to r_max plus two leaves' diagonals apart (the bench page's organ rows give both parts' bytes).  Without
 it (format ≤ 1.5) a dense block is stored whole, row-major at ``dense[offset:]``.
 
@@ -65,6 +71,44 @@ from pmask.runtime.artifact import take_runs
 Q_MAX = 32767
 #: set bits in each byte value (a pair's rank among its block's exact pairs)
 _ONES = np.array([bin(k).count("1") for k in range(256)], np.int64)
+#: the exact pairs in fixed point (format 1.7, ``near_exact48``): a pair's nine values are integers m, |m| <= 2^46,
+#: times 2^(e − EXACT_BITS), 2^e the power of two above the pair's largest magnitude (:func:`pack_exact`)
+EXACT_BITS = 46
+#: words (uint16) a pair takes: three a value (its 48-bit two's complement, low word first) and the exponent e
+PAIR_WORDS = 28
+
+
+def pack_exact(values: np.ndarray) -> np.ndarray:
+    r"""The exact pairs' values (9k,) in fixed point, :data:`PAIR_WORDS` uint16 words a pair (format 1.7): each
+    pair's nine values rounded to multiples of :math:`2^{e-46}`, :math:`2^{e-1} \le \max|v| < 2^e`, so that every
+    value is within :math:`2^{e-47} \le 2^{-46} \max|v|` (1.4e-14 of the pair's largest magnitude) of its float64
+    value: below the round-off the solve leaves in them (issue #27 found an independent SuperLU solve of the same
+    volume mesh 1e-13 from the near field; the tests hold it to 1e-12 of the dense route's), in 56 bytes where
+    float64 takes 72.  A pair of
+    zeros stays zero.  :func:`unpack_exact` gives the values back."""
+    P = np.asarray(values, np.float64).reshape(-1, 9)
+    if not np.isfinite(P).all():
+        raise ValueError("the exact pairs hold NaN or inf")  # (our bug: the solve's values are finite)
+    _, e = np.frexp(np.abs(P).max(axis=1))  # max = f 2^e, 0.5 <= f < 1 (e = 0 for a zero pair)
+    m = np.rint(np.ldexp(P, (EXACT_BITS - e)[:, None])).astype(np.int64)  # |m| <= 2^46
+    out = np.empty((len(P), PAIR_WORDS), np.uint16)
+    for w in range(3):
+        out[:, w:27:3] = (m >> (16 * w)) & 0xFFFF
+    out[:, 27] = e.astype(np.int16).view(np.uint16)
+    return out.ravel()
+
+
+def unpack_exact(words) -> np.ndarray:
+    """The values (k, 9) of k pairs' :data:`PAIR_WORDS` words (:func:`pack_exact`), bit for bit what it rounded
+    them to (an integer below 2^48 times a power of two is a float64 exactly)."""
+    W = np.asarray(words, np.uint16).reshape(-1, PAIR_WORDS)
+    e = W[:, 27].view(np.int16).astype(np.int64)
+    if len(e) and (e.max() > 1024 or e.min() < -1074):  # (a float64's exponents: anything else is a writer's bug)
+        raise InputError("the compressed Green's functions' exact pairs hold an exponent no float64 has; recompute "
+                         "the artifact (pmask precompute --force)")
+    m = W[:, 0:27:3].astype(np.int64) | (W[:, 1:27:3].astype(np.int64) << 16) | (W[:, 2:27:3].astype(np.int64) << 32)
+    m -= (m >> 47) << 48  # two's complement of 48 bits: the sign
+    return np.ldexp(m.astype(np.float64), (e - EXACT_BITS)[:, None])
 
 
 def encode_near(B: np.ndarray, exact: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -107,7 +151,10 @@ class CompressedXi:
         self.dense_index = np.asarray(dense_index, np.int64).reshape(-1, 5)
         self.lowrank_index = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
         self.dense, self.U, self.V = dense, U, V
-        self.dtype = np.result_type(dense.dtype, U.dtype) if len(U) else dense.dtype
+        self.fixed = np.dtype(dense.dtype) == np.uint16  # format 1.7: the exact pairs in fixed point (pack_exact)
+        self._exact_values = len(dense) // PAIR_WORDS * 9 if self.fixed else len(dense)  # (values, not words)
+        values = np.dtype(np.float64) if self.fixed else dense.dtype
+        self.dtype = np.result_type(values, U.dtype) if len(U) else values
         self.position = np.empty(n, np.int64)
         self.position[self.perm] = np.arange(n)
         self.symmetric = scale is not None and len(scale) > 0
@@ -142,11 +189,12 @@ class CompressedXi:
         ones = _ONES[self.near_mask]
         dt = np.int32 if ones.sum() < 2**31 else np.int64
         self._ones_before = np.concatenate([[0], np.cumsum(ones, dtype=dt)])
-        ok = len(ni) == len(di) and (not len(ni) or (ni.min() >= 0 and di[:, 4].min() >= 0
-                                                     and np.all(ni[:, 1] + nbytes <= len(self.near_mask))))
+        whole_pairs = not self.fixed or len(self.dense) % PAIR_WORDS == 0
+        ok = whole_pairs and len(ni) == len(di) and (not len(ni) or (
+            ni.min() >= 0 and di[:, 4].min() >= 0 and np.all(ni[:, 1] + nbytes <= len(self.near_mask))))
         if ok and len(ni):
             k = self._ones_before[ni[:, 1] + nbytes] - self._ones_before[ni[:, 1]]  # exact pairs of each block
-            ok = (np.all(di[:, 4] + 9 * k <= len(self.dense))
+            ok = (np.all(di[:, 4] + 9 * k <= self._exact_values)
                   and np.all(ni[:, 0] + 9 * (pairs - k) <= len(self.near_q))
                   and np.all(ni[:, 2] + 3 * (di[:, 3] - di[:, 2]) <= len(self.near_scale)))
         if not ok:
@@ -218,7 +266,7 @@ class CompressedXi:
         keep = np.unpackbits(self.near_mask[mo:mo + -(-m * w // 8)], count=m * w).astype(bool)
         k = int(keep.sum())
         P = np.empty((m * w, 3, 3))
-        P[keep] = np.asarray(self.dense[off:off + 9 * k], np.float64).reshape(k, 3, 3)
+        P[keep] = self.exact_values(off, off + 9 * k).reshape(k, 3, 3)
         scale = self.near_scale[so:so + 3 * w].reshape(w, 3)
         P[~keep] = (np.asarray(self.near_q[qo:qo + 9 * (m * w - k)], np.float64).reshape(-1, 3, 3)
                     * scale[np.flatnonzero(~keep) % w][:, None, :])
@@ -276,11 +324,27 @@ class CompressedXi:
                 out[far[grp]] = np.einsum("grk,gck->grc", Ur, Vr)
         return out
 
+    def exact_values(self, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        """The exact pairs' values ``lo:hi`` (float64; offsets of whole pairs, multiples of nine, when stored in
+        fixed point: :func:`unpack_exact`)."""
+        hi = self._exact_values if hi is None else hi
+        if not self.fixed:
+            return np.asarray(self.dense[lo:hi], np.float64)
+        return unpack_exact(self.dense[lo // 9 * PAIR_WORDS:hi // 9 * PAIR_WORDS]).ravel()
+
     def _exact_runs(self, starts) -> np.ndarray:
         """The nine exact values from each offset ``starts`` into :attr:`dense` (pairs, 9), gathered as whole rows
         (:func:`pmask.runtime.artifact.take_runs`); a near field read on demand finds the blocks to read from the
         runs' ends (:meth:`pmask.runtime.artifact.BlocksOnDemand.runs`).  Every K_i's masked sum at 20,427 vertices
-        with 10 mm masks: 3.1 s against 4.5 s gathering value by value, bitwise the same (by hand)."""
+        with 10 mm masks: 3.1 s against 4.5 s gathering value by value, bitwise the same (by hand).  In fixed
+        point (format 1.7) a pair's :data:`PAIR_WORDS` words are gathered and unpacked."""
+        if self.fixed:
+            starts = np.asarray(starts, np.int64) // 9 * PAIR_WORDS
+            runs = getattr(self.dense, "runs", None)
+            if runs is not None:
+                return unpack_exact(runs(starts, PAIR_WORDS))
+            return unpack_exact(take_runs(self.dense, starts, PAIR_WORDS) if isinstance(self.dense, np.ndarray)
+                                else self.dense[starts[:, None] + np.arange(PAIR_WORDS)])
         runs = getattr(self.dense, "runs", None)
         if runs is not None:
             return runs(starts, 9)
@@ -366,8 +430,9 @@ class CompressedXi:
     def from_datasets(cls, data: dict, tolerance: float) -> "CompressedXi":
         """From the artifact's datasets (:data:`DATASETS`, keyed by their full names)."""
         g = {k.rsplit("/", 1)[1]: data.get(k) for k in DATASETS}
-        near = g["dense"] if g["dense"] is not None else g["near_exact"]  # (whole blocks, or pair by pair)
-        if near is None or (g["near_exact"] is not None) != (g["near_index"] is not None):
+        pairs = g["near_exact48"] if g["near_exact48"] is not None else g["near_exact"]  # (1.7, or 1.6)
+        near = g["dense"] if g["dense"] is not None else pairs  # (whole blocks, or pair by pair)
+        if near is None or (pairs is not None) != (g["near_index"] is not None):
             raise InputError("the compressed Green's functions' near field is missing or does not match its index; "
                              "recompute the artifact (pmask precompute --force)")
         return cls(g["perm"], g["leaves"], g["dense_index"], near, g["lowrank_index"], g["U"], g["V"],

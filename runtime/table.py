@@ -135,7 +135,7 @@ def greens_sections(stiffness) -> dict:
     whole = lambda a, dt: np.ascontiguousarray(np.asarray(a[:] if len(a) else np.zeros(0)), dt)  # noqa: E731
     di = Xi.dense_index.copy()
     if Xi.packed:
-        ni, exact = Xi.near_index, whole(Xi.dense, np.float64)
+        ni, exact = Xi.near_index, (Xi.exact_values() if Xi.fixed else whole(Xi.dense, np.float64))  # (1.7: unpacked)
         mask, q, qscale = Xi.near_mask, whole(Xi.near_q, np.int16), Xi.near_scale
     else:  # whole blocks (format <= 1.5): every pair exact, in pair order
         pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])

@@ -33,8 +33,9 @@ TOL = 1e-4
 def read(arrays: dict) -> dict:
     """compressed_greens' arrays in memory: it returns the near field and the factors as runs of its tile store
     (compress.Concatenated), which the writer reads a slice at a time; np.asarray reads them whole.  The exact
-    pairs (dataset near_exact, format 1.6) are CompressedXi's ``dense``, as whole blocks were."""
-    return {("dense" if k == "near_exact" else k): np.asarray(v) for k, v in arrays.items()}
+    pairs (dataset near_exact48, format 1.7; near_exact in 1.6) are CompressedXi's ``dense``, as whole blocks
+    were."""
+    return {("dense" if k in ("near_exact", "near_exact48") else k): np.asarray(v) for k, v in arrays.items()}
 
 
 def _pair(d, element=None):
@@ -68,8 +69,9 @@ def test_artifact_is_compressed_and_every_far_block_within_tolerance(which, requ
     C = comp.Xi
     assert isinstance(C, CompressedXi) and comp.attrs["greens_form"] == "hmatrix"
     assert C.symmetric == (which == "pair_p1") == summary["factor_stats"]["compress"]["symmetric"]
-    # the near field exact (float64); the far field's factors in float32, whose rounding (6e-8) is far below TOL
-    assert C.dense.dtype == np.float64 and C.U.dtype == C.V.dtype == np.float32
+    # the near field exact (in 48-bit fixed point: within 1.4e-14 of each pair's largest magnitude, format 1.7);
+    # the far field's factors in float32, whose rounding (6e-8) is far below TOL
+    assert C.fixed and C.dense.dtype == np.uint16 and C.U.dtype == C.V.dtype == np.float32
     if C.symmetric:  # the whole array, the transposed half too: within TOL of the dense route's
         X = dense.Xi
         assert np.linalg.norm(C.to_dense() - X) <= TOL * np.linalg.norm(X)
@@ -102,9 +104,9 @@ def test_artifact_is_compressed_and_every_far_block_within_tolerance(which, requ
 
 @both
 def test_dense_blocks_are_stored_pair_by_pair(which, request):
-    """Format 1.6: a dense block's pairs within r_max are stored as their float64 values and the others in 16
-    bits (a leaf block holds pairs up to r_max plus two leaves' diagonals apart): fewer bytes than whole blocks,
-    and a block read pair by pair is the block read whole."""
+    """Format 1.6: a dense block's pairs within r_max are stored exactly (format 1.7: in fixed point, 56 bytes a
+    pair where float64 takes 72) and the others in 16 bits (a leaf block holds pairs up to r_max plus two leaves'
+    diagonals apart): fewer bytes than whole blocks, and a block read pair by pair is the block read whole."""
     dense, comp, _ = request.getfixturevalue(which)
     C = comp.Xi
     di = C.dense_index
@@ -112,7 +114,7 @@ def test_dense_blocks_are_stored_pair_by_pair(which, request):
     pts = comp.points[comp.contact][C.perm]
     within = sum(int(np.sum(np.linalg.norm(pts[r0:r1, None] - pts[None, c0:c1], axis=2) <= R_MAX))
                  for r0, r1, c0, c1, _ in di)
-    assert C.dense.nbytes == 72 * within  # every pair within r_max, and only those, in float64
+    assert C.dense.nbytes == 56 * within  # every pair within r_max, and only those, exactly
     # the rest in 2 bytes a value, beside a bit a pair and a scale a column: measured 0.38 (P2) and 0.41 (P1) of
     # whole blocks on this kidney, where 15 % and 19 % of the dense blocks' bytes are pairs within r_max (by hand);
     # 0.5 a margin
@@ -123,6 +125,71 @@ def test_dense_blocks_are_stored_pair_by_pair(which, request):
     by_pairs = C._stored(p.ravel(), q.ravel(), np.full(p.size, b))  # the pairs' own reads
     B = C.dense_block(b)
     assert np.array_equal(by_pairs, B.reshape(r1 - r0, 3, c1 - c0, 3).transpose(0, 2, 1, 3).reshape(-1, 3, 3))
+
+
+def test_the_exact_pairs_in_fixed_point_are_within_their_bound_and_read_back_bit_for_bit():
+    """Format 1.7's exact pairs (compressed.pack_exact): every value within 2^-46 of its pair's largest
+    magnitude (the bound the format states: multiples of 2^(e-46), 2^(e-1) <= max < 2^e), over pairs of both
+    signs and of magnitudes from 1e-300 to 1e300 (the Green's functions' are ~1e-9 m/Pa), some spanning 12
+    decades, zeros and subnormals; the largest error seen is more than a quarter of the bound (it is the
+    rounding's, not a loose one); the unpacked values are what pack rounded them to (packed again, the same
+    words); a zero pair stays zero, a pair of subnormals exact; NaN is refused (the solve's values are
+    finite: our bug)."""
+    from pmask.runtime.compressed import EXACT_BITS, PAIR_WORDS, pack_exact, unpack_exact
+
+    rng = np.random.default_rng(11)
+    P = rng.standard_normal((20000, 9)) * 10.0 ** rng.uniform(-300, 300, (20000, 1))
+    P[::7] *= 10.0 ** rng.uniform(-12, 0, (len(P[::7]), 9))  # pairs whose values span 12 decades
+    P[5] = 0.0
+    P[6, :4] = 0.0
+    P[7] = 5e-324 * np.arange(9)  # subnormals: a multiple of the smallest one each, kept exactly
+    words = pack_exact(P.ravel())
+    assert words.dtype == np.uint16 and words.shape == (PAIR_WORDS * len(P),)
+    got = unpack_exact(words)
+    big = np.abs(P).max(axis=1, keepdims=True)
+    err = np.abs(got - P)
+    assert np.all(err <= 2.0 ** -EXACT_BITS * big)
+    assert (err / np.where(big > 0, big, 1)).max() > 0.25 * 2.0 ** -EXACT_BITS
+    assert np.array_equal(pack_exact(got.ravel()), words) and np.array_equal(unpack_exact(pack_exact(got)), got)
+    assert np.all(got[5] == 0) and np.array_equal(got[7], P[7])
+    with pytest.raises(ValueError, match="NaN"):
+        pack_exact(np.full(9, np.nan))
+
+
+def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_path):
+    """A file of format 1.6 stores the exact pairs as float64 (``near_exact``): written with the 1.7 file's
+    values unpacked, it reads the same Ξ to the bit (pairs, whole blocks and products), K_i equal, and its
+    exported table is the same as the 1.7 file's (the C core reads float64 pairs from both)."""
+    import shutil
+
+    import h5py
+
+    from pmask.runtime.table import export_table, read_table
+
+    _, comp, _ = pair_p1
+    C = comp.Xi
+    old = tmp_path / "float64.h5"
+    shutil.copy(comp.path, old)
+    with h5py.File(old, "r+") as f:
+        g = f["greens/hmatrix"]
+        del g["near_exact48"]
+        g["near_exact"] = C.exact_values()
+        f.attrs["format_version"] = "1.6.0"
+    W = Model.load(old, verify=False).Xi
+    assert not W.fixed and W.packed and W.dense.dtype == np.float64
+    assert W.near_nbytes - C.near_nbytes == len(C.dense) // 28 * (72 - 56)  # 16 bytes a pair more
+    n = len(comp.contact)
+    i, j = np.random.default_rng(4).integers(0, n, (2, 5000))
+    assert np.array_equal(W.blocks(i, j), C.blocks(i, j))
+    assert all(np.array_equal(W.dense_block(b), C.dense_block(b)) for b in range(0, len(C.dense_index), 7))
+    x = np.random.default_rng(5).standard_normal(3 * n)
+    assert np.array_equal(W.matvec(x), C.matvec(x))
+    assert np.array_equal(Model.load(old, verify=False).stiffness("linear", R_MAX).K_full,
+                          comp.stiffness("linear", R_MAX).K_full)
+    tables = [read_table(export_table(m, tmp_path / f"{k}.tbl"))["greens"]
+              for k, m in (("w", Model.load(old, verify=False)), ("c", comp))]
+    for a, b in zip(i[:200], j[:200]):
+        assert tables[0].block(int(a), int(b)) == tables[1].block(int(a), int(b))
 
 
 def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path):
@@ -143,7 +210,7 @@ def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path
         index = g["dense_index"][()]
         whole = [C.dense_block(b).ravel() for b in range(len(index))]
         index[:, 4] = np.concatenate([[0], np.cumsum([len(w) for w in whole])[:-1]])
-        for k in ("near_index", "near_exact", "near_mask", "near_q", "near_scale", "dense_index"):
+        for k in ("near_index", "near_exact48", "near_mask", "near_q", "near_scale", "dense_index"):
             del g[k]
         g["dense_index"], g["dense"] = index, np.concatenate(whole)
         f.attrs["format_version"] = "1.5.0"
@@ -1070,26 +1137,36 @@ def test_the_artifact_arrays_are_read_from_the_tile_store_in_any_slices(tmp_path
     """compressed_greens returns the near field and the factors as runs of its tile store (compress.Concatenated),
     which the writer reads a block of rows at a time: any contiguous slice equals that slice of the whole array
     (slices across tiles' runs and into the merged blocks), a strided or fancy index is refused, and their
-    sizes are the stored bytes the statistics report."""
+    sizes are the stored bytes the statistics report.  The exact pairs (format 1.7: compress.FixedPointPairs over
+    the tiles' float64 runs) are packed a slice at a time: any slice, whole pairs or not, is that slice of the
+    whole packing, and the whole is pack_exact of the runs' values."""
+    from pmask.runtime.compressed import pack_exact
+
     factor, pts = _small_factor()
     arrays, stats = compress.compressed_greens(factor, pts, R_MAX, store=tmp_path / "t.h5", key="k", panel=48,
                                                workers=1)
     assert stats["merged_blocks"] > 0  # the U and V runs end in merged blocks held in memory
     rng = np.random.default_rng(5)
-    stored = ("near_exact", "U", "V", "near_q", "near_mask", "near_scale")
+    stored = ("near_exact48", "U", "V", "near_q", "near_mask", "near_scale")
     for k in stored:
         lazy = arrays[k]
         whole = np.asarray(lazy)
-        assert isinstance(lazy, compress.Concatenated) and len(whole) == len(lazy) > 1000
-        assert len(lazy.runs) > 1
-        cuts = np.concatenate([[0, len(whole)], lazy.offsets[1:-1], rng.integers(0, len(whole), 20)])
+        runs = lazy.values if k == "near_exact48" else lazy
+        assert isinstance(runs, compress.Concatenated) and len(whole) == len(lazy) > 1000
+        assert len(runs.runs) > 1
+        offsets = runs.offsets[1:-1] // 9 * 28 if k == "near_exact48" else runs.offsets[1:-1]
+        if k == "near_exact48":
+            assert isinstance(lazy, compress.FixedPointPairs) and lazy.dtype == np.uint16
+            np.testing.assert_array_equal(whole, pack_exact(np.asarray(runs)))
+        cuts = np.concatenate([[0, len(whole)], offsets, rng.integers(0, len(whole), 20)])
         for a, b in zip(cuts, rng.permutation(cuts)):
             np.testing.assert_array_equal(lazy[min(a, b):max(a, b)], whole[min(a, b):max(a, b)])
         np.testing.assert_array_equal(lazy[-7:], whole[-7:])
         for index in (np.s_[::2], np.arange(3)):
             with pytest.raises(TypeError):
                 lazy[index]
-    assert "dense" not in arrays  # (format 1.6: a 1.5 reader refuses the file as missing it, not misreading it)
+    # (format 1.6: a 1.5 reader refuses the file as missing it, not misreading it; 1.7: a 1.6 reader, near_exact)
+    assert "dense" not in arrays and "near_exact" not in arrays
     assert stats["stored_bytes"] == sum(arrays[k].nbytes for k in stored)
 
 
@@ -1297,7 +1374,7 @@ def test_a_far_field_left_in_the_file_is_checked_chunk_by_chunk(pair, tmp_path):
     shutil.copy(comp.path, bad)
     with h5py.File(bad, "r") as f:
         ds = f["greens/hmatrix/U"]
-        assert ds.fletcher32 and not f["greens/hmatrix/near_exact"].fletcher32
+        assert ds.fletcher32 and not f["greens/hmatrix/near_exact48"].fletcher32
         offset = ds.id.get_chunk_info(0).byte_offset
     with open(bad, "r+b") as fh:
         fh.seek(offset + 100)
@@ -1313,11 +1390,11 @@ def test_a_far_field_left_in_the_file_is_checked_chunk_by_chunk(pair, tmp_path):
 def test_the_near_field_is_stored_deflated_and_a_broken_chunk_is_one_line(which, request, tmp_path):
     """#27 item 1 (stored bytes): the near field goes through HDF5's shuffle and deflate (lossless; its values
     are checked as read by the tests above, bitwise against the artifact's own K_i and to 1e-12 against the
-    dense route).  On disk its float64 pairs take at most 0.93 of their bytes and its 16-bit part at most 0.98
-    (measured on this kidney 0.88 and 0.95, P2 and P1 alike; 0.88 and 0.92 on the bench's 3,882-vertex one: the
-    exponents' bytes repeat, the mantissas' do not; the bounds leave a few hundredths for another mesh's
-    values).  A byte flipped inside a deflated chunk on disk is one line when read, at open and when read on
-    demand."""
+    dense route).  On disk its fixed-point pairs (format 1.7) take at most 0.99 of their bytes and its 16-bit part
+    at most 0.98 (measured on this kidney 0.978 and 0.95; float64 pairs, format 1.6, took 0.88, their exponents'
+    bytes repeating, which fixed point stores once a pair; the mantissas' do not repeat: deflate takes little off
+    them, and the bound says only that it is applied).  A byte flipped inside a deflated chunk on disk is one line
+    when read, at open and when read on demand."""
     import shutil
 
     import h5py
@@ -1327,13 +1404,13 @@ def test_the_near_field_is_stored_deflated_and_a_broken_chunk_is_one_line(which,
     _, comp, _ = request.getfixturevalue(which)
     with h5py.File(comp.path, "r") as f:
         ratio = {}
-        for k in ("near_exact", "near_q"):
+        for k in ("near_exact48", "near_q"):
             ds = f[f"greens/hmatrix/{k}"]
             assert ds.compression == "gzip" and ds.shuffle and not ds.fletcher32
             ratio[k] = ds.id.get_storage_size() / (ds.size * ds.dtype.itemsize)
         assert f["greens/hmatrix/U"].compression is None  # read in slices: not deflated
-        offset = f["greens/hmatrix/near_exact"].id.get_chunk_info(0).byte_offset
-    assert ratio["near_exact"] <= 0.93 and ratio["near_q"] <= 0.98, ratio
+        offset = f["greens/hmatrix/near_exact48"].id.get_chunk_info(0).byte_offset
+    assert ratio["near_exact48"] <= 0.99 and ratio["near_q"] <= 0.98, ratio
     bad = tmp_path / "flipped.h5"
     shutil.copy(comp.path, bad)
     with open(bad, "r+b") as fh:
@@ -1407,21 +1484,31 @@ def test_runs_of_nine_are_the_values_indexed_one_by_one(pair_p1, tmp_path):
         assert set(np.flatnonzero(near._read)) == blocks
 
 
-def _near_field_signed_in_blocks(src, dst, n_blocks: int, change=None):
+def _near_field_signed_in_blocks(src, dst, n_blocks: int, change=None, float64: bool = False):
     """A copy of a compressed artifact whose near field carries per-block SHA-256 digests (format 1.5 gives them
     to datasets above 64 MiB; this one's is smaller) over ``n_blocks`` blocks, the metadata digest re-signed;
     ``change(values, rows)`` alters the stored values afterwards (unsigned) or before (signed) as it returns
-    "after" or "before".  Returns the rows per block."""
+    "after" or "before".  ``float64``: the exact pairs as format 1.6 stores them (near_exact, float64) in place of
+    1.7's fixed point (near_exact48), the same values.  Returns the rows per block."""
     import json
     import shutil
 
     import h5py
 
     from pmask.runtime.artifact import array_digest, metadata_digest
+    from pmask.runtime.compressed import unpack_exact
 
     shutil.copy(src, dst)
-    name = "greens/hmatrix/near_exact"
+    name = "greens/hmatrix/near_exact48"
     with h5py.File(dst, "r+") as f:
+        if float64:
+            f["greens/hmatrix/near_exact"] = unpack_exact(f[name][()]).ravel()
+            covers = json.loads(f.attrs["sha256_covers"])
+            del f[name], covers["datasets"][name]
+            covers.get("blocks", {}).pop(name, None)
+            f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
+            f.attrs["format_version"] = "1.6.0"
+            name = "greens/hmatrix/near_exact"
         values = f[name][()]
         rows = -(-len(values) // n_blocks)
         changed = values.copy()
@@ -1526,15 +1613,18 @@ def test_a_near_field_larger_than_its_budget_is_read_again_not_held(pair, tmp_pa
         assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("what", ["altered", "nan"])
+@pytest.mark.parametrize("what", ["altered", "nan", "exponent"])
 def test_a_near_field_read_on_demand_is_checked_block_by_block(pair, tmp_path, what):
     """A near field read when first needed is checked as each block is read: one value changed on disk after
-    signing (its block's SHA-256 then differs), or a NaN signed with every digest, opens (nothing read yet),
-    lets a block elsewhere be read, and is refused by the first stiffness, naming the rows of the block that
-    holds it (or the NaN); read at open the same file is refused there."""
+    signing (its block's SHA-256 then differs), or a NaN signed with every digest (float64 pairs, format 1.6),
+    opens (nothing read yet), lets a block elsewhere be read, and is refused by the first stiffness, naming the
+    rows of the block that holds it (or the NaN); read at open the same file is refused there.  A pair in fixed
+    point (1.7) whose exponent no float64 has, signed, is refused by the first stiffness that reads it, whether
+    read at open or on demand (its words are integers: only their unpacking can tell)."""
     import re
 
     from pmask.runtime.artifact import ArtifactError
+    from pmask.runtime.compressed import PAIR_WORDS
 
     _, comp, _ = pair
     path = tmp_path / "bad.h5"
@@ -1542,18 +1632,30 @@ def test_a_near_field_read_on_demand_is_checked_block_by_block(pair, tmp_path, w
 
     def change(values, rows):
         where["at"], where["rows"] = 13 * rows // 2, rows  # inside the 7th of 16 blocks
-        values[where["at"]] = np.nan if what == "nan" else 2 * values[where["at"]] + 1e-30
-        return "before" if what == "nan" else "after"
+        at = where["at"]
+        if what == "nan":
+            values[at] = np.nan
+        elif what == "exponent":
+            values[at // PAIR_WORDS * PAIR_WORDS + PAIR_WORDS - 1] = 2000  # its pair's exponent word
+        else:  # one bit of a word (1.7), or a value doubled (1.6)
+            values[at] = values[at] ^ 1 if values.dtype.kind in "iu" else 2 * values[at] + 1e-30
+        return "after" if what == "altered" else "before"
 
-    _near_field_signed_in_blocks(comp.path, path, 16, change)
+    _near_field_signed_in_blocks(comp.path, path, 16, change, float64=what == "nan")
+    if what == "exponent":
+        for mode in ("demand", "open"):
+            with pytest.raises(InputError, match="exponent no float64 has") as err:
+                Model.load(path, near_field=mode).stiffness("linear", R_MAX)
+            assert "\n" not in str(err.value)
+        return
     lazy = Model.load(path, near_field="demand")
     lazy.Xi.dense[0:10]  # the first block is intact
-    message = "NaN or inf" if what == "nan" else "greens/hmatrix/near_exact \\(rows"
+    message = "NaN or inf" if what == "nan" else "greens/hmatrix/near_exact48 \\(rows"
     with pytest.raises(ArtifactError, match=message) as err:
         lazy.stiffness("linear", R_MAX)
     first, last = map(int, re.search(r"rows (\d+) to (\d+)", str(err.value)).groups())
     assert first <= where["at"] <= last and last - first + 1 == where["rows"]
-    with pytest.raises(ArtifactError, match="NaN or inf" if what == "nan" else "greens/hmatrix/near_exact"):
+    with pytest.raises(ArtifactError, match="NaN or inf" if what == "nan" else "greens/hmatrix/near_exact48"):
         Model.load(path, near_field="open")
 
 
