@@ -84,11 +84,11 @@ def pack_exact(values: np.ndarray) -> np.ndarray:
     value is within :math:`2^{e-47} \le 2^{-46} \max|v|` (1.4e-14 of the pair's largest magnitude) of its float64
     value: below the round-off the solve leaves in them (issue #27 found an independent SuperLU solve of the same
     volume mesh 1e-13 from the near field; the tests hold it to 1e-12 of the dense route's), in 56 bytes where
-    float64 takes 72.  A pair of
-    zeros stays zero.  :func:`unpack_exact` gives the values back."""
+    float64 takes 72.  A pair of zeros stays zero.  :func:`unpack_exact` gives the values back.  Values of
+    magnitude 2^1023 or more (1e308: whose rounding up could overflow) are refused with NaN and inf."""
     P = np.asarray(values, np.float64).reshape(-1, 9)
-    if not np.isfinite(P).all():
-        raise ValueError("the exact pairs hold NaN or inf")  # (our bug: the solve's values are finite)
+    if not (np.abs(P) < 2.0 ** 1023).all():
+        raise ValueError("the exact pairs hold NaN, inf or values beyond 2^1023")  # (our bug: Ξ's are ~1e-9 m/Pa)
     _, e = np.frexp(np.abs(P).max(axis=1))  # max = f 2^e, 0.5 <= f < 1 (e = 0 for a zero pair)
     m = np.rint(np.ldexp(P, (EXACT_BITS - e)[:, None])).astype(np.int64)  # |m| <= 2^46
     out = np.empty((len(P), PAIR_WORDS), np.uint16)
@@ -103,7 +103,7 @@ def unpack_exact(words) -> np.ndarray:
     them to (an integer below 2^48 times a power of two is a float64 exactly)."""
     W = np.asarray(words, np.uint16).reshape(-1, PAIR_WORDS)
     e = W[:, 27].view(np.int16).astype(np.int64)
-    if len(e) and (e.max() > 1024 or e.min() < -1074):  # (a float64's exponents: anything else is a writer's bug)
+    if len(e) and (e.max() > 1023 or e.min() < -1074):  # (pack_exact's exponents: anything else is a writer's bug)
         raise InputError("the compressed Green's functions' exact pairs hold an exponent no float64 has; recompute "
                          "the artifact (pmask precompute --force)")
     m = W[:, 0:27:3].astype(np.int64) | (W[:, 1:27:3].astype(np.int64) << 16) | (W[:, 2:27:3].astype(np.int64) << 32)

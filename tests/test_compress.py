@@ -133,8 +133,8 @@ def test_the_exact_pairs_in_fixed_point_are_within_their_bound_and_read_back_bit
     signs and of magnitudes from 1e-300 to 1e300 (the Green's functions' are ~1e-9 m/Pa), some spanning 12
     decades, zeros and subnormals; the largest error seen is more than a quarter of the bound (it is the
     rounding's, not a loose one); the unpacked values are what pack rounded them to (packed again, the same
-    words); a zero pair stays zero, a pair of subnormals exact; NaN is refused (the solve's values are
-    finite: our bug)."""
+    words); a zero pair stays zero, a pair of subnormals exact; NaN, inf and 2^1023 are refused (the solve's
+    values are finite, ~1e-9 m/Pa: our bug)."""
     from pmask.runtime.compressed import EXACT_BITS, PAIR_WORDS, pack_exact, unpack_exact
 
     rng = np.random.default_rng(11)
@@ -152,8 +152,9 @@ def test_the_exact_pairs_in_fixed_point_are_within_their_bound_and_read_back_bit
     assert (err / np.where(big > 0, big, 1)).max() > 0.25 * 2.0 ** -EXACT_BITS
     assert np.array_equal(pack_exact(got.ravel()), words) and np.array_equal(unpack_exact(pack_exact(got)), got)
     assert np.all(got[5] == 0) and np.array_equal(got[7], P[7])
-    with pytest.raises(ValueError, match="NaN"):
-        pack_exact(np.full(9, np.nan))
+    for bad in (np.nan, np.inf, 2.0 ** 1023):
+        with pytest.raises(ValueError, match="NaN, inf or values beyond"):
+            pack_exact(np.full(9, bad))
 
 
 def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_path):
