@@ -71,7 +71,7 @@ from pmask.runtime.artifact import take_runs
 Q_MAX = 32767
 #: set bits in each byte value (a pair's rank among its block's exact pairs)
 _ONES = np.array([bin(k).count("1") for k in range(256)], np.int64)
-#: the exact pairs in fixed point (format 1.7, ``near_exact48``): a pair's nine values are integers m, |m| <= 2^46,
+#: the exact pairs in fixed point (format 1.7, ``near_exact48``): a pair's nine values are integers m, ``|m| <= 2^46``,
 #: times 2^(e − EXACT_BITS), 2^e the power of two above the pair's largest magnitude (:func:`pack_exact`)
 EXACT_BITS = 46
 #: words (uint16) a pair takes: three a value (its 48-bit two's complement, low word first) and the exponent e

@@ -157,26 +157,18 @@ def test_the_exact_pairs_in_fixed_point_are_within_their_bound_and_read_back_bit
             pack_exact(np.full(9, bad))
 
 
-def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_path):
+def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_path, capsys):
     """A file of format 1.6 stores the exact pairs as float64 (``near_exact``): written with the 1.7 file's
     values unpacked, it reads the same Ξ to the bit (pairs, whole blocks and products), K_i equal, and its
-    exported table is the same as the 1.7 file's (the C core reads float64 pairs from both)."""
-    import shutil
-
-    import h5py
-
+    exported table is the same as the 1.7 file's (the C core reads float64 pairs from both); `pmask info` says
+    how each stores them."""
     from pmask.runtime.table import export_table, read_table
 
     _, comp, _ = pair_p1
     C = comp.Xi
     old = tmp_path / "float64.h5"
-    shutil.copy(comp.path, old)
-    with h5py.File(old, "r+") as f:
-        g = f["greens/hmatrix"]
-        del g["near_exact48"]
-        g["near_exact"] = C.exact_values()
-        f.attrs["format_version"] = "1.6.0"
-    W = Model.load(old, verify=False).Xi
+    _near_field_signed_in_blocks(comp.path, old, 4, float64=True)  # (signed again: its digests are checked)
+    W = Model.load(old).Xi
     assert not W.fixed and W.packed and W.dense.dtype == np.float64
     assert W.near_nbytes - C.near_nbytes == len(C.dense) // 28 * (72 - 56)  # 16 bytes a pair more
     n = len(comp.contact)
@@ -185,12 +177,19 @@ def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_pat
     assert all(np.array_equal(W.dense_block(b), C.dense_block(b)) for b in range(0, len(C.dense_index), 7))
     x = np.random.default_rng(5).standard_normal(3 * n)
     assert np.array_equal(W.matvec(x), C.matvec(x))
-    assert np.array_equal(Model.load(old, verify=False).stiffness("linear", R_MAX).K_full,
-                          comp.stiffness("linear", R_MAX).K_full)
+    assert np.array_equal(Model.load(old).stiffness("linear", R_MAX).K_full, comp.stiffness("linear", R_MAX).K_full)
     tables = [read_table(export_table(m, tmp_path / f"{k}.tbl"))["greens"]
-              for k, m in (("w", Model.load(old, verify=False)), ("c", comp))]
+              for k, m in (("w", Model.load(old)), ("c", comp))]
     for a, b in zip(i[:200], j[:200]):
         assert tables[0].block(int(a), int(b)) == tables[1].block(int(a), int(b))
+    from pmask.pipeline.cli import main
+
+    capsys.readouterr()
+    said = []
+    for path in (comp.path, old):
+        assert main(["info", str(path)]) == 0
+        said.append(next(line for line in capsys.readouterr().out.splitlines() if line.startswith("Xi ")))
+    assert "pairs within r_max in 48-bit fixed point" in said[0] and "pairs within r_max in float64" in said[1]
 
 
 def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path):
