@@ -103,7 +103,9 @@ NEAR = ("greens/hmatrix/dense", "greens/hmatrix/near_exact", "greens/hmatrix/nea
 #: how the near field is stored: in chunks of about 1 MiB through HDF5's byte shuffle and deflate (level 1),
 #: lossless, which every HDF5 reader undoes as it reads (h5py's wheels always have both filters).  The exact
 #: values' exponent bytes repeat, their mantissas do not: 13 % fewer bytes on the float64 pairs within r_max and
-#: 9 % on the 16-bit ones on a 3,882-vertex kidney, by hand; the bench page's organ rows give both sizes.  The far
+#: 9 % on the 16-bit ones on a 3,882-vertex kidney, by hand; in fixed point (format 1.7), whose exponents are one
+#: word a pair, about 2 % on the pairs (the compressed-Ξ tests measure it); the bench page's organ rows give the
+#: sizes.  The far
 #: field's factors (read in slices when left in the file) stay as they are: a slice would inflate whole chunks.
 #: Deflate costs reading: zlib inflates about 0.55 GB/s a core, on top of the SHA-256 the blocks are checked by,
 #: so reading the near field takes about 3x as long as reading it plain (the large-organs guide gives the bench's)
