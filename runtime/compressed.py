@@ -106,9 +106,19 @@ def unpack_exact(words) -> np.ndarray:
     if len(e) and (e.max() > 1023 or e.min() < -1074):  # (pack_exact's exponents: anything else is a writer's bug)
         raise InputError("the compressed Green's functions' exact pairs hold an exponent no float64 has; recompute "
                          "the artifact (pmask precompute --force)")
-    m = W[:, 0:27:3].astype(np.int64) | (W[:, 1:27:3].astype(np.int64) << 16) | (W[:, 2:27:3].astype(np.int64) << 32)
-    m -= (m >> 47) << 48  # two's complement of 48 bits: the sign
-    return np.ldexp(m.astype(np.float64), (e - EXACT_BITS)[:, None])
+    # each value's three words and a fourth that extends its sign, read as one little-endian int64 (on any host:
+    # the words are stored little-endian in the buffer)
+    buf = np.empty((len(W), 9, 4), "<u2")
+    buf[:, :, :3] = W[:, :27].reshape(-1, 9, 3)
+    np.multiply(buf[:, :, 2] >> 15, 0xFFFF, out=buf[:, :, 3])
+    m = buf.view("<i8").reshape(-1, 9).astype(np.float64)
+    # times 2^(e − 46): a product by a power of two, exact (the result is a float64), where that power is a normal
+    # float64 (a third the time of ldexp); ldexp for a pair below 2^-976, whose power would underflow
+    deep = e - EXACT_BITS < -1022
+    m *= np.ldexp(1.0, np.maximum(e - EXACT_BITS, -1022))[:, None]
+    if deep.any():
+        m[deep] = np.ldexp(buf[deep].view("<i8").reshape(-1, 9).astype(np.float64), (e[deep] - EXACT_BITS)[:, None])
+    return m
 
 
 def encode_near(B: np.ndarray, exact: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
