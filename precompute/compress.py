@@ -1423,6 +1423,7 @@ def connect(scheduler: str | None, workers: int | None, memory_limit: int | None
 
     if scheduler:
         try:
+            refused(scheduler)  # nothing listening: said at once, where Client retries for ``timeout``
             with dask.config.set({"distributed.comm.timeouts.connect": f"{timeout}s"}):
                 return Client(scheduler, timeout=f"{timeout}s")
         except (OSError, TimeoutError, ValueError) as exc:
@@ -1441,12 +1442,32 @@ def connect(scheduler: str | None, workers: int | None, memory_limit: int | None
     return Client(cluster)
 
 
+def refused(scheduler: str, timeout: float = 1.0) -> None:
+    """ConnectionRefusedError when nothing listens at a tcp:// scheduler address (a typo'd port, a scheduler
+    not started): the host answers that at once, where dask's Client retries until its timeout (10 s by hand
+    for tcp://127.0.0.1:9); ValueError for a port out of range.  Any other outcome (a connection, no answer within ``timeout``, another protocol, an
+    address this does not parse) is left to the Client."""
+    import socket
+    from urllib.parse import urlsplit
+
+    url = urlsplit(scheduler if "://" in scheduler else f"tcp://{scheduler}")
+    host, port = url.hostname, url.port  # ValueError for a port that is no port (99999, "x"): said at once
+    if url.scheme != "tcp" or not host or not port:
+        return
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except ConnectionRefusedError as exc:
+        raise ConnectionRefusedError(f"nothing listens at {host}:{port}") from exc
+    except OSError:
+        return
+
+
 def check_scheduler(client, scheduler: str | None, done: int, total: int, store: Path,
-                    wait: float = SCHEDULER_WAIT) -> None:
+                    wait: float | None = None) -> None:
     """One line, instead of a traceback, when the client has lost its scheduler (a killed `dask scheduler`,
-    a dropped network) and it has not come back within ``wait`` seconds: how far the run got, and that a
-    rerun resumes from what the work folder keeps (the finished tiles and W's store)."""
-    until = time.monotonic() + wait
+    a dropped network) and it has not come back within ``wait`` seconds (:data:`SCHEDULER_WAIT`): how far the
+    run got, and that a rerun resumes from what the work folder keeps (the finished tiles and W's store)."""
+    until = time.monotonic() + (SCHEDULER_WAIT if wait is None else wait)
     while client.status != "running" and time.monotonic() < until:
         time.sleep(0.1)  # the client reconnects by itself when the scheduler is back soon
     if client.status != "running":

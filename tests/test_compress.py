@@ -977,23 +977,25 @@ def test_p2_compresses_through_w_s_store(tmp_path):
         assert np.abs(C.dense_block(b) - B)[exact].max(initial=0.0) <= 1e-12 * np.abs(Xi).max()
 
 
-def test_a_scheduler_address_runs_the_same_tiles(pair, tmp_path):
+def test_a_scheduler_address_runs_the_same_tiles(pair_p1, tmp_path):
     """--scheduler ADDRESS: the pipeline connects to a running scheduler (here a LocalCluster's, reached only by
     its address, as a real cluster's would be), its workers read W's file from the work folder, and the
-    artifact equals the local run's."""
+    artifact equals the local run's.  With P1 (5.6 s here where P2 took 37 s, by pytest's durations; P2's factor and sweeps on a worker:
+    test_the_factor_and_ws_sweep_run_on_a_worker_not_in_the_client)."""
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False}) as cluster:
-        s = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, scheduler=cluster.scheduler_address), tmp_path / "k.h5")
+        s = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, scheduler=cluster.scheduler_address, element="P1"),
+                tmp_path / "k.h5")
     assert s["factor_stats"]["compress"]["scheduler"] == cluster.scheduler_address
-    remote, local = Model.load(tmp_path / "k.h5").Xi, pair[1].Xi
+    remote, local = Model.load(tmp_path / "k.h5").Xi, pair_p1[1].Xi
     # the same tiles: the randomized range finder is seeded per tile, so the factors are the same numbers
     for k in ("dense_index", "lowrank_index"):
         assert np.array_equal(getattr(remote, k), getattr(local, k))
     assert np.allclose(remote.U, local.U, rtol=0, atol=1e-12 * np.abs(local.U).max())
 
 
-def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path):
+def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path, monkeypatch):
     """#27 item 8: a `dask scheduler` process killed after the first tile arrives is one line (ResourceError:
     no traceback from the CLI) that says how far the run got and that a rerun resumes; the finished tiles and
     W's store stay, and a rerun on this machine reuses both (no second sweep) and gives the same arrays as a
@@ -1031,6 +1033,8 @@ def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path):
             if len(arrived) == 1:
                 procs[0].kill()
 
+        # the client waits this long for the scheduler to come back (10 s by default); it never does here
+        monkeypatch.setattr(compress, "SCHEDULER_WAIT", 2.0)
         with pytest.raises(ResourceError, match="lost the Dask scheduler") as err:
             compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", scheduler=address, panel=48,
                                        on_tile=kill_scheduler)
@@ -1184,7 +1188,11 @@ def test_cli_bad_inputs_are_one_line(tmp_path):
         assert p.returncode != 0 and "Traceback" not in p.stderr, p.stderr
         return p.stderr.strip().splitlines()[-1]
 
-    assert "cannot reach the Dask scheduler" in cli("--compress", "--scheduler", "tcp://127.0.0.1:9")
+    # nothing listening is said at once (the refusal, not the Client's 10 s of retries); a port that is no port too
+    refused = cli("--compress", "--scheduler", "tcp://127.0.0.1:9")
+    assert "cannot reach the Dask scheduler" in refused and "nothing listens at 127.0.0.1:9" in refused, refused
+    with pytest.raises(InputError, match=r"cannot reach the Dask scheduler .*Port out of range"):
+        compress.connect("tcp://127.0.0.1:99999", None, None)
     assert "(0, 1)" in cli("--compress", "3")
     assert "apply to --compress" in cli("--workers", "2")
     assert "below what they would run" in cli("--compress", "--r-max", "0.01", "--workers", "1", "--worker-memory", "20M")
