@@ -272,6 +272,7 @@ def remesh_bounded(path: Path, *, edge_length: float, scale: float = 1.0, units_
     interrupt.check()  # a Ctrl-C swallowed while the surface was read (trimesh's imports) stops it here
     with tempfile.TemporaryDirectory(prefix="pmask-remesh-") as tmp:
         out = Path(tmp) / "mesh.npz"
+        job.update(save_surface_read(path, Path(tmp)))  # the surface as this process read it, not parsed again
         proc = subprocess.Popen([sys.executable, "-m", "pmask.precompute.meshing", json.dumps(job), str(out)],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 start_new_session=True)  # the terminal's Ctrl-C reaches us, and we stop it
@@ -341,6 +342,7 @@ def _worker(argv) -> int:
     logging.getLogger("pmask").addHandler(handler)
     logging.getLogger("pmask").setLevel(logging.WARNING)
     try:
+        _load_surface_read(job)
         report: dict = {}
         label = np.zeros(0, np.int64)
         points, tets, *rest = remesh_surface(Path(job["path"]), edge_length=job["edge_length"], scale=job["scale"],
@@ -1086,16 +1088,71 @@ def triangle_blocks(m) -> list:
             + [q[:, [0, 2, 3]] for q in quads])
 
 
+#: the last surface :func:`read_surface_file` parsed, (points as in the file, triangles) by the file's suffix and
+#: the digest of its bytes: a run reads its ``--surface`` for the checks, the remesh and the display surface, and meshio
+#: parsed a 327,680-triangle ASCII STL in 7-13 s each time, where the digest takes 0.05 s (by hand)
+_READ: dict = {}
+
+
+def _file_key(path) -> str:
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=20)
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 22):
+            h.update(chunk)
+    return f"{Path(path).suffix.lower()} {h.hexdigest()}"  # the suffix too: it picks meshio's reader
+
+
 def read_surface_file(path, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """A triangle surface file as (points in metres, triangles), its face indices and coordinates checked:
-    one line for a file without triangles, an index past the vertices, or a non-finite coordinate."""
+    one line for a file without triangles, an index past the vertices, or a non-finite coordinate.  A file
+    whose bytes are those of the last one parsed is not parsed again."""
+    try:
+        key = _file_key(path)
+    except OSError:
+        key = None  # the reader says what is wrong with the path
+    if key in _READ:
+        raw, tris = _READ[key]
+        return raw * scale, tris.copy()
+    raw, tris = _parse_surface_file(path)
+    if key is not None:
+        _READ.clear()  # one file kept: a run has one --surface (its inclusions are small)
+        _READ[key] = (raw, tris)
+    return raw * scale, tris.copy()
+
+
+def save_surface_read(path, folder: Path) -> dict:
+    """The job entry that hands :func:`read_surface_file`'s last read of ``path`` to a remesh worker (the file
+    as parsed, in an .npz in ``folder``), so that it does not parse the file again; {} when it was not read."""
+    try:
+        key = _file_key(path)
+    except OSError:
+        return {}
+    if key not in _READ:
+        return {}
+    raw, tris = _READ[key]
+    np.savez(folder / "surface.npz", points=raw, triangles=tris)
+    return {"surface_read": str(folder / "surface.npz"), "surface_key": key}
+
+
+def _load_surface_read(job: dict) -> None:
+    """A remesh worker's side of :func:`save_surface_read`: the parent's read, for the same unchanged file."""
+    if "surface_read" in job:
+        with np.load(job["surface_read"]) as z:
+            _READ.clear()
+            _READ[job["surface_key"]] = (z["points"], z["triangles"])
+
+
+def _parse_surface_file(path) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`read_surface_file`'s parse: (points as in the file, triangles)."""
     m = read_mesh_file(path)
     blocks = triangle_blocks(m)
     if len(m.points) == 0 or not blocks:
         raise MeshError(f"{path}: no triangles in this file (cell types: {sorted({c.type for c in m.cells}) or 'none'}"
                         f"{stl_damage(path, '; ')}); give a closed triangle surface (STL, OBJ, PLY, ...)")
     check_face_indices(blocks, len(m.points), path)
-    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3] * scale
+    raw = np.asarray(m.points, float).reshape(len(m.points), -1)[:, :3]
     check_finite(raw, path)
     return raw, np.concatenate(blocks).astype(np.int64)
 

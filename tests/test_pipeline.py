@@ -150,6 +150,45 @@ def test_user_surface_stl_end_to_end(tmp_path):
     assert relerr(block, block.T) < 0.05
 
 
+def test_a_surface_file_is_parsed_once_a_run_and_again_when_its_bytes_change(tmp_path, monkeypatch):
+    """A run reads its --surface for the checks, the remesh's worker process and the display surface; the file
+    is parsed once (a 327,680-triangle ASCII STL took meshio 7-13 s a parse) and handed to the worker as
+    parsed.  A file whose bytes change is parsed again, though its size stays the same."""
+    import meshio
+    import trimesh
+
+    from pmask.precompute import meshing
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    stl = tmp_path / "organ.stl"
+    meshio.write_points_cells(stl, sphere.vertices, [("triangle", sphere.faces)])  # ASCII, as meshio writes it
+    parses, real = [], meshing.read_mesh_file
+    monkeypatch.setattr(meshing, "read_mesh_file", lambda path: parses.append(path) or real(path))
+    monkeypatch.setattr(meshing, "_READ", {})
+    a = meshing.read_surface_file(stl, 1e-3)
+    b = meshing.read_surface_file(stl, 1e-3)
+    c = meshing.read_surface_file(stl)
+    assert len(parses) == 1
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and np.array_equal(c[0] * 1e-3, a[0])
+    a[1][0] = -1  # a caller's change to what it was given is not what the next caller gets
+    assert meshing.read_surface_file(stl, 1e-3)[1].min() == 0
+    # the worker process's side: the parent's read, for the same bytes, in place of a parse
+    job = meshing.save_surface_read(stl, tmp_path)
+    meshing._READ.clear()
+    meshing._load_surface_read(job)
+    d = meshing.read_surface_file(stl, 1e-3)
+    assert len(parses) == 1 and np.array_equal(d[0], a[0])
+    # the same number of bytes, one coordinate's digits changed: parsed again, the new coordinate read
+    text = stl.read_text()
+    first = text.split("vertex", 1)[1].split()[0]
+    moved = first.replace(first[-1], "1" if first[-1] != "1" else "2")
+    assert len(moved) == len(first)
+    stl.write_text(text.replace(first, moved, 1))
+    e = meshing.read_surface_file(stl)
+    assert len(parses) == 2 and not np.array_equal(e[0], c[0])
+    assert meshing.save_surface_read(tmp_path / "missing.stl", tmp_path) == {}
+
+
 def test_halfspace_contact_region_is_widened_by_r_max(halfspace_small):
     d = read_artifact(halfspace_small)
     x = d["surface/points"][d["surface/contact"]]
