@@ -50,14 +50,19 @@ precompute: venv
 # in SPREAD_FILES test by test; JOBS=1 runs them serially
 JOBS   ?= 2
 XDIST  := $(if $(filter 1,$(JOBS)),,-n $(JOBS) --dist loadfile)
+# and each process with one BLAS and OpenMP thread: two processes each running OpenBLAS's and CHOLMOD's two
+# threads on two cores spin against each other (the reference, Green's-function, materials and hollow tests took
+# 126 s, 51 s of it in the kernel, against 108 s and 26 s, on one 2-core machine); what asks for more threads
+# gets them (the W sweep's threadpool_limits, the sanitizer's OMP_NUM_THREADS)
+ONE_THREAD := $(if $(filter 1,$(JOBS)),,OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1)
 
 ## make test [JOBS=2]: the fast test suite (what a developer runs; CI runs it and the slow tests)
 test: venv
-	$(BIN)/python -m pytest -q $(XDIST) $(PYTEST_ARGS)
+	$(ONE_THREAD) $(BIN)/python -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 ## make test-slow: the long solves and the P2 reference rows
 test-slow: venv
-	$(BIN)/python -m pytest -q -m slow $(XDIST) $(PYTEST_ARGS)
+	$(ONE_THREAD) $(BIN)/python -m pytest -q -m slow $(XDIST) $(PYTEST_ARGS)
 
 ## make test-pip: the Green's-function and runtime tests again on the pip-only route
 test-pip: venv
