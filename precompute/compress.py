@@ -1445,8 +1445,8 @@ def connect(scheduler: str | None, workers: int | None, memory_limit: int | None
 def refused(scheduler: str, timeout: float = 1.0) -> None:
     """ConnectionRefusedError when nothing listens at a tcp:// scheduler address (a typo'd port, a scheduler
     not started): the host answers that at once, where dask's Client retries until its timeout (10 s by hand
-    for tcp://127.0.0.1:9); ValueError for a port out of range.  Any other outcome (a connection, no answer within ``timeout``, another protocol, an
-    address this does not parse) is left to the Client."""
+    for tcp://127.0.0.1:9); ValueError for a port out of range.  Any other outcome (a connection, no answer
+    within ``timeout``, another protocol, an address this does not parse) is left to the Client."""
     import socket
     from urllib.parse import urlsplit
 

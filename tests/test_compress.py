@@ -980,8 +980,8 @@ def test_p2_compresses_through_w_s_store(tmp_path):
 def test_a_scheduler_address_runs_the_same_tiles(pair_p1, tmp_path):
     """--scheduler ADDRESS: the pipeline connects to a running scheduler (here a LocalCluster's, reached only by
     its address, as a real cluster's would be), its workers read W's file from the work folder, and the
-    artifact equals the local run's.  With P1 (5.6 s here where P2 took 37 s, by pytest's durations; P2's factor and sweeps on a worker:
-    test_the_factor_and_ws_sweep_run_on_a_worker_not_in_the_client)."""
+    artifact equals the local run's.  With P1 (5.6 s here where P2 took 37 s, by pytest's durations; P2's
+    factor and sweeps on a worker: test_the_factor_and_ws_sweep_run_on_a_worker_not_in_the_client)."""
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address="127.0.0.1:0", scheduler_kwargs={"dashboard": False}) as cluster:
