@@ -32,6 +32,7 @@ import numpy as np
 from pmask import interrupt
 from pmask.errors import InputError, OutputError, ResourceError
 from pmask.meshes.common import ModelMesh, load_model_mesh, save_model_mesh
+from pmask.precompute.meshing import file_digest
 from pmask.runtime.artifact import FORMAT_VERSION, stored_input_hash
 from pmask.runtime.files import Background
 
@@ -145,14 +146,6 @@ class SimulationSurface:
 
 
 # ------------------------------------------------------------------------------- hashing
-def file_digest(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _without_docstrings(source: str) -> str:
     """The module's syntax tree without docstrings: what the interpreter runs, minus prose."""
     tree = ast.parse(source)

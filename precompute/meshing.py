@@ -1091,18 +1091,23 @@ def triangle_blocks(m) -> list:
 #: the last surface :func:`read_surface_file` parsed, (points as in the file, triangles) by the file's suffix
 #: and the digest of its bytes: a run reads its ``--surface`` for the checks, the remesh and the display
 #: surface, and meshio parsed a 327,680-triangle ASCII STL (98 MB) in 7-13 s each time, where its digest took
-#: 0.2-0.3 s (by hand)
+#: 0.09-0.19 s (SHA-256, by hand)
 _READ: dict = {}
 
 
-def _file_key(path) -> str:
+def file_digest(path) -> str:
+    """The SHA-256 of a file's bytes (hex): an input's identity in the stage keys, and a parse's here."""
     import hashlib
 
-    h = hashlib.blake2b(digest_size=20)
+    h = hashlib.sha256()
     with open(path, "rb") as f:
-        while chunk := f.read(1 << 22):
+        for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
-    return f"{Path(path).suffix.lower()} {h.hexdigest()}"  # the suffix too: it picks meshio's reader
+    return h.hexdigest()
+
+
+def _file_key(path) -> str:
+    return f"{Path(path).suffix.lower()} {file_digest(path)}"  # the suffix too: it picks meshio's reader
 
 
 def read_surface_file(path, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
