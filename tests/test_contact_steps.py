@@ -193,12 +193,13 @@ def test_the_coupled_normal_start_solves_the_delassus_system():
     C = 0.002 * np.array([[0.5, 0.1, 0.0], [0.1, 0.4, 0.05], [0.0, 0.05, 0.6]])
     cpl = {(0, 1): list(C.ravel()), (1, 0): list(C.T.ravel())}
     ubar = {0: (0.0, 0.0, -1e-3), 1: (0.0, -0.6e-3, -0.8e-3)}
-    out, left = coupling.normal_start([0, 1], geo, ubar, cpl)
+    out, left, phis = coupling.normal_start([0, 1], geo, ubar, cpl)
     n1, n2 = np.array(N1), np.array(N2)
     M = np.array([[1 / 30.0, n1 @ C @ n2], [n2 @ C.T @ n1, 1 / 45.0]])  # the laws' own normal compliances 1/k
     phi = np.linalg.solve(M, [1e-3, 1e-3])
     np.testing.assert_allclose(out[0], -phi[0] * n1, rtol=1e-12)
     np.testing.assert_allclose(out[1], -phi[1] * n2, rtol=1e-12)
+    np.testing.assert_allclose(phis, phi, rtol=1e-12)  # and the pair's φ themselves
     # a pair's start also gives what each contact leaves the other, ū_l − C_lk f_k (round-off: 1e-12 of ū)
     np.testing.assert_allclose(left[0], np.array(ubar[0]) - C @ (-phi[1] * n2), rtol=0, atol=1e-15)
     np.testing.assert_allclose(left[1], np.array(ubar[1]) - C.T @ (-phi[0] * n1), rtol=0, atol=1e-15)
@@ -316,7 +317,7 @@ def test_the_frictionless_start_solves_the_complementarity_problem(seed):
                        if l != m}
     depth = rng.uniform(-0.5e-3, 2e-3, s)
     ubar = [tuple(-depth[l] * N[l]) for l in range(s)]
-    out, _ = coupling.normal_start(list(range(s)), geo, ubar, coupling_blocks)
+    out, _, _ = coupling.normal_start(list(range(s)), geo, ubar, coupling_blocks)
     phi = np.array([-np.dot(out[l], N[l]) for l in range(s)])
     A = np.diag(1.0 / k) + np.array([[0.0 if l == m else N[l] @ C[3 * l:3 * l + 3, 3 * m:3 * m + 3] @ N[m]
                                       for m in range(s)] for l in range(s)])

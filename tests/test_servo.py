@@ -144,6 +144,42 @@ def test_several_coupled_instruments(model, surface, n, friction):
     assert sum(s == Status.CONTACT for row in py[1] for s in row) > 0.5 * n * ticks
 
 
+def _has_avx2() -> bool:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return any(line.startswith("flags") and " avx2" in line for line in f)
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("coupled", [True, False], ids=["coupled", "independent"])
+def test_a_pair_s_kernels_give_the_python_s_forces_to_the_bit(model, surface, coupled, monkeypatch):
+    """Two frictionless instruments pressing and circling (a pair, as the bench's): the C sums a coupled pair's
+    blocks four entries a register where the CPU has AVX2, two (SSE2) where not or where the environment's
+    PMASK_DISABLE_CPU_FEATURES names AVX2, and runs the two laws of a Jacobi sweep (or of two uncoupled contacts)
+    in the two lanes of a register.  Every lane is the scalar's operations in the Python's order, so the two
+    kernels' forces are equal to the bit and the Python engine's too (exact equality, not FORCE_TOL)."""
+    trace = _coupled_trace(model, 2)
+    py = run(Contacts(surface, 2, engine="python", coupled=coupled), trace)
+    native = []
+    for env in (None, "AVX2"):
+        if env is None:
+            monkeypatch.delenv("PMASK_DISABLE_CPU_FEATURES", raising=False)
+        else:
+            monkeypatch.setenv("PMASK_DISABLE_CPU_FEATURES", env)
+        c = Contacts(surface, 2, engine="native", coupled=coupled)
+        kernel = c._native.servo.kernel()
+        if env is not None:
+            assert kernel == "baseline"
+        elif sys.platform == "linux":  # (/proc/cpuinfo says what the CPU has)
+            assert kernel == ("avx2" if _has_avx2() else "baseline")
+        native.append(run(c, trace))
+    for f, s in native:
+        assert s == py[1]
+        assert np.array_equal(f, py[0])
+    assert sum(s == Status.CONTACT for row in py[1] for s in row) > 0.5 * 2 * len(trace)
+
+
 def test_a_deep_coupled_pair_freezes_and_pulls_the_same_way_in_both_engines(model, surface):
     """Two frictionless instruments 10-15 mm apart on the upper face pressed 6 mm, one after the other, and
     released in turn: both freeze past δ*, and the shallower one is carried away by the other's dent on most

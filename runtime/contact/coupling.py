@@ -8,7 +8,8 @@ friction in the same local law (as SOFA's LCP does).  A contact whose penetratio
 force this tick (the LCP's complementarity: the others' pushes carried the surface away from its tool) but
 stays in contact while its own probe is inside.  Frictionless contacts start from the exact solution of the
 coupled normal problem (the Delassus system), and their first sweep is Jacobi (each law on what the start
-leaves it), which is what the laws then confirm.
+leaves it), which is what the laws then confirm; a pair pressing on the law's first branch, the laws' own
+solution then, takes their results from the start with no sweep (:func:`pair_solved`).
 
 Why the full K̃⁻¹ on the diagonal: with contacts that press through each other the off-diagonal blocks are of
 the diagonal's size (a grasp's two jaws: 0.026 against 0.036 m/N), and the whole matrix is then positive
@@ -21,7 +22,8 @@ The native core's ``core/coupling.c`` is the same code operation for operation.
 """
 from __future__ import annotations
 
-from pmask.runtime.contact.law import GEO_LAM, GEO_k, increment_stiffness, local_law
+from pmask.runtime.contact.law import GEO_KI, GEO_LAM, GEO_k, increment_stiffness, local_law
+from pmask.runtime.contact.linalg3 import mul3
 from pmask.runtime.contact.state import GS_SWEEPS
 
 
@@ -31,7 +33,12 @@ def solve(c, states, active, geo, ubar):
     coupling = coupling_blocks(c, states, active) if c.coupled and len(active) > 1 else None
     start = None
     if coupling and c._frictionless:
-        force, start = normal_start(active, geo, ubar, coupling, states)
+        force, start, phi = normal_start(active, geo, ubar, coupling, states)
+        solved = pair_solved(states, geo, active, force, start, phi) if phi else None
+        if solved is not None:  # the pair's start is its laws' solution: no sweep
+            for l in active:
+                states[l].law_force = force[l]
+            return solved
     else:
         force = {l: states[l].law_force for l in active}  # warm start: last tick's forces
     result = {}
@@ -91,8 +98,8 @@ def normal_start(active, geo, ubar, coupling, states=None):
     on the bench's trace).  After :data:`PIVOTS` ``s`` pivots the last solve, clipped at zero, goes to the
     sweeps as it is.
 
-    Returns (the forces {l: f_l}, and for a pair pressing what each leaves the other {l: ū_l − C_lk f_k},
-    else None)."""
+    Returns (the forces {l: f_l}, for a pair pressing what each leaves the other {l: ū_l − C_lk f_k} and
+    its two φ, else None and None)."""
     s = len(active)
     A = [[0.0] * s for _ in range(s)]
     r = [0.0] * s
@@ -136,7 +143,7 @@ def normal_start(active, geo, ubar, coupling, states=None):
                 wz = C[2] * N[0] + C[5] * N[1] + C[8] * N[2]
                 force = {l: (-x0 * N[0], -x0 * N[1], -x0 * N[2]), k: (-x1 * M[0], -x1 * M[1], -x1 * M[2])}
                 return force, {l: (ul[0] + x1 * cx, ul[1] + x1 * cy, ul[2] + x1 * cz),
-                               k: (uk[0] + x0 * wx, uk[1] + x0 * wy, uk[2] + x0 * wz)}
+                               k: (uk[0] + x0 * wx, uk[1] + x0 * wy, uk[2] + x0 * wz)}, (x0, x1)
     pressing = [True] * s
     phi = None
     for _ in range(PIVOTS * s):
@@ -170,7 +177,28 @@ def normal_start(active, geo, ubar, coupling, states=None):
         p = 0.0 if phi is None else max(phi[x], 0.0)
         Nx, Ny, Nz = geo[l][0], geo[l][1], geo[l][2]
         out[l] = (-p * Nx, -p * Ny, -p * Nz)
-    return out, None
+    return out, None, None
+
+
+def pair_solved(states, geo, active, force, start, phi):
+    """A frictionless pair pressing (both φ > 0) on the law's first branch (δ_l = −N_l · ū'_l > 0, neither past
+    δ*): the start is the two laws' solution (f_l = −φ_l N_l, φ_l = k_l δ_l to round-off), so their results
+    are taken from it, {l: ((f_l, K̃_l⁻¹ f_l, sliding, δ_l), ū'_l)} as :func:`solve` returns them, and no
+    sweep runs (the law's chain δ → k δ → f is then off the native pair's tick); else None (the laws run on
+    ū', a Jacobi sweep)."""
+    (l, k), (x0, x1) = active, phi
+    if not (x0 > 0.0 and x1 > 0.0):
+        return None
+    out = {}
+    for m in (l, k):
+        Nx, Ny, Nz = geo[m][0], geo[m][1], geo[m][2]
+        ux, uy, uz = start[m]
+        delta = -(Nx * ux + Ny * uy + Nz * uz)
+        if not delta > 0.0 or states[m].frozen:
+            return None
+        f = force[m]
+        out[m] = ((f, mul3(geo[m][GEO_KI], *f), True, delta), (ux, uy, uz))
+    return out
 
 
 #: the frictionless start's pivots, at most this many times the number of contacts (Murty's rule ends far sooner:

@@ -653,6 +653,11 @@ static PyObject *Servo_running(ServoObject *self, PyObject *unused)
     return PyBool_FromLong(pm_servo_running(self->servo));
 }
 
+static PyObject *Servo_kernel(ServoObject *self, PyObject *unused)
+{
+    return PyUnicode_FromString(pm_servo_kernel(self->servo));
+}
+
 static PyObject *Servo_set_probes(ServoObject *self, PyObject *probes)
 {
     probes_from(probes, self->n, self->probes);
@@ -725,6 +730,7 @@ static PyMethodDef Servo_methods[] = {
     {"start", (PyCFunction)Servo_start, METH_VARARGS, "start(rate[, spin]): the step on a thread of its own"},
     {"stop", (PyCFunction)Servo_stop, METH_NOARGS, "stop the thread"},
     {"running", (PyCFunction)Servo_running, METH_NOARGS, "whether the thread runs"},
+    {"kernel", (PyCFunction)Servo_kernel, METH_NOARGS, "the coupled pairs' block-sum kernel: 'avx2' or 'baseline'"},
     {"set_probes", (PyCFunction)Servo_set_probes, METH_O, "the probes the thread uses from its next tick"},
     {"read", (PyCFunction)Servo_read, METH_NOARGS, "(forces, statuses, (ticks, late, max_lateness, step_max, idle))"},
     {"start_exchange", (PyCFunction)Servo_start_exchange, METH_VARARGS,

@@ -199,6 +199,10 @@ PM_API void pm_servo_step(pm_servo *servo, const double *probes, double *forces,
 /* Contact k after the last tick (a consistent copy, also while the servo's thread runs). */
 PM_API void pm_servo_state(pm_servo *servo, int32_t k, pm_contact_state *out);
 PM_API int32_t pm_servo_count(const pm_servo *servo);
+/* the kernel this servo's coupled pairs sum their blocks with, chosen by the CPU at creation: "avx2", or
+ * "baseline" (SSE2; also where the environment's PMASK_DISABLE_CPU_FEATURES names AVX2).  Both give the same
+ * forces to the bit. */
+PM_API const char *pm_servo_kernel(const pm_servo *servo);
 /* 1 once a probe came more than 10 model sizes from the model (wrong units?), with that probe in `probe`
  * (may be NULL); 0 afterwards (it is reported once per servo, as the Python engine logs it once). */
 PM_API int32_t pm_servo_take_far_warning(pm_servo *servo, double *probe);

@@ -2,7 +2,8 @@
  *
  * Block Gauss-Seidel on the compliance whose diagonal blocks are the local laws' own and whose off-diagonal
  * blocks C_lk = Σ_i Σ_m φ_i(x_l) φ_m(x_k) ζ_m(i) come from the Green's functions; frictionless contacts start
- * from the exact solution of the coupled normal problem (the Delassus system), with a Jacobi first sweep. */
+ * from the exact solution of the coupled normal problem (the Delassus system), with a Jacobi first sweep (none for
+ * a pair pressing on the law's first branch: the start is the laws' solution, coupling.pair_solved). */
 #include "pm_internal.h"
 
 void pm__compliance(const pm_table *tb, int64_t ta, const double *ba_in, int64_t tbi, const double *bb_in, double *C)
@@ -84,17 +85,6 @@ void pm__triangle_pairs(const pm_table *tb, int64_t ta, int64_t tbi, int64_t oa,
         }
 }
 
-/* two doubles in one register (GCC's and Clang's vector extension): each lane is the scalar's multiply and add,
- * so the sums below are the Python's to the bit (no fused multiply-add: -ffp-contract=off) */
-typedef double pm_v2 __attribute__((vector_size(16)));
-
-static inline pm_v2 load2(const double *p)
-{
-    pm_v2 v;
-    memcpy(&v, p, sizeof v);
-    return v;
-}
-
 /* the pair function's blocks (pm_servo_create_paired), checked: 0, or -1 when it fails or gives a non-finite
  * number (the sums below take P as finite).  The last PM_PAIR_CACHE pairs it gave are kept, so that contacts
  * going back and forth over an edge ask once (a grasp slid 10 mm on the organ-scale kidney asked 102 times for 25
@@ -121,73 +111,137 @@ static int pair_blocks_given(pm_servo *S, int64_t ta, int64_t tbi, int64_t oa, i
     return 0;
 }
 
-/* C_lk for every pair of active contacts: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks (those kept while both
+/* C_ab = Σ_x Σ_y φ_x φ_y P_xy, the pair's coupling block (3x3 row-major, the sum in the Python's order: three
+ * independent row sums t_x = Σ_y w_xy P_xy, w_xy = φ_x φ_y, then (t_0 + t_1) + t_2, a shorter chain of dependent
+ * adds than nine in a row, for the pair's tick waits on it; a zero weight adds w·P = ±0, which leaves a sum as it
+ * was, P being finite: the table's loader checks).  Each entry of C is a lane of a vector: every lane is the
+ * scalar's multiplies and adds in the same order (no fused multiply-add: -ffp-contract=off, and the AVX2 kernel
+ * is not built with FMA), so both kernels give the Python's sums to the bit (tested against each other and the
+ * Python engine with PMASK_DISABLE_CPU_FEATURES=AVX2). */
+static void block_sum_sse2(const double *P, const double *ba, const double *bb, double *Sab)
+{
+    pm_v2 r01[3], r23[3], r45[3], r67[3];  /* two entries a register */
+    double r8[3];
+    for (int i = 0; i < 3; i++) {
+        const double *o = P + 27 * i;
+        const double w0 = ba[i] * bb[0], w1 = ba[i] * bb[1], w2 = ba[i] * bb[2];
+        const pm_v2 v0 = {w0, w0}, v1 = {w1, w1}, v2 = {w2, w2};
+        r01[i] = v0 * load2(o) + v1 * load2(o + 9) + v2 * load2(o + 18);
+        r23[i] = v0 * load2(o + 2) + v1 * load2(o + 11) + v2 * load2(o + 20);
+        r45[i] = v0 * load2(o + 4) + v1 * load2(o + 13) + v2 * load2(o + 22);
+        r67[i] = v0 * load2(o + 6) + v1 * load2(o + 15) + v2 * load2(o + 24);
+        r8[i] = w0 * o[8] + w1 * o[17] + w2 * o[26];
+    }
+    const pm_v2 s01 = r01[0] + r01[1] + r01[2], s23 = r23[0] + r23[1] + r23[2];
+    const pm_v2 s45 = r45[0] + r45[1] + r45[2], s67 = r67[0] + r67[1] + r67[2];
+    memcpy(Sab, &s01, sizeof s01);
+    memcpy(Sab + 2, &s23, sizeof s23);
+    memcpy(Sab + 4, &s45, sizeof s45);
+    memcpy(Sab + 6, &s67, sizeof s67);
+    Sab[8] = r8[0] + r8[1] + r8[2];
+}
+
+#if PM_X86_DISPATCH
+/* the same sums four entries a register (AVX2, chosen at run time: pm__block_sum_kernel): a coupled pair's tick
+ * about 100 instructions shorter on the default kidney (the bench's callgrind counts, the baseline's beside) */
+typedef double pm_v4 __attribute__((vector_size(32)));
+
+__attribute__((target("avx2"))) static void block_sum_avx2(const double *P, const double *ba, const double *bb,
+                                                          double *Sab)
+{
+    pm_v4 lo[3], hi[3];  /* entries 0-3 and 4-7 of each row sum */
+    double r8[3];
+#define PM_ROW(i)                                                                     \
+    do {                                                                              \
+        const double *o = P + 27 * (i);                                               \
+        const double w0 = ba[i] * bb[0], w1 = ba[i] * bb[1], w2 = ba[i] * bb[2];      \
+        const pm_v4 v0 = {w0, w0, w0, w0}, v1 = {w1, w1, w1, w1}, v2 = {w2, w2, w2, w2}; \
+        pm_v4 a, b, c, d, e, f;                                                       \
+        memcpy(&a, o, sizeof a);                                                      \
+        memcpy(&b, o + 9, sizeof b);                                                  \
+        memcpy(&c, o + 18, sizeof c);                                                 \
+        memcpy(&d, o + 4, sizeof d);                                                  \
+        memcpy(&e, o + 13, sizeof e);                                                 \
+        memcpy(&f, o + 22, sizeof f);                                                 \
+        lo[i] = v0 * a + v1 * b + v2 * c;                                             \
+        hi[i] = v0 * d + v1 * e + v2 * f;                                             \
+        r8[i] = w0 * o[8] + w1 * o[17] + w2 * o[26];                                  \
+    } while (0)
+    PM_ROW(0);  /* unrolled by hand: the loop kept its row sums on the stack (80 instructions against 122) */
+    PM_ROW(1);
+    PM_ROW(2);
+#undef PM_ROW
+    const pm_v4 s03 = lo[0] + lo[1] + lo[2], s47 = hi[0] + hi[1] + hi[2];
+    memcpy(Sab, &s03, sizeof s03);
+    memcpy(Sab + 4, &s47, sizeof s47);
+    Sab[8] = r8[0] + r8[1] + r8[2];
+}
+#endif
+
+pm_block_sum_fn pm__block_sum_kernel(void)
+{
+#if PM_X86_DISPATCH
+    const char *off = getenv("PMASK_DISABLE_CPU_FEATURES");  /* as numpy's NPY_DISABLE_CPU_FEATURES */
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx2") && !(off && strstr(off, "AVX2"))) return block_sum_avx2;
+#endif
+    return block_sum_sse2;
+}
+
+int pm__block_sum_is_avx2(pm_block_sum_fn f)
+{
+#if PM_X86_DISPATCH
+    return f == block_sum_avx2;
+#else
+    (void)f;
+    return 0;
+#endif
+}
+
+/* C_ab for one pair of active contacts a < b: Σ_x Σ_y φ_x φ_y P_xy over the pair's blocks (those kept while both
  * contacts stay on the same mesh triangles, and a move's shared vertex pairs: pm__triangle_pairs; on the 1,543-
  * vertex kidney's subdivided surface two coupled contacts circling read 1,883 vertex-pair blocks where keying on
- * the surface's triangles and reading all nine read 10,098, by callgrind) (coupling.coupling_blocks); act
- * ascending, so a < b is x < y, and only C_ab is stored (C_ba = C_abᵀ is read transposed: less_coupling).  0, or
- * -1 when the pair function fails. */
-static int coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
+ * the surface's triangles and reading all nine read 10,098, by callgrind) (coupling.coupling_blocks); only C_ab
+ * is stored (C_ba = C_abᵀ is read transposed: less_coupling).  0, or -1 when the pair function fails. */
+static inline int coupling_pair(pm_servo *S, int32_t a, int32_t b)
 {
     const pm_table *tb = S->tab;
-    const int32_t n = S->n;
-    for (int32_t x = 0; x < na; x++)
-        for (int32_t y = x + 1; y < na; y++) {
-            const int32_t a = act[x], b = act[y];
-            const size_t ab = (size_t)a * n + b;
-            double *P = S->pair_P + 81 * ab;
-            const int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
-            /* φ on the mesh triangles, where ζ lives (a subdivided contact surface; on the mesh itself, as they are) */
-            const double *ba = S->st[a].b, *bb = S->st[b].b;
-            double mba[3], mbb[3];
-            int64_t ma = ta, mb = tbi;
-            if (tb->parent) {
-                ma = pm__mesh_point(tb, ta, ba, mba);
-                mb = pm__mesh_point(tb, tbi, bb, mbb);
-                ba = mba;
-                bb = mbb;
-            }
-            const int64_t oa = S->pair_tri[2 * ab], ob = S->pair_tri[2 * ab + 1];
-            if (oa != ma || ob != mb) {  /* new mesh triangles: the vertex pairs they share with the old kept */
-                if (tb->zeta) {
-                    pm__triangle_pairs(tb, ma, mb, oa, ob, P);
-                } else if (pair_blocks_given(S, ma, mb, oa, ob, P)) {
-                    S->pair_tri[2 * ab] = -1;  /* asked again next tick */
-                    return -1;
-                }
-                S->pair_tri[2 * ab] = ma;
-                S->pair_tri[2 * ab + 1] = mb;
-            }
-            double *Sab = S->cpl + 9 * ab;
-            /* Σ_ij w_ij P_ij, two entries a register: three independent row sums t_i = Σ_j w_ij P_ij, then
-               (t_0 + t_1) + t_2 (a shorter chain of dependent adds than nine in a row: the pair's tick waits on
-               it), in the Python's order; a zero weight adds w·P = ±0, which leaves a sum as it was (P is
-               finite: the table's loader checks) */
-            pm_v2 r01[3], r23[3], r45[3], r67[3];
-            double r8[3];
-            for (int i = 0; i < 3; i++) {
-                const double *o = P + 27 * i;
-                const double w0 = ba[i] * bb[0], w1 = ba[i] * bb[1], w2 = ba[i] * bb[2];
-                const pm_v2 v0 = {w0, w0}, v1 = {w1, w1}, v2 = {w2, w2};
-                r01[i] = v0 * load2(o) + v1 * load2(o + 9) + v2 * load2(o + 18);
-                r23[i] = v0 * load2(o + 2) + v1 * load2(o + 11) + v2 * load2(o + 20);
-                r45[i] = v0 * load2(o + 4) + v1 * load2(o + 13) + v2 * load2(o + 22);
-                r67[i] = v0 * load2(o + 6) + v1 * load2(o + 15) + v2 * load2(o + 24);
-                r8[i] = w0 * o[8] + w1 * o[17] + w2 * o[26];
-            }
-            const pm_v2 s01 = r01[0] + r01[1] + r01[2], s23 = r23[0] + r23[1] + r23[2];
-            const pm_v2 s45 = r45[0] + r45[1] + r45[2], s67 = r67[0] + r67[1] + r67[2];
-            const double s8 = r8[0] + r8[1] + r8[2];
-            Sab[0] = s01[0];
-            Sab[1] = s01[1];
-            Sab[2] = s23[0];
-            Sab[3] = s23[1];
-            Sab[4] = s45[0];
-            Sab[5] = s45[1];
-            Sab[6] = s67[0];
-            Sab[7] = s67[1];
-            Sab[8] = s8;
+    const size_t ab = (size_t)a * S->n + b;
+    double *P = S->pair_P + 81 * ab;
+    const int64_t ta = S->st[a].tri, tbi = S->st[b].tri;
+    /* φ on the mesh triangles, where ζ lives (a subdivided contact surface; on the mesh itself, as they are) */
+    const double *ba = S->st[a].b, *bb = S->st[b].b;
+    double mba[3], mbb[3];
+    int64_t ma = ta, mb = tbi;
+    if (tb->parent) {
+        ma = pm__mesh_point(tb, ta, ba, mba);
+        mb = pm__mesh_point(tb, tbi, bb, mbb);
+        ba = mba;
+        bb = mbb;
+    }
+    const int64_t oa = S->pair_tri[2 * ab], ob = S->pair_tri[2 * ab + 1];
+    if (oa != ma || ob != mb) {  /* new mesh triangles: the vertex pairs they share with the old kept */
+        if (tb->zeta) {
+            pm__triangle_pairs(tb, ma, mb, oa, ob, P);
+        } else if (pair_blocks_given(S, ma, mb, oa, ob, P)) {
+            S->pair_tri[2 * ab] = -1;  /* asked again next tick */
+            return -1;
         }
+        S->pair_tri[2 * ab] = ma;
+        S->pair_tri[2 * ab + 1] = mb;
+    }
+    S->block_sum(P, ba, bb, S->cpl + 9 * ab);
+    return 0;
+}
+
+/* C_lk for every pair of active contacts (act ascending, so a < b is x < y); a pair, the usual coupled case,
+ * without the loops.  0, or -1 when the pair function fails. */
+static int coupling_blocks(pm_servo *S, const int32_t *act, int32_t na)
+{
+    if (na == 2) return coupling_pair(S, act[0], act[1]);
+    for (int32_t x = 0; x < na; x++)
+        for (int32_t y = x + 1; y < na; y++)
+            if (coupling_pair(S, act[x], act[y])) return -1;
     return 0;
 }
 
@@ -307,6 +361,23 @@ static int normal_start(pm_servo *S, const int32_t *act, int32_t na, int *left)
                 vk[1] = uk[1] + x0 * wy;
                 vk[2] = uk[2] + x0 * wz;
                 *left = 1;
+                /* both pressing on the law's first branch (no δ*): the start is the laws' solution, f_l = −φ_l N_l
+                   with φ_l = k_l δ_l on δ_l = −N_l · ū'_l, so their results are taken from it (the surface's
+                   displacement K̃⁻¹ f, δ from ū' as the law has it) and no sweep runs: the law's chain (δ, then k δ,
+                   then f) is off the pair's tick.  Anywhere else the laws run on ū' (a Jacobi sweep). */
+                const double dl = -(N[0] * vl[0] + N[1] * vl[1] + N[2] * vl[2]);
+                const double dk = -(M[0] * vk[0] + M[1] * vk[1] + M[2] * vk[2]);
+                if (x0 > 0.0 && x1 > 0.0 && dl > 0.0 && dk > 0.0 && !S->st[l].frozen && !S->st[k].frozen) {
+                    lres *Rl = &S->res[l], *Rk = &S->res[k];
+                    memcpy(Rl->f, gl, sizeof Rl->f);
+                    memcpy(Rk->f, gk, sizeof Rk->f);
+                    pm__mul3(S->geo[l].Kti, gl[0], gl[1], gl[2], Rl->u2);
+                    pm__mul3(S->geo[k].Kti, gk[0], gk[1], gk[2], Rk->u2);
+                    Rl->sliding = Rk->sliding = 1;
+                    Rl->delta = dl;
+                    Rk->delta = dk;
+                    *left = 2;
+                }
                 return 0;
             }
         }
@@ -379,7 +450,7 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
 {
     const int coupled = S->o.coupled && na > 1;
     if (coupled && coupling_blocks(S, act, na)) return -1;
-    int left = 0;  /* the pair's start also left each contact its ū' (res[l].ueff) */
+    int left = 0;  /* 1: the pair's start also left each contact its ū' (res[l].ueff); 2: and its law's result */
     if (coupled && S->frictionless) {
         if (normal_start(S, act, na, &left)) return -1;
     } else {
@@ -393,7 +464,7 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
     /* block Gauss-Seidel, each contact's law on ū less the others' latest forces through C_lk; from the exact
        frictionless start the first sweep is Jacobi instead (every ū' from the start, so the laws do not wait on
        one another; the start solves their normal problem, so the sweep only confirms it) */
-    const int sweeps = coupled ? GS_SWEEPS : 1, jacobi = coupled && S->frictionless;
+    const int sweeps = left == 2 ? 0 : coupled ? GS_SWEEPS : 1, jacobi = coupled && S->frictionless;
     for (int sw = 0; sw < sweeps; sw++) {
         double change = 0.0, size = 0.0;
         if (sw == 0 && jacobi && !left)
@@ -404,25 +475,38 @@ int pm__solve(pm_servo *S, const int32_t *act, int32_t na)
                 for (int32_t y = 0; y < na; y++)
                     if (y != x) less_coupling(S, l, act[y], u);
             }
+        /* a pair whose laws do not wait on each other (the Jacobi sweep, or two contacts uncoupled): both at once */
+        const int two = na == 2 && (!coupled || (sw == 0 && jacobi));
+        if (two) {
+            const int32_t a = act[0], b = act[1];
+            const double *ua = coupled ? S->res[a].ueff : S->ubar + 3 * a;
+            const double *ub = coupled ? S->res[b].ueff : S->ubar + 3 * b;
+            if (pm__local_law2(S, &S->st[a], &S->geo[a], ua, &S->res[a], &S->st[b], &S->geo[b], ub, &S->res[b]))
+                return -1;
+        }
         for (int32_t x = 0; x < na; x++) {
             const int32_t l = act[x];
-            double ux = S->ubar[3 * l], uy = S->ubar[3 * l + 1], uz = S->ubar[3 * l + 2];
-            if (coupled) {
-                double u[3] = {ux, uy, uz};
-                if (sw == 0 && jacobi)
-                    memcpy(u, S->res[l].ueff, sizeof u);
-                else
-                    for (int32_t y = 0; y < na; y++)
-                        if (y != x) less_coupling(S, l, act[y], u);
-                ux = u[0];
-                uy = u[1];
-                uz = u[2];
-            }
             lres *R = &S->res[l];
-            if (pm__local_law(S, &S->st[l], &S->geo[l], ux, uy, uz, R)) return -1;
-            R->ueff[0] = ux;
-            R->ueff[1] = uy;
-            R->ueff[2] = uz;
+            if (two) {
+                if (!coupled) memcpy(R->ueff, S->ubar + 3 * l, sizeof R->ueff);  /* coupled: ū' is there */
+            } else {
+                double ux = S->ubar[3 * l], uy = S->ubar[3 * l + 1], uz = S->ubar[3 * l + 2];
+                if (coupled) {
+                    double u[3] = {ux, uy, uz};
+                    if (sw == 0 && jacobi)
+                        memcpy(u, R->ueff, sizeof u);
+                    else
+                        for (int32_t y = 0; y < na; y++)
+                            if (y != x) less_coupling(S, l, act[y], u);
+                    ux = u[0];
+                    uy = u[1];
+                    uz = u[2];
+                }
+                if (pm__local_law(S, &S->st[l], &S->geo[l], ux, uy, uz, R)) return -1;
+                R->ueff[0] = ux;
+                R->ueff[1] = uy;
+                R->ueff[2] = uz;
+            }
             double *old = S->gsf + 3 * l;
             double c0 = fabs(R->f[0] - old[0]), c1 = fabs(R->f[1] - old[1]), c2 = fabs(R->f[2] - old[2]);
             old[0] = R->f[0];

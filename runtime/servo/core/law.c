@@ -120,3 +120,32 @@ int pm__local_law(const pm_servo *S, const cstate *st, const geom *g, double ux,
     result(R, fx, fy, fz, u2, 1, delta);
     return 0;
 }
+
+/* two frictionless contacts pressing (a grasp's jaws, or two instruments each on its own), the law's first branch
+ * (δ > 0 on a region and past no δ*: f = −k δ N, the surface's displacement K̃⁻¹ f) in the two lanes of a register:
+ * each lane the scalar's operations in its order, so bit for bit pm__local_law's (q = 1 there, and x / 1 is x), the
+ * two contacts' chains side by side (the pair's tick waits on both); anything else the scalar law, each in turn */
+int pm__local_law2(const pm_servo *S, const cstate *sa, const geom *ga, const double *ua, lres *Ra,
+                   const cstate *sb, const geom *gb, const double *ub, lres *Rb)
+{
+    const pm_v2 Nx = {ga->N[0], gb->N[0]}, Ny = {ga->N[1], gb->N[1]}, Nz = {ga->N[2], gb->N[2]};
+    const pm_v2 ux = {ua[0], ub[0]}, uy = {ua[1], ub[1]}, uz = {ua[2], ub[2]};
+    const pm_v2 delta = -(Nx * ux + Ny * uy + Nz * uz);
+    const double da = delta[0], db = delta[1];
+    if (!(S->frictionless && da > 0.0 && db > 0.0 && ga->lam > 0.0 && gb->lam > 0.0 && ga->k > 0.0 && gb->k > 0.0 &&
+          !(sa->frozen && da > sa->frozen_depth) && !(sb->frozen && db > sb->frozen_depth))) {
+        if (pm__local_law(S, sa, ga, ua[0], ua[1], ua[2], Ra)) return -1;
+        return pm__local_law(S, sb, gb, ub[0], ub[1], ub[2], Rb);
+    }
+    const pm_v2 k = {ga->k, gb->k};
+    const pm_v2 fc = -(k * delta);  /* -fc: the scalar's f = −fc N is (−fc) N */
+    const pm_v2 fx = fc * Nx, fy = fc * Ny, fz = fc * Nz;
+    const double *A = ga->Kti, *B = gb->Kti;
+    const pm_v2 m0 = {A[0], B[0]}, m1 = {A[1], B[1]}, m2 = {A[2], B[2]}, m3 = {A[3], B[3]}, m4 = {A[4], B[4]};
+    const pm_v2 m5 = {A[5], B[5]}, m6 = {A[6], B[6]}, m7 = {A[7], B[7]}, m8 = {A[8], B[8]};
+    const pm_v2 vx = m0 * fx + m1 * fy + m2 * fz, vy = m3 * fx + m4 * fy + m5 * fz, vz = m6 * fx + m7 * fy + m8 * fz;
+    const double a2[3] = {vx[0], vy[0], vz[0]}, b2[3] = {vx[1], vy[1], vz[1]};
+    result(Ra, fx[0], fy[0], fz[0], a2, 1, da);
+    result(Rb, fx[1], fy[1], fz[1], b2, 1, db);
+    return 0;
+}

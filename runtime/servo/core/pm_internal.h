@@ -49,6 +49,27 @@
 #define PM_HIDDEN
 #endif
 
+/* kernels chosen by the CPU at run time (x86-64 with GCC or Clang: __builtin_cpu_supports and target attributes),
+ * each bit for bit the baseline's; PMASK_DISABLE_CPU_FEATURES=AVX2 keeps the baseline (coupling.c) */
+#if defined(__x86_64__) && defined(__GNUC__)
+#define PM_X86_DISPATCH 1
+#else
+#define PM_X86_DISPATCH 0
+#endif
+/* two doubles in one register (GCC's and Clang's vector extension): each lane is the scalar's multiply and add,
+ * so sums in lanes are the Python's to the bit (no fused multiply-add: -ffp-contract=off) */
+typedef double pm_v2 __attribute__((vector_size(16)));
+
+static inline pm_v2 load2(const double *p)
+{
+    pm_v2 v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* a coupled pair's block C_ab = Σ_x Σ_y φ_a,x φ_b,y P_xy (P: 81 doubles, Sab: 9) */
+typedef void (*pm_block_sum_fn)(const double *P, const double *ba, const double *bb, double *Sab);
+
 /* ------------------------------------------------------------------ constants (pmask.runtime.contact.state) */
 #define GS_SWEEPS 60
 #define PIVOTS 4
@@ -235,6 +256,7 @@ struct pm_servo {
     double *cpl;      /* n*n*9 coupling blocks */
     int64_t *pair_tri; /* n*n*2: the mesh triangles each pair's kept vertex-pair blocks are for (-1: none) */
     double *pair_P;   /* n*n*81: those blocks (coupling.c) */
+    pm_block_sum_fn block_sum;  /* their sum for the pair's weights: the kernel this CPU runs (coupling.c) */
     pm_pair_fn pairs;   /* those blocks without the table's ζ section (pm_servo_create_paired), and its user */
     void *pairs_user;
     int64_t *given_tri; /* PM_PAIR_CACHE x 2: the triangle pairs the pair function gave last (-1: none) */
@@ -299,11 +321,19 @@ PM_HIDDEN int pm__normal_at(const pm_table *tb, int64_t t, const double *b, doub
 PM_HIDDEN int pm__geometry(const pm_servo *S, cstate *st, const double *p, geom *g, double *u);
 PM_HIDDEN int pm__local_law(const pm_servo *S, const cstate *st, const geom *g, double ux, double uy, double uz,
                             lres *R);
+/* the law for two contacts at once, u (3 each) the displacements left to them: each a lane of a register where both
+ * are frictionless and pressing on the law's first branch, else pm__local_law for each; the results are those of
+ * pm__local_law to the bit */
+PM_HIDDEN int pm__local_law2(const pm_servo *S, const cstate *sa, const geom *ga, const double *ua, lres *Ra,
+                             const cstate *sb, const geom *gb, const double *ub, lres *Rb);
 /* coupling.c (step 3) */
 #define PM_PAIR_CACHE 64
 PM_HIDDEN void pm__compliance(const pm_table *tb, int64_t ta, const double *ba, int64_t tbi, const double *bb,
                               double *C);
 PM_HIDDEN int pm__solve(pm_servo *S, const int32_t *act, int32_t na);
+/* the block-sum kernel for this CPU (and the environment's PMASK_DISABLE_CPU_FEATURES), and whether it is AVX2's */
+PM_HIDDEN pm_block_sum_fn pm__block_sum_kernel(void);
+PM_HIDDEN int pm__block_sum_is_avx2(pm_block_sum_fn f);
 /* output.c (step 4) */
 PM_HIDDEN int pm__render(pm_servo *S, int32_t na);
 

@@ -112,6 +112,7 @@ int pm_servo_create_paired(const pm_table *t, int32_t n, const pm_options *opt, 
     s->pairs_user = user;
     s->o.passivity = o.passivity ? 1 : 0;
     s->frictionless = (o.friction == 0.0 && o.dynamic_friction == 0.0);
+    s->block_sum = pm__block_sum_kernel();
     s->margin = 2.0 * o.max_jump + o.tool_radius;
     ALLOC(s->st, n);
     ALLOC(s->probe, 3 * n);
@@ -257,6 +258,8 @@ int32_t pm_servo_take_far_warning(pm_servo *s, double *probe)
 }
 
 int32_t pm_servo_count(const pm_servo *s) { return s->n; }
+
+const char *pm_servo_kernel(const pm_servo *s) { return pm__block_sum_is_avx2(s->block_sum) ? "avx2" : "baseline"; }
 
 /* ------------------------------------------------------------------ a contact's state (state.py's) */
 /* the last good force, decaying (state.hold) */
