@@ -106,10 +106,11 @@ def write_trace(path: Path, probes: np.ndarray) -> Path:
 
 
 def c_bench(exe: Path, table: Path, trace: Path, n: int = 1, paced: int = PACED_TICKS, batch: int = 0,
-            reacquire: int = 0, uncoupled: bool = False, ratio: int = 0, friction: float = 0.0) -> dict:
-    import os
-
-    env = dict(os.environ, **({"PMASK_BENCH_UNCOUPLED": "1"} if uncoupled else {}))
+            reacquire: int = 0, uncoupled: bool = False, ratio: int = 0, friction: float = 0.0,
+            baseline: bool = False) -> dict:
+    """servo_bench's JSON; ``baseline``: the core's SSE2 kernels where the CPU has AVX2
+    (PMASK_DISABLE_CPU_FEATURES=AVX2)."""
+    env = _bench_env(uncoupled, baseline)
     args = [str(exe), str(table), str(trace), str(n), "--paced", str(paced)]
     if friction:
         args += ["--friction", repr(float(friction))]
@@ -120,6 +121,37 @@ def c_bench(exe: Path, table: Path, trace: Path, n: int = 1, paced: int = PACED_
     if ratio:
         args += ["--ratio", str(ratio)]
     return json.loads(subprocess.run(args, check=True, capture_output=True, text=True, env=env).stdout)
+
+
+def _bench_env(uncoupled: bool = False, baseline: bool = False) -> dict:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("PMASK_BENCH_UNCOUPLED", "PMASK_DISABLE_CPU_FEATURES")}
+    if uncoupled:
+        env["PMASK_BENCH_UNCOUPLED"] = "1"
+    if baseline:
+        env["PMASK_DISABLE_CPU_FEATURES"] = "AVX2"
+    return env
+
+
+def c_instructions(exe: Path, table: Path, trace: Path, n: int, ticks: int, uncoupled: bool = False,
+                   baseline: bool = False) -> float | None:
+    """Instructions a tick inside pm_servo_step over the whole trace, counted by valgrind's callgrind (None
+    without valgrind): a count that does not move with the machine's load, beside the timings that do."""
+    import tempfile
+
+    vg = shutil.which("valgrind")
+    if vg is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        r = subprocess.run([vg, "--tool=callgrind", "--toggle-collect=pm_servo_step",
+                            f"--callgrind-out-file={tmp}/cg.out", str(exe), str(table), str(trace), str(n),
+                            "--paced", "0"], capture_output=True, text=True, env=_bench_env(uncoupled, baseline))
+    found = [line.split(":")[-1] for line in r.stderr.splitlines() if "Collected :" in line]
+    if r.returncode or not found:
+        print(f"  callgrind failed ({r.returncode}): {r.stderr[-300:]}", flush=True)
+        return None
+    return int(found[-1].replace(",", "")) / ticks
 
 
 def python_loop(step, probes, paced: int = 0, reference=None) -> dict:
@@ -329,7 +361,21 @@ def several_contacts(exe, table_path: Path, surface, model, work: Path, counts=(
             if s > 1:
                 row["c_uncoupled_tight"] = c_bench(exe, table_path, trace, s, paced=0, uncoupled=True)["tight"]
             if s == 2:  # the hands issue's bound (≤ 2x one), side by side in one process
-                row["c_ratio"] = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS)["ratio"]
+                r = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS)
+                row["c_kernel"] = r["kernel"]
+                row["c_ratio"] = r["ratio"]
+                if r["kernel"] != "baseline":  # the SSE2 kernels beside, on the same machine
+                    row["c_ratio_baseline"] = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS,
+                                                      baseline=True)["ratio"]
+                one = write_trace(work / "several_2_first.bin", P[:, 0])
+                counts = {"one": c_instructions(exe, table_path, one, 1, ticks),
+                          "coupled": c_instructions(exe, table_path, trace, s, ticks),
+                          "independent": c_instructions(exe, table_path, trace, s, ticks, uncoupled=True),
+                          "coupled_baseline": c_instructions(exe, table_path, trace, s, ticks, baseline=True)}
+                if all(v is not None for v in counts.values()):
+                    counts |= {f"{k}_over_one": counts[k] / counts["one"]
+                               for k in ("coupled", "independent", "coupled_baseline")}
+                    row["c_instructions"] = counts
         nat = Contacts(surface, s, engine="native") if _native() else None
         if nat is not None:
             row["binding_tight"] = python_loop(nat.step, P)["tight"]  # the whole trace, as the others
@@ -547,7 +593,21 @@ def markdown(res: dict) -> str:
                   f"{rt['coupled_over_one']['median']:.2f}x (median of the rounds, "
                   f"{rt['coupled_over_one']['min']:.2f}–{rt['coupled_over_one']['max']:.2f}x), two independent "
                   f"{rt['independent_over_one']['median']:.2f}x "
-                  f"({rt['independent_over_one']['min']:.2f}–{rt['independent_over_one']['max']:.2f}x)."]
+                  f"({rt['independent_over_one']['min']:.2f}–{rt['independent_over_one']['max']:.2f}x), with the "
+                  f"core's {res['several']['2'].get('c_kernel', 'baseline')} kernels."]
+        rb = res["several"]["2"].get("c_ratio_baseline")
+        if rb:
+            L += ["", f"The same with the baseline (SSE2) kernels (PMASK_DISABLE_CPU_FEATURES=AVX2), side by side "
+                      f"in a second process: two coupled against one {rb['coupled_over_one']['median']:.2f}x "
+                      f"({rb['coupled_over_one']['min']:.2f}–{rb['coupled_over_one']['max']:.2f}x), two independent "
+                      f"{rb['independent_over_one']['median']:.2f}x."]
+        ins = res["several"]["2"].get("c_instructions")
+        if ins:
+            L += ["", f"Instructions a tick inside `pm_servo_step` (valgrind's callgrind, the whole trace; a count "
+                      f"the machine's load does not move): one {ins['one']:,.0f}, two coupled {ins['coupled']:,.0f} "
+                      f"({ins['coupled_over_one']:.3f}x one), two independent {ins['independent']:,.0f} "
+                      f"({ins['independent_over_one']:.3f}x), two coupled with the baseline kernels "
+                      f"{ins['coupled_baseline']:,.0f} ({ins['coupled_baseline_over_one']:.3f}x)."]
     tick = res.get("several_tick")
     if tick:
         def kept(route):

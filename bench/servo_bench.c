@@ -215,8 +215,8 @@ int main(int argc, char **argv)
             t_empty[nb++] = b - a;
         }
     }
-    printf("{\"ticks\": %lld, \"contacts\": %d, \"contact_fraction\": %.4f, ", (long long)ticks, (int)n,
-           (double)contact / (double)ticks);
+    printf("{\"ticks\": %lld, \"contacts\": %d, \"contact_fraction\": %.4f, \"kernel\": \"%s\", ", (long long)ticks,
+           (int)n, (double)contact / (double)ticks, pm_servo_kernel(servo));
     stats("tight", t_step, (size_t)ticks, 1);
     stats("blend_tight", t_blend, (size_t)nb, 1);
     stats("empty_tight", t_empty, (size_t)nb, 1);
