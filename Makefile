@@ -21,9 +21,9 @@ view: venv
 	$(BIN)/pmask view artifacts/$(MODEL).h5 $(ARGS)
 
 ## make system-deps: Debian packages for the native routes, the viewer's build (npm) and its browser tests
-## (chromium + chromedriver) (root; prints what it installs)
+## (chromium + chromedriver), and valgrind for the bench's instruction counts (root; prints what it installs)
 # Debian's npm only where no Node.js is installed (a NodeSource nodejs brings its own npm and conflicts with it)
-SYSTEM_PACKAGES := gcc libsuitesparse-dev libopenblas0-pthread chromium chromium-driver $(if $(shell command -v npm),,nodejs npm)
+SYSTEM_PACKAGES := gcc libsuitesparse-dev libopenblas0-pthread chromium chromium-driver valgrind $(if $(shell command -v npm),,nodejs npm)
 system-deps:
 	@echo "installing with apt-get: $(SYSTEM_PACKAGES)"
 	apt-get update

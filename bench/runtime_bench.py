@@ -135,22 +135,21 @@ def _bench_env(uncoupled: bool = False, baseline: bool = False) -> dict:
 
 
 def c_instructions(exe: Path, table: Path, trace: Path, n: int, ticks: int, uncoupled: bool = False,
-                   baseline: bool = False) -> float | None:
-    """Instructions a tick inside pm_servo_step over the whole trace, counted by valgrind's callgrind (None
-    without valgrind): a count that does not move with the machine's load, beside the timings that do."""
+                   baseline: bool = False) -> float:
+    """Instructions a tick inside pm_servo_step over the whole trace, counted by valgrind's callgrind: a count
+    that does not move with the machine's load, beside the timings that do (the docs quote it)."""
     import tempfile
 
     vg = shutil.which("valgrind")
     if vg is None:
-        return None
+        sys.exit("bench: valgrind is needed for the C step's instruction counts (make system-deps installs it)")
     with tempfile.TemporaryDirectory() as tmp:
         r = subprocess.run([vg, "--tool=callgrind", "--toggle-collect=pm_servo_step",
                             f"--callgrind-out-file={tmp}/cg.out", str(exe), str(table), str(trace), str(n),
                             "--paced", "0"], capture_output=True, text=True, env=_bench_env(uncoupled, baseline))
     found = [line.split(":")[-1] for line in r.stderr.splitlines() if "Collected :" in line]
     if r.returncode or not found:
-        print(f"  callgrind failed ({r.returncode}): {r.stderr[-300:]}", flush=True)
-        return None
+        raise RuntimeError(f"callgrind failed ({r.returncode}): {r.stderr[-300:]}")
     return int(found[-1].replace(",", "")) / ticks
 
 
@@ -364,18 +363,17 @@ def several_contacts(exe, table_path: Path, surface, model, work: Path, counts=(
                 r = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS)
                 row["c_kernel"] = r["kernel"]
                 row["c_ratio"] = r["ratio"]
-                if r["kernel"] != "baseline":  # the SSE2 kernels beside, on the same machine
-                    row["c_ratio_baseline"] = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS,
-                                                      baseline=True)["ratio"]
+                # the SSE2 kernels beside, on the same machine (the same kernel again where the CPU has no AVX2)
+                row["c_ratio_baseline"] = c_bench(exe, table_path, trace, s, paced=0, ratio=RATIO_ROUNDS,
+                                                  baseline=True)["ratio"]
                 one = write_trace(work / "several_2_first.bin", P[:, 0])
                 counts = {"one": c_instructions(exe, table_path, one, 1, ticks),
                           "coupled": c_instructions(exe, table_path, trace, s, ticks),
                           "independent": c_instructions(exe, table_path, trace, s, ticks, uncoupled=True),
                           "coupled_baseline": c_instructions(exe, table_path, trace, s, ticks, baseline=True)}
-                if all(v is not None for v in counts.values()):
-                    counts |= {f"{k}_over_one": counts[k] / counts["one"]
-                               for k in ("coupled", "independent", "coupled_baseline")}
-                    row["c_instructions"] = counts
+                counts |= {f"{k}_over_one": counts[k] / counts["one"]
+                           for k in ("coupled", "independent", "coupled_baseline")}
+                row["c_instructions"] = counts
         nat = Contacts(surface, s, engine="native") if _native() else None
         if nat is not None:
             row["binding_tight"] = python_loop(nat.step, P)["tight"]  # the whole trace, as the others
