@@ -441,6 +441,27 @@ def cmd_export_table(args) -> int:
     return 0
 
 
+def add_c_core(sub) -> None:
+    p = sub.add_parser("c-core", help="where the servo core's C files are, for a C application's build",
+                       description="Print the servo core's include folder (--include, the default) and its C files "
+                                   "(--sources, space-separated), one line each, for a Makefile: "
+                                   "cc -I$(pmask c-core --include) app.c $(pmask c-core --sources) -lm -lpthread.  "
+                                   "Needs only the runtime (numpy and h5py).")
+    p.add_argument("--include", action="store_true", help="the include folder")
+    p.add_argument("--sources", action="store_true", help="the C files, space-separated")
+    p.set_defaults(func=cmd_c_core)
+
+
+def cmd_c_core(args) -> int:
+    from pmask.runtime.servo import include_dir, sources
+
+    if args.include or not args.sources:
+        print(include_dir())
+    if args.sources:
+        print(" ".join(str(f) for f in sources()))
+    return 0
+
+
 def add_view(sub) -> None:
     p = sub.add_parser("view", help="see and probe a model in a browser (a local server; the servo runs at 1 kHz)",
                        description="Serve a page that shows the surface coloured by stiffness, area or region, with "
@@ -499,8 +520,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging and full tracebacks")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (add_precompute, add_models, add_info, add_export, add_export_table, add_reference, add_figures,
-                add_view, add_inspect):
+    for add in (add_precompute, add_models, add_info, add_export, add_export_table, add_c_core, add_reference,
+                add_figures, add_view, add_inspect):
         add(sub)
     return parser
 

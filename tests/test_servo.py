@@ -16,6 +16,7 @@ import struct
 import subprocess
 import sys
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -774,9 +775,14 @@ def test_the_c_example_builds_runs_and_replays_through_python(table_path, surfac
     if cc is None:
         pytest.skip("no C compiler")
     exe = tmp_path / "haptic_loop"
-    inc = servo.include_dir()
+    # the paths as the C API page's build line takes them: `pmask c-core --include` and `--sources`
+    where = subprocess.run([sys.executable, "-m", "pmask.pipeline", "c-core", "--include", "--sources"],
+                           capture_output=True, text=True)
+    assert where.returncode == 0, where.stderr
+    inc, srcs = where.stdout.splitlines()
+    assert Path(inc) == Path(servo.include_dir()) and srcs.split() == [str(f) for f in servo.sources()]
     build = [cc, "-std=c99", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2", "-ffp-contract=off", f"-I{inc}",
-             "examples/c/haptic_loop.c", *map(str, servo.sources()), "-lm", "-lpthread", "-o", str(exe)]
+             "examples/c/haptic_loop.c", *srcs.split(), "-lm", "-lpthread", "-o", str(exe)]
     r = subprocess.run(build, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     trace = tmp_path / "trace.csv"

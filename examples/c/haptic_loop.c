@@ -1,8 +1,8 @@
 /* A 1 kHz haptic loop in C over a runtime table, with a simulated 3-DOF device.
  *
  *   pmask export-table artifacts/kidney.h5 -o kidney.tbl
- *   cc -std=c99 -O2 -ffp-contract=off -I$(python -m pmask.runtime.servo --include) examples/c/haptic_loop.c \
- *      $(python -m pmask.runtime.servo --sources) -lm -lpthread -o haptic_loop
+ *   cc -std=c99 -O2 -ffp-contract=off -I$(pmask c-core --include) examples/c/haptic_loop.c \
+ *      $(pmask c-core --sources) -lm -lpthread -o haptic_loop
  *   ./haptic_loop kidney.tbl                 # as fast as it runs (a scripted 4.5 s session)
  *   ./haptic_loop kidney.tbl --realtime      # paced at 1 kHz on the wall clock, the loop in main()
  *   ./haptic_loop kidney.tbl --thread        # the library's own servo thread, the device in its callbacks
