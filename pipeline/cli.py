@@ -101,12 +101,14 @@ def add_precompute(sub) -> None:
     p.add_argument("--float32", action="store_true", help="store Ξ in single precision (half the size)")
     p.add_argument("--compress", nargs="?", type=float, const=1e-4, default=None, metavar="TOL",
                    help="store Ξ compressed: the near field (pairs within --r-max) exact, the far field in low-rank "
-                        "blocks within TOL relative per block (default 1e-4), computed in tiles on Dask without the "
-                        "dense Ξ (for organs whose Ξ does not fit one machine; taken without being asked, with a "
-                        "warning, where the dense Ξ does not fit)")
+                        "blocks within TOL relative per block (default 1e-4): from the dense Ξ where it fits and no "
+                        "Dask option is given, else in tiles on Dask without the dense Ξ (for organs whose Ξ does "
+                        "not fit one machine; taken without being asked, with a warning, where the dense Ξ does not "
+                        "fit)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="with --compress: run the tiles on this Dask scheduler "
                                                           "(default: a LocalCluster on this machine)")
-    p.add_argument("--workers", type=int, help="with --compress: local worker processes (default: one per core)")
+    p.add_argument("--workers", type=int, help="with --compress: local worker processes (default: one per core), "
+                                                "the tiled route even where the dense Ξ fits")
     p.add_argument("--worker-memory", metavar="BYTES",
                    help="with --compress: each local worker's memory limit, e.g. 4G (default: dask's share)")
     p.add_argument("--element", choices=("auto", "P1", "P2"), default="auto",
@@ -206,7 +208,8 @@ def cmd_precompute(args) -> int:
     if c:
         print(f"  compressed Ξ: {c['ratio']:.1f}x smaller than dense ({c['stored_bytes'] / 2**20:.1f} of "
               f"{c['dense_bytes'] / 2**20:.1f} MiB), {c['dense_blocks']} dense + {c['lowrank_blocks']} low-rank blocks "
-              f"(rank <= {c['max_rank']}), {c['tiles']} tiles on {c.get('workers', 0)} Dask workers"
+              f"(rank <= {c['max_rank']}), {c['tiles']} tiles "
+              + ("from the dense Ξ (it fits)" if c.get("route") == "dense Xi" else f"on {c.get('workers', 0)} Dask workers")
               + (f", {c['tiles_reused']} reused" if c["tiles_reused"] else ""))
     print("  time: " + ", ".join(f"{k} {v:.2f}s" for k, v in t.items()) + f"; total {sum(t.values()):.2f}s"
           + (f" (resumed after: {', '.join(summary['resumed'])})" if summary["resumed"] else ""))

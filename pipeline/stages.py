@@ -565,7 +565,8 @@ def element_name(spec: Spec, mesh: ModelMesh) -> str:
 def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | None = None) -> dict:
     """Refuse, before any heavy work, a job whose Green's-function stage cannot fit in this machine's
     memory (Ξ, the sparse factor and the working arrays: ``element.memory_estimate``).  The compressed
-    route (``spec.compress``) never holds the dense Ξ: the factor and the W sweep on one worker
+    route (``spec.compress``) is checked as its tiled form, which never holds the dense Ξ (where the dense Ξ fits
+    it is compressed from it instead: :func:`compress_from_dense`): the factor and the W sweep on one worker
     (:func:`pmask.precompute.compress.factor_phase_bytes`),
     then, once they are gone, on each local worker one tile (:func:`pmask.precompute.compress.tile_bytes`) with a
     chunk of W (:data:`pmask.precompute.compress.READ_BYTES` at most; P2's tiles also a chunk of W_B): the larger
@@ -607,6 +608,29 @@ def check_memory(element, n_volume_vertices: int, n_contact: int, spec: Spec | N
     return need
 
 
+def compress_from_dense(spec: Spec, element, n_volume_vertices: int, n_contact: int) -> bool:
+    """Whether ``--compress`` computes the dense Ξ first and compresses its blocks in this process
+    (:class:`pmask.precompute.compress.DenseSource`) rather than tiling it from W on Dask workers: where the dense
+    route fits in this machine's memory with one tile's working arrays beside it (:func:`check_memory` without
+    ``--compress``, :func:`pmask.precompute.compress.tile_bytes`) and no Dask option (``--scheduler``,
+    ``--workers``, ``--worker-memory``) asks for the tiled route.  The same blocks to round-off, within the same
+    tolerance (tested); the dense route's native selected inversion and no W sweep, no workers to start: the bench
+    page's whole runs compare the two routes with the dense one where all three fit.  Above that size the tiles
+    hold a bounded share of Ξ at a time (the large-organs guide)."""
+    if not spec.compress or spec.scheduler or spec.workers or spec.worker_memory:
+        return False
+    from pmask.precompute import compress, greens
+
+    try:
+        need = check_memory(element, n_volume_vertices, n_contact, replace(spec, compress=None))
+    except ResourceError:
+        return False
+    avail = greens.available_memory()
+    # a tile's formed rows, a group's gathered rows and the tile's outputs: each at most a panel (3n x 3·panel)
+    one = compress.tile_bytes(0.0, n_contact, compress.panel_size(n_contact), copies=3)
+    return avail is None or need["total"] + one <= avail
+
+
 def factor_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface):
     """Stage 3: assemble the element's stiffness and load, factorise K_FF.  Returns (factor, timings)."""
     from pmask.precompute import elements, greens
@@ -630,9 +654,11 @@ def factor_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface):
     return factor, {"assemble": t_assemble, "factor": time.perf_counter() - t0}
 
 
-def greens_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface, factor, *, work: Path | None = None, key: str = ""):
+def greens_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface, factor, *, work: Path | None = None, key: str = "",
+                 from_dense: bool = False):
     """Stage 4: Ξ and the support reactions per fixed vertex from the factor.  With ``spec.compress``: Ξ's
-    compressed arrays (tiles on Dask, their store in ``work``), no reactions."""
+    compressed arrays (tiles on Dask, their store in ``work``; ``from_dense``: from the dense Ξ, which fits:
+    :func:`compress_from_dense`), no reactions."""
     from pmask.precompute import elements, greens
 
     if spec.compress:
@@ -645,7 +671,8 @@ def greens_stage(spec: Spec, mesh: ModelMesh, surf: SimulationSurface, factor, *
         arrays, stats = compress.compressed_greens(
             factor, mesh.points[surf.vertices[surf.regions.contact]], surf.r_max, tol=spec.compress,
             store=Path(work) / f"tiles-{key[:16]}.h5", key=key, scheduler=spec.scheduler, workers=spec.workers,
-            memory_limit=limit, dtype=np.dtype(spec.dtype))
+            memory_limit=limit, dtype=np.dtype(spec.dtype),
+            dense=(lambda: greens.greens_functions(factor)[0]) if from_dense else None)
         factor.stats["compress"] = stats
         return arrays, None
 
@@ -846,7 +873,8 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
         solve.enter_context(native.budget(spec.solve_timeout))  # factorisation and Green's functions together
         ck = st.checkpoint("factor")
         factor, saving = None, None
-        on_worker = bool(spec.compress)
+        from_dense = compress_from_dense(spec, element, len(mesh.points), len(surf.regions.contact))
+        on_worker = bool(spec.compress) and not from_dense
         if on_worker:  # assembled, factorised and swept on a Dask worker (#27): the client holds neither
             from pmask.precompute import compress
 
@@ -869,7 +897,8 @@ def run(spec: Spec, out: Path, *, force: bool = False, progress: bool = False) -
             saving = Background(greens.save_checkpoint, ck, factor)  # written while the Green's functions are computed
             solve.callback(saving.wait)  # a run that fails meanwhile still lets the write finish
         with st.timed("greens", f"{spec.model}: write"):
-            Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"])
+            Xi, reactions = greens_stage(spec, mesh, surf, factor, work=st.work, key=keys["artifact"],
+                                         from_dense=from_dense)
         if on_worker:  # what the worker measured, and whether it reused the checkpoint or W; the GF stage's wall
             made = {k: factor.timings[k] for k in ("assemble", "factor") if k in factor.timings}
             st.timings.update(made)  # time held the assembly and factorisation: the stages add up to the run

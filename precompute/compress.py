@@ -1,7 +1,9 @@
 r"""Ξ in compressed form, computed tile by tile from the sparse factor on a Dask cluster.
 
 The form (near field exact, far field in low-rank blocks over a cluster tree) and its reader are in
-:mod:`pmask.runtime.compressed`; this module builds it without ever forming the dense Ξ:
+:mod:`pmask.runtime.compressed`; this module builds it without ever forming the dense Ξ (or, where the dense Ξ
+fits and no Dask option is given, from it in one process: :class:`DenseSource`, the same tiles asking it for
+their rows and sketches in place of W's passes):
 
 1. **Cluster tree** of the contact vertices: recursive bisection at the median of the longest side of
    the bounding box, down to :data:`LEAF` vertices.  Its order puts nearby vertices together.
@@ -600,6 +602,34 @@ class _Asked:
             g.at = (mine[by_row], by_row)
         D, at = self.D, self.at
         self.D = None  # (the pass hands D on: the tile drops it once compressed)
+        return D, at
+
+
+class DenseSource:
+    r"""Ξ's rows and columns from the dense Ξ in memory, in place of W's store (:class:`SweepStore`), where the
+    dense route's Ξ fits on this machine (:func:`compressed_greens` with ``dense``): a tile asks it what it asks a
+    pass over W, its formed rows and its groups' range sketches :math:`\Xi_{R,J}\Omega`, and gets the same
+    numbers to round-off (gathered and multiplied here, not summed over W's supernodes).  Ξ is already
+    :math:`G\,\mathrm{diag}(a)` (P2: :math:`W_E^T W_B`), so nothing is scaled.  ``D``'s rows are the formed rows
+    in the order asked, and each group's Y its rows in the order asked (:meth:`SweepStore.sorted_columns`'
+    ``at`` and :attr:`SketchGroup.at` say where: the tile reads them through those)."""
+
+    def __init__(self, Xi: np.ndarray):
+        self.Xi = Xi
+        self.bytes_read = 0  # (no file: the route reads no W)
+
+    def passed(self, asks: list[tuple]) -> list[tuple[np.ndarray, np.ndarray]]:
+        return [self._asked(rows, cols, sketch) for rows, cols, sketch in asks]
+
+    def _asked(self, rows: np.ndarray, cols: np.ndarray, sketch: "Sketch | None"):
+        formed = np.flatnonzero(np.ones(len(rows), bool) if sketch is None else sketch.formed)
+        at = np.full(len(rows), -1, np.int64)
+        at[formed] = np.arange(len(formed))
+        D = self.Xi[np.ix_(rows[formed], cols)]
+        for g in ([] if sketch is None else sketch.groups):
+            mine = np.flatnonzero(g.rows)  # the group's asked rows, ascending: Y's rows in that order
+            g.Y = self.Xi[np.ix_(rows[mine], cols[g.q0:g.q1])] @ g.omega
+            g.at = (mine, np.arange(len(mine)))
         return D, at
 
 
@@ -1756,11 +1786,14 @@ def _shares_work_folder(w_path: str, folder: str) -> bool:
 def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = TOLERANCE, store: Path,
                       key: str, scheduler: str | None = None, workers: int | None = None,
                       memory_limit: int | None = None, panel: int | None = None, client=None, dtype=np.float64,
-                      on_tile=None) -> tuple[dict, dict]:
+                      on_tile=None, dense=None) -> tuple[dict, dict]:
     """Ξ compressed (the artifact's ``greens/hmatrix`` arrays) and statistics, from ``factor`` for the
     contact vertices at ``points``; the tiles run as Dask tasks (module docstring).  ``store``: the tile
     store's path, reused when ``key`` (factor and parameters) matches; ``client``: an open Client to use
-    instead of connecting; ``on_tile(tile)``: called with each finished tile (tests, progress).  The near field
+    instead of connecting; ``on_tile(tile)``: called with each finished tile (tests, progress).  ``dense()``: the
+    dense Ξ, where it fits on this machine (the pipeline's choice, ``compress_from_dense`` in
+    :mod:`pmask.pipeline.stages`), called when tiles are left to compute: they ask it for their rows and sketches
+    (:class:`DenseSource`) in this process, with no Dask and no W, the same blocks to round-off.  The near field
     and the factors come back as :class:`Concatenated` runs of the tile store, read when the writer stores them
     (so ``store`` must stay until then)."""
     from distributed import as_completed
@@ -1786,7 +1819,19 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     report = None  # what factor_and_sweep reported
     try:
         try:
-            if todo:
+            if todo and dense is not None:  # the dense Ξ at hand: its tiles one after the other here, no W
+                source = DenseSource(dense())
+                near = (np.asarray(points, float)[tree.perm], float(r_max))
+                stats.update({"route": "dense Xi", "workers": 0, "scheduler": None})
+                for c in todo:
+                    t = tiles(source, tree, [c], [plan[c]], tol, near, True)[0]
+                    ts.put(t)
+                    if on_tile is not None:
+                        on_tile(t)
+                    del t
+                source = factor  # (the dense Ξ goes before the assembly)
+                log.info("compressed Ξ from the dense Ξ: %d tiles, %.1f s", len(todo), time.perf_counter() - t0)
+            elif todo:
                 client = client or connect(scheduler, workers, memory_limit)
                 info = list(client.scheduler_info()["workers"].values())
                 limits = [w.get("memory_limit") for w in info]

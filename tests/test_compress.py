@@ -63,12 +63,35 @@ def pair_p1(tmp_path_factory):
 both = pytest.mark.parametrize("which", ["pair", "pair_p1"])
 
 
-@both
+def _dense_first(pair, d, element=None):
+    comp = d / "from-dense.h5"
+    summary = run(Spec(model="kidney", r_max=R_MAX, compress=TOL, **({"element": element} if element else {})), comp)
+    return pair[0], Model.load(comp), summary
+
+
+@pytest.fixture(scope="module")
+def dense_first(pair, tmp_path_factory):
+    """The same kidney compressed with no Dask option given: its dense Ξ fits, so the pipeline computes it and
+    compresses its blocks in this process (stages.compress_from_dense) instead of tiling W on workers."""
+    return _dense_first(pair, tmp_path_factory.mktemp("dense_first"))
+
+
+@pytest.fixture(scope="module")
+def dense_first_p1(pair_p1, tmp_path_factory):
+    return _dense_first(pair_p1, tmp_path_factory.mktemp("dense_first_p1"), "P1")
+
+
+#: both elements by both routes: the tiles from W on Dask workers, and from the dense Ξ where it fits
+routes = pytest.mark.parametrize("which", ["pair", "pair_p1", "dense_first", "dense_first_p1"])
+
+
+@routes
 def test_artifact_is_compressed_and_every_far_block_within_tolerance(which, request):
     dense, comp, summary = request.getfixturevalue(which)
     C = comp.Xi
     assert isinstance(C, CompressedXi) and comp.attrs["greens_form"] == "hmatrix"
-    assert C.symmetric == (which == "pair_p1") == summary["factor_stats"]["compress"]["symmetric"]
+    assert C.symmetric == which.endswith("p1") == summary["factor_stats"]["compress"]["symmetric"]
+    assert summary["factor_stats"]["compress"]["route"] == ("dense Xi" if which.startswith("dense") else "W store")
     # the near field exact (in 48-bit fixed point: within 1.4e-14 of each pair's largest magnitude, format 1.7);
     # the far field's factors in float32, whose rounding (6e-8) is far below TOL
     assert C.fixed and C.dense.dtype == np.uint16 and C.U.dtype == C.V.dtype == np.float32
@@ -268,7 +291,7 @@ def test_a_block_16_bits_cannot_hold_is_stored_exactly():
     assert "\n" not in str(err.value)
 
 
-@both
+@routes
 def test_near_field_is_exact_so_vertex_stiffness_matches_dense(which, request):
     dense, comp, _ = request.getfixturevalue(which)
     pts = comp.points[comp.contact]
@@ -297,7 +320,7 @@ def test_near_field_is_exact_so_vertex_stiffness_matches_dense(which, request):
         assert np.abs(Kc - Kd).max() <= 1e-10 * np.abs(Kd).max()
 
 
-@both
+@routes
 def test_deformation_and_coupled_contacts_within_1e_3(which, request):
     dense, comp, _ = request.getfixturevalue(which)
     sd, sc = dense.stiffness("linear", R_MAX), comp.stiffness("linear", R_MAX)
@@ -315,6 +338,47 @@ def test_deformation_and_coupled_contacts_within_1e_3(which, request):
     u = rng.normal(size=(3, 3)) * 1e-3
     fd, fc = sd.coupled_forces(pts, u), sc.coupled_forces(pts, u)
     assert np.linalg.norm(fc - fd) <= 1e-3 * np.linalg.norm(fd)
+
+
+@pytest.mark.parametrize("element", ["P2", "P1"])
+def test_from_the_dense_xi_the_tiles_store_w_s_blocks_and_read_no_w(element, request):
+    """#27 item 6 (the compressed route no slower than dense where both fit): with no Dask option and a dense Ξ
+    that fits, the tiles ask the dense Ξ for their rows and sketches in place of passes over W, and store the same
+    blocks: the same dense and low-rank blocks over the same clusters (each within the tolerance of Ξ and the near
+    field exact: the tests over ``routes`` above), with no W swept or read and no worker started."""
+    suffix = "_p1" if element == "P1" else ""
+    _, tiled, _ = request.getfixturevalue("pair" + suffix)
+    _, first, summary = request.getfixturevalue("dense_first" + suffix)
+    A, B = tiled.Xi, first.Xi
+    assert np.array_equal(A.perm, B.perm)
+    assert np.array_equal(A.dense_index[:, :4], B.dense_index[:, :4])
+    assert np.array_equal(A.lowrank_index[:, :4], B.lowrank_index[:, :4])
+    stats = summary["factor_stats"]["compress"]
+    assert stats["workers"] == 0 and stats["read_bytes"] == 0 and "W_bytes" not in stats and stats["sketched"] > 0
+
+
+def test_the_dense_xi_is_compressed_where_it_fits_and_no_dask_option_asks_for_tiles(monkeypatch):
+    """stages.compress_from_dense: from the dense Ξ exactly where the dense route's need and one tile fit in the
+    memory available, and never with --scheduler, --workers or --worker-memory (they ask for the tiled route) or
+    without --compress."""
+    from dataclasses import replace
+
+    import pmask.precompute.greens as greens
+    from pmask.pipeline import stages
+    from pmask.precompute.elements import get_element
+
+    element, nv, nc = get_element("P1"), 20_000, 3_000
+    monkeypatch.setattr(greens, "available_memory", lambda: None)
+    dense = stages.check_memory(element, nv, nc, Spec(model="kidney"))["total"]
+    one = compress.tile_bytes(0.0, nc, compress.panel_size(nc), copies=3)
+    spec = Spec(model="kidney", compress=TOL)
+    for avail, fits in ((dense + one, True), (dense + one - 1, False), (dense / 2, False)):
+        monkeypatch.setattr(greens, "available_memory", lambda avail=avail: avail)
+        assert stages.compress_from_dense(spec, element, nv, nc) is fits, (avail, dense, one)
+    monkeypatch.setattr(greens, "available_memory", lambda: None)
+    assert stages.compress_from_dense(spec, element, nv, nc)
+    for asks in ({"workers": 2}, {"scheduler": "tcp://127.0.0.1:8786"}, {"worker_memory": "2GiB"}, {"compress": None}):
+        assert not stages.compress_from_dense(replace(spec, **asks), element, nv, nc), asks
 
 
 def test_the_zeta_table_is_refused_with_a_line_that_says_what_to_use(pair):
@@ -774,6 +838,40 @@ def test_w_store_columns_are_the_dense_routes_in_chunks_too(tmp_path, monkeypatc
     mtime = (tmp_path / f"W-{read_bytes}.bin").stat().st_mtime_ns
     assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k").path.stat().st_mtime_ns == mtime
     assert compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="other").key == "other"
+
+
+def test_the_dense_source_gives_each_tile_w_s_rows_and_sketches_within_the_memory_counted(tmp_path):
+    """compress.DenseSource (the tiles from the dense Ξ, where it fits) against W's store: for every tile of the
+    default kidney in panels of 128 vertices (their far blocks sketched) the same formed rows and range sketches to
+    round-off (1e-12 of the largest: the same products, summed in another order), hence the same tiles; and a tile
+    from the dense Ξ, at the route's own panel width, holds no more than stages.compress_from_dense counts beside
+    the dense Ξ (tracemalloc's peak against tile_bytes with three panels: the formed rows, a group's gathered
+    rows, the outputs)."""
+    from pmask.precompute import greens
+
+    factor, pts = _kidney_factor()
+    Xi, _ = greens.greens_functions(factor)
+    tree = compress.cluster_tree(pts)
+    store, dense = compress.sweep(factor, tmp_path / "W.bin", key="k"), compress.DenseSource(Xi)
+    plans = lambda panel: {c: [b for b in compress.partition(tree, c, R_MAX)  # noqa: E731
+                               if tree.start[b[0]] <= tree.start[b[1]]] for c in compress.panels(tree, panel)}
+    groups = 0
+    for c, blocks in plans(128).items():
+        pw, pd = (compress._tile_plan(tree, c, blocks, True) for _ in range(2))  # the same draws (by column)
+        (Dw, aw), = store.passed([(pw["rows"], pw["dcols"], pw["sketch"])])
+        (Dd, ad), = dense.passed([(pd["rows"], pd["dcols"], pd["sketch"])])
+        formed = np.flatnonzero(pw["sketch"].formed)
+        assert np.abs(Dw[aw[formed]] - Dd[ad[formed]]).max() <= 1e-12 * np.abs(Dw).max()
+        for gw, gd in zip(pw["sketch"].groups, pd["sketch"].groups):
+            assert np.array_equal(gw.at[0], gd.at[0])  # the group's rows, sorted
+            Yw, Yd = gw.Y[gw.at[1]], gd.Y[gd.at[1]]
+            assert np.abs(Yw - Yd).max() <= 1e-12 * np.abs(Yw).max()
+            groups += 1
+    assert groups > 0
+    panel, near = compress.panel_size(len(pts)), (pts[tree.perm], R_MAX)
+    for c, blocks in plans(panel).items():
+        _, peak = traced_peak(compress.tiles, dense, tree, [c], [blocks], TOL, near, True)
+        assert peak <= compress.tile_bytes(0.0, len(pts), panel, copies=3), (c, peak)
 
 
 def test_a_tile_holds_no_more_than_the_memory_check_counts(tmp_path, monkeypatch):
