@@ -1820,16 +1820,16 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     try:
         try:
             if todo and dense is not None:  # the dense Ξ at hand: its tiles one after the other here, no W
-                source = DenseSource(dense())
+                xi = DenseSource(dense())
                 near = (np.asarray(points, float)[tree.perm], float(r_max))
                 stats.update({"route": "dense Xi", "workers": 0, "scheduler": None})
                 for c in todo:
-                    t = tiles(source, tree, [c], [plan[c]], tol, near, True)[0]
+                    t = tiles(xi, tree, [c], [plan[c]], tol, near, True)[0]
                     ts.put(t)
                     if on_tile is not None:
                         on_tile(t)
                     del t
-                source = factor  # (the dense Ξ goes before the assembly)
+                del xi  # (the dense Ξ goes before the assembly)
                 log.info("compressed Ξ from the dense Ξ: %d tiles, %.1f s", len(todo), time.perf_counter() - t0)
             elif todo:
                 client = client or connect(scheduler, workers, memory_limit)

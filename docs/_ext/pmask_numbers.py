@@ -5,9 +5,9 @@
 ``SOURCE:PATH|FORMAT``: SOURCE names a file (:data:`SOURCES`, written by ``make bench``), or ``ref/NAME`` a stored
 reference table (``tests/reference/NAME.csv``, recomputed by CI and by ``make reference``; its rows as a list),
 PATH is a dotted path into its JSON (list indices as numbers; a key with dots of its own, ``kidney_0.003``, as it
-is; ``a[key=value]`` picks the first element of a list whose ``key`` equals ``value``), FORMAT a Python format spec (``,`` for thousands, ``.2f``, ``.1e``...;
-``%`` multiplies by 100), after ``GiB`` or ``MiB`` for a number of bytes shown in that unit (``GiB.2f``), after
-``min`` for seconds shown in minutes (``min.0f``).
+is; ``a[key=value]`` picks the first element of a list whose ``key`` equals ``value``), FORMAT a Python format
+spec (``,`` for thousands, ``.2f``, ``.1e``...; ``%`` multiplies by 100), after ``GiB`` or ``MiB`` for a number
+of bytes shown in that unit (``GiB.2f``), after ``min`` for seconds shown in minutes (``min.0f``).
 A path that does not resolve is an error, so a page cannot quote a number its generated file no longer has:
 every measured number in the docs comes from a generated file.
 """
