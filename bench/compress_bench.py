@@ -187,7 +187,7 @@ def large(params: dict, work: Path, n_check: int = 8, r_max: float = R_MAX, elem
     out["near_bytes"] = int(c.Xi.near_nbytes)
     out["near_exact_bytes"] = int(c.Xi.dense.nbytes)
     out["near_16bit_bytes"] = int(c.Xi.near_nbytes - c.Xi.dense.nbytes)
-    out["far_bytes"] = int(c.Xi.U.nbytes + c.Xi.V.nbytes)
+    out["far_bytes"] = int(c.Xi.far_nbytes)  # (as stored: format 1.8's 16-bit words and scales)
     out["dense_Xi_bytes"] = 8 * (3 * n) ** 2
     # the least this format stores while it keeps every pair within r_max exact: those pairs' 3x3 blocks, once per
     # symmetric pair, at its bytes a pair (the leaf blocks' near field holds pairs up to r_max plus two leaves'

@@ -104,11 +104,20 @@ READ_BYTES = 64 * 2**20
 #: the W store's file layout (a store of another layout is swept again)
 LAYOUT = "X_s row-major, supernodes in postorder"
 #: the tile store's layout (a store of another layout is computed again): pieces of the tree's blocks
-TILE_LAYOUT = "tree blocks, pieces per panel, near = a pair within r_max, dense blocks pair by pair"
+TILE_LAYOUT = ("tree blocks, pieces per panel, near = a pair within r_max, dense blocks pair by pair, "
+               "far blocks truncated to truncation_tolerance")
 #: seconds a client waits for a lost scheduler to come back before the run stops (a rerun resumes)
 SCHEDULER_WAIT = 10.0
 #: tolerances at least this large store the far field's factors in float32 (:func:`far_dtype`)
 FLOAT32_TOLERANCE = 1e-5
+#: tolerances at least this large store them in 16 bits (format 1.8, :func:`pmask.runtime.compressed.encode_far`):
+#: the tiles truncate to :data:`ROUNDING_SHARE` less of the tolerance and the rounding takes that share
+INT16_TOLERANCE = 1e-4
+#: the share of the tolerance a 16-bit far block's rounding may take (:func:`truncation_tolerance`).  On a kidney's
+#: far blocks (P2, 4,338 vertices, by hand) the rounding was 2.7e-5 of a block at the median and 4.4e-5 at most:
+#: with half of 1e-4 no block needed the rank-3k form, with 0.4 one in a hundred, with 0.3 a quarter; truncated to
+#: half the tolerance the factors held 13 % more numbers than at the whole, in half the bytes (float32 → int16)
+ROUNDING_SHARE = 0.5
 #: a pass of tiles (:func:`tiles`) holds at most this share of its worker's memory limit per thread, by its model
 #: (:func:`pass_budget`): the more tiles a pass holds, the fewer times W is read (by hand at 20,427 vertices: 16
 #: tiles in one pass read 2.4 GB of W, the same tiles one by one 21.3 GB; the bench page compares the whole run's
@@ -1092,7 +1101,7 @@ def _tile_compress(tree: ClusterTree, p: dict, blocks, X: np.ndarray, at: np.nda
             rs = g.samples[b]
             piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
             uv = from_sketches(g.y(3 * r0, 3 * r1), X[at[rs], 3 * (b0 - c0):3 * (b1 - c0)], rs - 3 * r0, g.omega,
-                               tol / 2 if piece else tol)
+                               truncation_tolerance(tol) / (2 if piece else 1))
             if uv is None:
                 again.append(((i, j, far), rows[3 * r0:3 * r1], dcols[3 * (b0 - c0):3 * (b1 - c0)]))
             else:
@@ -1111,6 +1120,7 @@ class _TileOut:
     def __init__(self, tree: ClusterTree, p: dict, tol: float, near):
         self.tree, self.column, self.c0, self.c1 = tree, int(p["column"]), int(p["c0"]), int(p["c1"])
         self.sketched, self.tol, self.near = p["sketched"], tol, near
+        self.far_tol = truncation_tolerance(tol)  # (the rest, where the factors are 16-bit, for their rounding)
         self.rng = np.random.default_rng(self.column)  # reproducible: the same tile, the same factors
         self.dense_index, self.dense, self.lr_index, self.Us, self.Vs = [], [], [], [], []
         self.near_index, self.near_q, self.near_mask, self.near_scale = [], [], [], []
@@ -1127,7 +1137,7 @@ class _TileOut:
         b0, b1 = max(int(tree.start[j]), c0), min(int(tree.stop[j]), c1)
         piece = (b0, b1) != (int(tree.start[j]), int(tree.stop[j]))
         if uv is None and far:
-            uv = low_rank(B, tol / 2 if piece else tol, self.rng)
+            uv = low_rank(B, self.far_tol / (2 if piece else 1), self.rng)
         if uv is None and piece:  # a piece is merged in low-rank form: its exact columns, V = I
             uv = (np.array(B), np.eye(B.shape[1]))
         if uv is None and self.near is not None:
@@ -1191,6 +1201,14 @@ def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tup
             out.append(pieces[-1])
         pieces = out
     return pieces[0]
+
+
+def truncation_tolerance(tol: float) -> float:
+    """The tolerance a far block is truncated to (its pieces to half of it, their merge within the other half):
+    ``tol`` where its factors are stored in float32 or float64, less :data:`ROUNDING_SHARE` of it where they are
+    stored in 16 bits (``tol`` ≥ :data:`INT16_TOLERANCE`), whose rounding takes that share
+    (:func:`pmask.runtime.compressed.encode_far`, :func:`far_words`): each block within ``tol`` in all."""
+    return tol * (1.0 - ROUNDING_SHARE) if tol >= INT16_TOLERANCE else tol
 
 
 def far_dtype(tol: float, dtype=np.float64):
@@ -1299,7 +1317,8 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     for t, (li, w) in enumerate(zip(index, whole)):
         for e in np.flatnonzero(~w):
             blocks.setdefault((int(li[e, 0]), int(li[e, 1]), int(li[e, 7])), []).append((int(li[e, 2]), t, e))
-    lowrank_dtype = np.dtype(lowrank_dtype or dtype)
+    words = tol >= INT16_TOLERANCE  # (format 1.8: the factors in 16 bits, rounded from float64 below)
+    lowrank_dtype = np.dtype(np.float64 if words else (lowrank_dtype or dtype))
     out_U, out_V = store.merged(lowrank_dtype)
     merged = []  # (r0, r1, c0, c1, k, U's run, V's run) in the store's merged group
     for (r0, r1, j), parts in blocks.items():
@@ -1308,7 +1327,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
             _, _, c0, c1, k, uo, vo, _ = (int(x) for x in index[t][e])
             pieces.append((groups[t]["U"][uo:uo + 3 * (r1 - r0) * k].reshape(-1, k),
                            groups[t]["V"][vo:vo + 3 * (c1 - c0) * k].reshape(-1, k)))
-        U, V = merge_pieces(pieces, tol)
+        U, V = merge_pieces(pieces, truncation_tolerance(tol))
         merged.append((r0, r1, int(tree.start[j]), int(tree.stop[j]), U.shape[1], _append(out_U, U.ravel()),
                        _append(out_V, V.ravel())))
         del pieces, U, V
@@ -1373,7 +1392,67 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
               for k, dt in (("near_q", np.int16), ("near_mask", np.uint8), ("near_scale", np.float64))}}
     times.update({"merge_s": merge_s, "merged_blocks": len(merged),
                   "merged_pieces": int(sum(len(p) for p in blocks.values()))})
+    if words:
+        t1 = time.perf_counter()
+        far, rounding = far_words(store, out["lowrank_index"], out.pop("U"), out.pop("V"), tol)
+        out.update(far)
+        times.update(rounding, round_s=time.perf_counter() - t1)
     return out, times
+
+
+def far_words(store: "TileStore", lowrank_index: np.ndarray, U: "Concatenated", V: "Concatenated", tol: float):
+    """The far field's factors in 16 bits (format 1.8): each block's U and V, read from the tile store a batch of
+    blocks at a time (:data:`READ_BYTES` of them in float64), rounded within the share of ``tol`` the truncation
+    left (:func:`truncation_tolerance`, :func:`pmask.runtime.compressed.encode_far`; a block that needs it at rank
+    3k, its index updated) and appended to the store's ``far16`` group.  Returns the artifact's ``U16``, ``V16``
+    (:class:`Concatenated` runs of that group), ``U_scale``, ``V_scale`` and the new ``lowrank_index`` (ranks and
+    offsets), and the rounding's statistics."""
+    from pmask.runtime.compressed import encode_far
+
+    t = truncation_tolerance(tol)
+    budget = (tol - t) / (1.0 + t)  # ‖B − ŨṼᵀ‖ ≤ t‖B‖ + rounding, ‖B‖ ≥ ‖UVᵀ‖ / (1 + t)
+    li = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
+    mu, mv = 3 * (li[:, 1] - li[:, 0]) * li[:, 4], 3 * (li[:, 3] - li[:, 2]) * li[:, 4]
+    if len(li) and not (np.array_equal(li[:, 5], np.cumsum(mu) - mu) and np.array_equal(li[:, 6], np.cumsum(mv) - mv)):
+        raise AssertionError("the far field's factors are not in the index's order")  # (assemble's own layout)
+    if "far16" in store.file:
+        del store.file["far16"]
+    g = store.file.create_group("far16")
+    dsU, dsV = (g.create_dataset(k, shape=(0,), maxshape=(None,), dtype=np.int16, chunks=(2**16,)) for k in ("U", "V"))
+    out = li.copy()
+    su, sv, errs = [], [], []
+    wide = 0
+    step = max(1, READ_BYTES // 8)
+    b = 0
+    while b < len(li):
+        e, size = b, 0
+        while e < len(li) and (e == b or size + mu[e] + mv[e] <= step):
+            size += int(mu[e] + mv[e])
+            e += 1
+        Ub = U[int(li[b, 5]):int(li[e - 1, 5] + mu[e - 1])]
+        Vb = V[int(li[b, 6]):int(li[e - 1, 6] + mv[e - 1])]
+        qus, qvs = [], []
+        for q in range(b, e):
+            k = int(li[q, 4])
+            u0, v0 = int(li[q, 5] - li[b, 5]), int(li[q, 6] - li[b, 6])
+            qu, s_u, qv, s_v, err = encode_far(Ub[u0:u0 + mu[q]].reshape(-1, k), Vb[v0:v0 + mv[q]].reshape(-1, k),
+                                               budget)
+            out[q, 4] = qu.shape[1]
+            wide += qu.shape[1] > k
+            qus.append(qu.ravel()), qvs.append(qv.ravel()), su.append(s_u), sv.append(s_v), errs.append(err)
+        for ds, parts in ((dsU, qus), (dsV, qvs)):
+            _append(ds, np.concatenate(parts) if parts else np.zeros(0, np.int16))
+        del Ub, Vb, qus, qvs
+        b = e
+    nu, nv = 3 * (out[:, 1] - out[:, 0]) * out[:, 4], 3 * (out[:, 3] - out[:, 2]) * out[:, 4]
+    out[:, 5], out[:, 6] = np.cumsum(nu) - nu, np.cumsum(nv) - nv
+    store.file.flush()
+    cat = lambda parts: np.concatenate(parts).astype(np.float32) if parts else np.zeros(0, np.float32)  # noqa: E731
+    far = {"lowrank_index": out, "U_scale": cat(su), "V_scale": cat(sv),
+           "U16": Concatenated(store.path, np.int16, [(dsU.name, 0, int(dsU.shape[0]))]),
+           "V16": Concatenated(store.path, np.int16, [(dsV.name, 0, int(dsV.shape[0]))])}
+    return far, {"far_rank3k_blocks": int(wide), "far_rounding_max": float(max(errs, default=0.0)),
+                 "far_values": int(mu.sum() + mv.sum())}
 
 
 # ------------------------------------------------------------------------------- the tile store
@@ -1700,19 +1779,23 @@ def assembly_bytes(tree: ClusterTree, store: "TileStore", lowrank_dtype=np.float
     largest block's merge in float64 four times its pieces (the pieces, their stacked U, its Q and the merged
     factors; a merged block goes to the tile store as it is made) and the indices; the near field, the tiles'
     whole blocks and the merged ones stay in the tile store (:class:`Concatenated`), and the writer adds
-    :data:`WRITE_BYTES`.  (``lowrank_dtype``: the far field's, which no longer changes what is held.)"""
-    blocks = 0
+    :data:`WRITE_BYTES`; after the merges, the 16-bit rounding (:func:`far_words`) holds a batch of
+    :data:`READ_BYTES` of factors in float64 and its words (``lowrank_dtype`` int16: the only dtype of the far
+    field's that changes what is held)."""
+    blocks = factors = 0
     merging: dict = {}  # (r0, r1, J) -> its pieces' numbers
     for name in store.tiles():
         g = store.file[name]
         li = g["lowrank_index"][()].reshape(-1, 8)
         size = 3 * ((li[:, 1] - li[:, 0]) + (li[:, 3] - li[:, 2])) * li[:, 4]
+        factors += int(size.sum())
         part = ~((li[:, 2] == tree.start[li[:, 7]]) & (li[:, 3] == tree.stop[li[:, 7]]))
         for e in np.flatnonzero(part):
             key = (int(li[e, 0]), int(li[e, 1]), int(li[e, 7]))
             merging[key] = merging.get(key, 0) + int(size[e])
         blocks += len(li) + int(g["dense_index"].shape[0])
-    return 4 * 8 * max(merging.values(), default=0) + 8 * 8 * blocks
+    rounding = 2 * min(8 * factors, READ_BYTES) if np.dtype(lowrank_dtype) == np.int16 else 0  # (float64, words)
+    return max(4 * 8 * max(merging.values(), default=0), rounding) + 8 * 8 * blocks
 
 
 #: what the writer holds while it stores a compressed Ξ read from the tile store (:class:`Concatenated`): a block
@@ -1933,7 +2016,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client.close()
                 if cluster is not None:
                     cluster.close()
-        stats["assembly_bytes"] = assembly_bytes(tree, ts, far_dtype(tol, dtype))
+        stats["assembly_bytes"] = assembly_bytes(tree, ts, np.dtype(np.int16) if tol >= INT16_TOLERANCE
+                                                 else far_dtype(tol, dtype))
         check_phase_memory("assembly", stats["assembly_bytes"] + WRITE_BYTES,
                            f"every tile is kept in {store}: run again where more memory is free (the tiles are "
                            "reused), or with a larger tolerance (--compress TOL)")
@@ -1948,7 +2032,8 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
     stats.update({"seconds": time.perf_counter() - t0, **times,
                   "dense_blocks": len(out["dense_index"]), "lowrank_blocks": len(out["lowrank_index"]),
                   "stored_bytes": int(sum(out[k].nbytes for k in ("dense", "near_exact", "near_exact48", "U", "V",
-                                                                 "near_q", "near_mask", "near_scale") if k in out)),
+                                                                 "U16", "V16", "U_scale", "V_scale", "near_q",
+                                                                 "near_mask", "near_scale") if k in out)),
                   "dense_bytes": int(8 * (3 * len(points)) ** 2),
                   "max_rank": int(out["lowrank_index"][:, 4].max()) if len(out["lowrank_index"]) else 0})
     stats["ratio"] = stats["dense_bytes"] / max(stats["stored_bytes"], 1)

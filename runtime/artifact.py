@@ -19,6 +19,13 @@ Layout (format 1.x)::
     /greens/reactions      (3 n_u, 3 n_c)  support forces per unit traction at j (optional)
     /volume/points, /volume/tets           the tetrahedral mesh it came from
 
+Format 1.8 stores a compressed Ξ's far-field factors in 16 bits (``/greens/hmatrix/U16`` and ``V16``, int16,
+in place of ``U`` and ``V``, with ``U_scale`` and ``V_scale``: one float32 scale per column of each block,
+:func:`pmask.runtime.compressed.encode_far`) where float32 took 32: the tiles truncate to half the tolerance and
+the rounding, computed for each block, takes at most the other half.  A 1.7 reader refuses such a file as missing
+``U``; a 1.7 file is read as before, and so is a 1.8 file compressed below 1e-4 (``--compress 1e-5``), whose
+factors stay float32 or float64 in ``U`` and ``V``.
+
 Format 1.7 stores a compressed Ξ's exact pairs in fixed point (``/greens/hmatrix/near_exact48`` in place of
 ``near_exact``: :func:`pmask.runtime.compressed.pack_exact`), each pair's nine values as 48-bit integers times
 one power of two, within 1.4e-14 of the pair's largest magnitude, 56 bytes a pair where float64 took 72 (the
@@ -78,7 +85,7 @@ import numpy as np
 from pmask.errors import PmaskError
 
 FORMAT_NAME = "pmask.greens"
-FORMAT_VERSION = "1.7.0"
+FORMAT_VERSION = "1.8.0"
 DEFINITION = (
     "Xi = G diag(a): G is the condensed flexibility of the free surface vertices (displacement per unit "
     "nodal force, symmetric), a_i = integral of the hat function phi_i over the surface (vertex area). "
@@ -93,10 +100,10 @@ SURFACE = ("surface/points", "surface/triangles", "surface/vertex_areas", "surfa
 RUNTIME = SURFACE + ("greens/Xi",)
 HMATRIX = tuple(f"greens/hmatrix/{k}" for k in ("perm", "leaves", "dense_index", "dense", "lowrank_index", "U", "V",
                                                  "scale", "near_index", "near_exact", "near_mask", "near_q",
-                                                 "near_scale", "near_exact48"))
+                                                 "near_scale", "near_exact48", "U16", "V16", "U_scale", "V_scale"))
 #: the datasets a reader may leave in the file and read in slices without their SHA-256 (a large organ's far
 #: field: :class:`FileArray`); only these carry HDF5's Fletcher-32 (format 1.5)
-SLICED = ("greens/hmatrix/U", "greens/hmatrix/V")
+SLICED = ("greens/hmatrix/U", "greens/hmatrix/V", "greens/hmatrix/U16", "greens/hmatrix/V16")
 #: the exact near field, which a reader may read when first needed, a block at a time, each block checked by its
 #: SHA-256 (:class:`BlocksOnDemand`)
 NEAR = ("greens/hmatrix/dense", "greens/hmatrix/near_exact", "greens/hmatrix/near_exact48", "greens/hmatrix/near_q")
@@ -113,10 +120,13 @@ NEAR_FILTERS = {"shuffle": True, "compression": "gzip", "compression_opts": 1}
 #: datasets above this size also get a SHA-256 per block of rows (format 1.5), verified on both cores
 BLOCK_DIGEST_BYTES = 64 << 20
 #: of these, optional (before format 1.4 every block was stored: no scale; format 1.6 stores its dense blocks pair
-#: by pair, near_exact and the others in place of dense, whole blocks: the reader needs one of the two)
+#: by pair, near_exact and the others in place of dense, whole blocks: the reader needs one of the two; format 1.8
+#: the far field's factors in 16 bits, U16, V16 and their scales in place of U and V: one of the two again)
 HMATRIX_OPTIONAL = ("greens/hmatrix/scale", "greens/hmatrix/dense", "greens/hmatrix/near_index",
                     "greens/hmatrix/near_exact", "greens/hmatrix/near_mask", "greens/hmatrix/near_q",
-                    "greens/hmatrix/near_scale", "greens/hmatrix/near_exact48")
+                    "greens/hmatrix/near_scale", "greens/hmatrix/near_exact48", "greens/hmatrix/U",
+                    "greens/hmatrix/V", "greens/hmatrix/U16", "greens/hmatrix/V16", "greens/hmatrix/U_scale",
+                    "greens/hmatrix/V_scale")
 VOLUME = ("volume/points", "volume/tets")
 REACTIONS = ("greens/reactions",)
 #: the display surface (optional, format 1.3): read only when asked for (Model.display)
@@ -686,7 +696,8 @@ def _check_shapes(path, d, finite: dict | None = None) -> None:
         perm = d["greens/hmatrix/perm"]
         if len(perm) != nc or not np.array_equal(np.sort(perm), np.arange(nc)):
             problems.append("the compressed Green's functions' vertex order is not a permutation of the contact vertices")
-        elif not all(is_finite(f"greens/hmatrix/{k}") for k in ("dense", "near_exact", "U", "V", "near_scale")
+        elif not all(is_finite(f"greens/hmatrix/{k}") for k in ("dense", "near_exact", "U", "V", "near_scale",
+                                                                 "U_scale", "V_scale")
                      if d.get(f"greens/hmatrix/{k}") is not None):  # (a far field left in the file: as it is read)
             problems.append("Xi holds NaN or inf")
     if d.get("greens/reactions") is not None and nu is not None and nc is not None:

@@ -144,14 +144,108 @@ def encode_near(B: np.ndarray, exact: np.ndarray, tol: float) -> tuple[np.ndarra
     return P[keep].ravel(), q.ravel(), scale.ravel(), np.packbits(keep)
 
 
+def _rounded(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A (m, k) as int16 multiples of one float32 scale per column (its largest magnitude / :data:`Q_MAX`)."""
+    s = (np.abs(A).max(axis=0) / Q_MAX).astype(np.float32) if A.size else np.zeros(A.shape[1], np.float32)
+    q = np.rint(np.divide(A, s, out=np.zeros(A.shape), where=s > 0))
+    return np.clip(q, -Q_MAX, Q_MAX).astype(np.int16), s
+
+
+def _product_norm(A: np.ndarray, B: np.ndarray) -> float:
+    r""":math:`\|A B^T\|_F` from the two Gram matrices, :math:`\sum (A^TA) \circ (B^TB)`: O((m + n) k²), not m n."""
+    return float(np.sqrt(max(np.sum((A.T @ A) * (B.T @ B)), 0.0)))
+
+
+def encode_far(U: np.ndarray, V: np.ndarray, budget: float):
+    r"""A far block's factors U (m, k), V (n, k) in 16 bits (format 1.8): each column as int16 multiples of one
+    float32 scale, its largest magnitude / :data:`Q_MAX`.  The rounding's error,
+    :math:`\|UV^T - \tilde U\tilde V^T\|_F = \|(U - \tilde U)V^T + \tilde U (V - \tilde V)^T\|_F`, is computed
+    (from k x k Gram matrices) and must be within ``budget`` of :math:`\|UV^T\|_F`; on a kidney's far blocks it
+    is 2.7e-5 at the median and 4.4e-5 at most (P2, 4,338 vertices, by hand), so the tiles truncate to half the
+    tolerance and this rounding takes the other half (:func:`pmask.precompute.compress.truncation_tolerance`).  A
+    block whose rounding exceeds it (a column of a few large entries) is stored at rank 3k,
+    :math:`[\tilde U\;\widetilde{\Delta U}\;\tilde U]\,[\tilde V\;\tilde V\;\widetilde{\Delta V}]^T` with
+    :math:`\Delta U = U - \tilde U`, whose error is the residuals' rounding and :math:`\Delta U\,\Delta V^T`,
+    ~1e-9 of the block.  Returns (Uq (m, k'), U's scales (k',), Vq (n, k'), V's scales (k',), the relative
+    error), k' = k or 3k; :class:`Far16` gives the factors back."""
+    U, V = np.asarray(U, np.float64), np.asarray(V, np.float64)
+    norm = _product_norm(U, V)
+    (qu, su), (qv, sv) = _rounded(U), _rounded(V)
+    Ut, Vt = qu * su.astype(np.float64), qv * sv.astype(np.float64)
+    dU, dV = U - Ut, V - Vt
+    err = _product_norm(np.hstack([dU, Ut]), np.hstack([V, dV]))
+    if err <= budget * norm:
+        return qu, su, qv, sv, err / norm if norm else 0.0
+    (qdu, sdu), (qdv, sdv) = _rounded(dU), _rounded(dV)
+    dUt, dVt = qdu * sdu.astype(np.float64), qdv * sdv.astype(np.float64)
+    err = _product_norm(np.hstack([dU - dUt, Ut, dU]), np.hstack([Vt, dV - dVt, dV]))
+    return (np.hstack([qu, qdu, qu]), np.concatenate([su, sdu, su]), np.hstack([qv, qv, qdv]),
+            np.concatenate([sv, sv, sdv]), err / norm if norm else 0.0)
+
+
+def far_scale_offsets(lowrank_index: np.ndarray) -> np.ndarray:
+    """Where each low-rank block's column scales start in ``U_scale`` and ``V_scale`` (format 1.8): the blocks'
+    ranks, one after the other in the index's order."""
+    k = np.asarray(lowrank_index, np.int64).reshape(-1, 7)[:, 4]
+    return np.concatenate([[0], np.cumsum(k)])[:-1]
+
+
+class Far16:
+    """A 16-bit factor (format 1.8, :func:`encode_far`) left in the file (:class:`pmask.runtime.artifact.FileArray`)
+    and read as float32 a slice at a time: ``f[a:b]`` reads those words and multiplies each by its column's scale.
+    A slice may span blocks (``f[:]`` decodes it all, block after block)."""
+
+    def __init__(self, words, scale, lowrank_index: np.ndarray, which: int):
+        li = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
+        rows = 3 * (li[:, 1] - li[:, 0]) if which == 5 else 3 * (li[:, 3] - li[:, 2])
+        order = np.argsort(li[:, which], kind="stable")
+        self.words, self.scale = words, np.asarray(scale, np.float32)
+        self.start, self.k = li[order, which], li[order, 4]
+        self.size, self.so = rows[order] * self.k, far_scale_offsets(li)[order]
+        self.shape, self.dtype = (len(words),), np.dtype(np.float32)
+        self.nbytes = int(getattr(words, "nbytes", 2 * len(words))) + self.scale.nbytes  # (as stored)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not isinstance(key, slice) or key.step not in (None, 1):
+            raise TypeError("a 16-bit factor is read in contiguous slices")
+        a, b, _ = key.indices(len(self))
+        if b <= a:
+            return np.zeros(0, np.float32)
+        q = np.asarray(self.words[a:b])
+        out = np.empty(b - a, np.float32)
+        blk = int(np.searchsorted(self.start, a, side="right")) - 1
+        at = a
+        while at < b:
+            s0, k = int(self.start[blk]), int(self.k[blk])
+            stop = min(b, s0 + int(self.size[blk]))
+            if stop <= at:  # (a block of rank 0)
+                blk += 1
+                continue
+            sc = self.scale[self.so[blk]:self.so[blk] + k]
+            if at == s0 and stop == s0 + int(self.size[blk]):  # (a whole block: its rows times the scales)
+                out[at - a:stop - a] = (q[at - a:stop - a].reshape(-1, k) * sc).ravel()
+            else:
+                out[at - a:stop - a] = q[at - a:stop - a] * sc[(np.arange(at, stop) - s0) % k]
+            at, blk = stop, blk + 1
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        whole = self[0:len(self)]
+        return whole if dtype is None else whole.astype(dtype)
+
+
 class CompressedXi:
     """Ξ (3n x 3n) as near-field dense blocks and far-field low-rank blocks (module docstring).
 
     The runtime's access layer for Ξ: :meth:`blocks` (3x3 blocks of vertex pairs: eq. 12's sums and the
     coupling of contacts), :meth:`matvec` (Ξ x: the deformation of eq. 16), :meth:`to_dense` (tests)."""
 
-    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U, V, *, tolerance: float, scale=None,
-                 near_index=None, near_mask=None, near_q=None, near_scale=None):
+    def __init__(self, perm, leaves, dense_index, dense, lowrank_index, U=None, V=None, *, tolerance: float,
+                 scale=None, near_index=None, near_mask=None, near_q=None, near_scale=None, U16=None, V16=None,
+                 U_scale=None, V_scale=None):
         self.perm = np.asarray(perm, np.int64)
         n = len(self.perm)
         self.n = n
@@ -160,6 +254,14 @@ class CompressedXi:
         self.leaves = np.asarray(leaves, np.int64)
         self.dense_index = np.asarray(dense_index, np.int64).reshape(-1, 5)
         self.lowrank_index = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
+        if U is None or V is None:  # (format 1.8: the factors in 16 bits, with their scales)
+            U, V = U16, V16
+        if U is None or V is None:
+            raise InputError("the compressed Green's functions' far field is missing; recompute the artifact "
+                             "(pmask precompute --force)")
+        self.far_nbytes = int(U.nbytes + V.nbytes)  # (as stored: format 1.8's 16-bit words and their scales)
+        if np.dtype(U.dtype) == np.int16 or np.dtype(V.dtype) == np.int16:  # format 1.8: in 16 bits (encode_far)
+            U, V = self._far16(U, V, U_scale, V_scale)
         self.dense, self.U, self.V = dense, U, V
         self.fixed = np.dtype(dense.dtype) == np.uint16  # format 1.7: the exact pairs in fixed point (pack_exact)
         self._exact_values = len(dense) // PAIR_WORDS * 9 if self.fixed else len(dense)  # (values, not words)
@@ -189,6 +291,24 @@ class CompressedXi:
             self.near_mask = np.zeros(0, np.uint8)
             self.near_scale = np.zeros(0)
             self.near_q = np.zeros(0, np.int16)
+
+    def _far16(self, U, V, U_scale, V_scale):
+        """Format 1.8's 16-bit factors as float32: decoded at once where read into memory, a slice at a time where
+        left in the file (:class:`Far16`); their scales checked against the index first (one line if not)."""
+        li = self.lowrank_index
+        k = int(li[:, 4].sum())
+        ends = [3 * (li[:, 1] - li[:, 0]) * li[:, 4], 3 * (li[:, 3] - li[:, 2]) * li[:, 4]]
+        ok = (np.dtype(U.dtype) == np.dtype(V.dtype) == np.int16 and U_scale is not None and V_scale is not None
+              and len(U_scale) == len(V_scale) == k
+              and all(not len(li) or (li[:, c].min() >= 0 and np.max(li[:, c] + e) <= len(a))
+                      for c, e, a in ((5, ends[0], U), (6, ends[1], V))))
+        if not ok:
+            raise InputError("the compressed Green's functions' 16-bit far field does not match its index or scales; "
+                             "recompute the artifact (pmask precompute --force)")
+        self.far_nbytes += int(np.asarray(U_scale).nbytes + np.asarray(V_scale).nbytes)
+        if isinstance(U, np.ndarray):
+            return (Far16(U, U_scale, li, 5)[:], Far16(V, V_scale, li, 6)[:])
+        return Far16(U, U_scale, li, 5), Far16(V, V_scale, li, 6)
 
     def _check_packed(self) -> None:
         """The pair-granular near field's offsets and counts against the arrays they index (one line if not), and
@@ -258,7 +378,7 @@ class CompressedXi:
     @property
     def nbytes(self) -> int:
         """Bytes of the stored values (what the compression ratio compares with (3n)² dense numbers)."""
-        return int(self.near_nbytes + self.U.nbytes + self.V.nbytes)
+        return int(self.near_nbytes + self.far_nbytes)
 
     @property
     def near_nbytes(self) -> int:
@@ -447,7 +567,8 @@ class CompressedXi:
                              "recompute the artifact (pmask precompute --force)")
         return cls(g["perm"], g["leaves"], g["dense_index"], near, g["lowrank_index"], g["U"], g["V"],
                    tolerance=tolerance, scale=g["scale"], near_index=g["near_index"], near_mask=g["near_mask"],
-                   near_q=g["near_q"], near_scale=g["near_scale"])
+                   near_q=g["near_q"], near_scale=g["near_scale"], U16=g["U16"], V16=g["V16"], U_scale=g["U_scale"],
+                   V_scale=g["V_scale"])
 
 
 #: ζ_m(i) blocks a :class:`MaskedXi` keeps (9 floats each; a few contacts use tens)

@@ -123,11 +123,11 @@ class Model:
     @classmethod
     def _far_field_in_file(cls, path, far_field: str) -> tuple:
         """The far-field datasets to leave in the file (none for a dense artifact)."""
-        far = SLICED  # the far field's factors
-        size = stored_bytes(path, far)
-        if size is None:
-            return ()
-        return far if far_field == "file" or size > cls.FAR_FIELD_IN_MEMORY else ()
+        for far, widen in ((SLICED[:2], 1), (SLICED[2:], 2)):  # the far field's factors (format 1.8: in 16 bits,
+            size = stored_bytes(path, far)  # float32 once read into memory)
+            if size is not None:
+                return far if far_field == "file" or widen * size > cls.FAR_FIELD_IN_MEMORY else ()
+        return ()
 
     def display(self):
         """The display surface at the scan's resolution (:class:`pmask.runtime.display.DisplaySurface`), read on
