@@ -26,7 +26,9 @@ their rows and sketches in place of W's passes):
    they cannot show within ε is formed after all).  Any other block is formed and compressed by a randomized
    range finder grown until :math:`\|B - QQ^TB\|_F \le \varepsilon\|B\|_F/2`, then the SVD of
    :math:`Q^TB` truncated to the smallest rank within :math:`\varepsilon\|B\|_F` in all (the error is
-   computed: B is at hand).  A block whose factors would not be smaller stays dense.  Only one pass's formed
+   computed: B is at hand).  A block whose factors would not be smaller stays dense.  At tolerances of 1e-4 and
+   more the factors are stored in 16 bits (format 1.8, :func:`far_words`): the blocks are truncated to half the
+   tolerance (:func:`truncation_tolerance`) and the rounding, computed block by block, takes the other half.  Only one pass's formed
    rows, at most 3n x 3 #J numbers a tile (the rows its formed blocks need), exist at a time on a worker thread.
    The blocks are the tree's, not the panels': a far block
    whose column cluster holds several panels comes back from each as a *piece* (compressed within ε/2)

@@ -29,6 +29,12 @@ Layout in the artifact (``/greens/hmatrix``; positions are in cluster order, in 
     lowrank_index  (nl, 7)  r0, r1, c0, c1, rank k, offset in U, offset in V
     U, V           (·,)     U (3(r1-r0), k) and V (3(c1-c0), k), row-major, block ≈ U Vᵀ (float32 when
                             the tolerance is 1e-5 or more: their rounding is then ≤ 1 % of it)
+    U16, V16       (·,)     in their place in format 1.8 where the tolerance is 1e-4 or more: the same factors
+                            as int16 multiples of one scale per column (:func:`encode_far`), the block truncated
+                            to half the tolerance and rounded within the other half (a 1.7 reader refuses the file
+                            as missing U); the reader decodes them to float32 (:class:`Far16`)
+    U_scale, V_scale (·,)   with them, float32: each block's k column scales, block after block in the index's
+                            order (:func:`far_scale_offsets`)
     scale          (n,)     optional; when not empty Ξ = G diag(a) with G symmetric, a = scale (contact order),
                             and only the blocks on and above the diagonal (r0 ≤ c0) are stored: the block
                             below is :math:`\Xi_{JI} = \mathrm{diag}(a_J)^{-1}\,\Xi_{IJ}^T\,\mathrm{diag}(a_I)`
