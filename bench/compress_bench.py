@@ -432,7 +432,8 @@ def eight_workers(size, work: Path) -> dict:
 
     _, mesh, surf, factor = setup(size)
     pts = mesh.points[surf.vertices[surf.regions.contact]]
-    with Client(LocalCluster(n_workers=8, threads_per_worker=1, memory_limit="1GiB", dashboard_address=None)) as cl:
+    with Client(LocalCluster(n_workers=8, threads_per_worker=1, memory_limit="1GiB", dashboard_address="127.0.0.1:0",
+                                scheduler_kwargs={"dashboard": False})) as cl:
         pids = set(cl.run(os.getpid).values())
         with PeakRSS() as m:
             t0 = time.perf_counter()
@@ -464,7 +465,8 @@ def passes_side_by_side(params: dict, work: Path) -> dict:
     factor, _ = stages.factor_stage(spec, mesh, surf)
     pts = mesh.points[surf.vertices[surf.regions.contact]]
     out, arrays, default = {"contact": len(pts)}, {}, compress.PASS_BYTES
-    with Client(LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)) as cl:
+    with Client(LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address="127.0.0.1:0",
+                                scheduler_kwargs={"dashboard": False})) as cl:
         for label, budget in (("passes", default), ("one tile a task", 0), ("passes again", default)):
             compress.PASS_BYTES = budget  # (read by the client only, where it cuts the passes)
             try:
@@ -744,6 +746,8 @@ def organ_paragraph(g: dict, res: dict, title: str) -> str:
                     f"with their scales and mask {g['near_16bit_bytes'] / 2**30:.2f})"
                     if "near_exact_bytes" in g else "")
                  + f", far field {g['far_bytes'] / 2**30:.2f}"
+                 + (f" in 16 bits ({st['far_rank3k_blocks']:,} of its blocks at rank 3k, the largest rounding "
+                    f"{st['far_rounding_max']:.1e} of a block)" if "far_rank3k_blocks" in st else "")
                  + (f"; the pairs within r_max alone, which the format stores exactly "
                     f"({int(g.get('exact_pair_bytes', 72))} bytes a pair), are {exact_floor(g) / 2**30:.2f} GiB"
                     + ("" if st.get("symmetric") else " (both ways: Ξ is not symmetric)")
