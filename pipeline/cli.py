@@ -255,7 +255,9 @@ def cmd_info(args) -> int:
                + (f"{d['greens/hmatrix/dense'].dtype}" if d.get("greens/hmatrix/dense") is not None else
                   ("pairs within r_max in 48-bit fixed point" if d.get("greens/hmatrix/near_exact48") is not None
                    else f"pairs within r_max in {d['greens/hmatrix/near_exact'].dtype}")
-                  + ", the dense blocks' others in 16 bits")),
+                  + ", the dense blocks' others in 16 bits")
+               + (", the far field's factors in 16 bits" if d.get("greens/hmatrix/U16") is not None
+                  else f", the far field's factors in {d['greens/hmatrix/U'].dtype}")),
         "input_hash": a["input_hash"],
         "libraries": a["provenance"].get("libraries"), "timings": a["timings"],
     }

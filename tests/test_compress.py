@@ -215,6 +215,55 @@ def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_pat
     assert "pairs within r_max in 48-bit fixed point" in said[0] and "pairs within r_max in float64" in said[1]
 
 
+@both
+def test_a_format_1_7_file_with_float32_factors_is_read_as_before(which, request, tmp_path, capsys):
+    """A file of format 1.7 stores the far field's factors as float32 (``U``, ``V``): written with the 1.8 file's
+    16-bit factors decoded (the values its reader computes), it reads the same Ξ to the bit (low-rank blocks,
+    products, K_i), in twice the far field's bytes less the scales; `pmask info` says how each stores them, and a
+    1.8 file is what a 1.7 reader refuses as missing ``U`` (its datasets: U16, V16 and their scales)."""
+    import json
+    import shutil
+
+    import h5py
+
+    from pmask.pipeline.cli import main
+    from pmask.runtime.artifact import array_digest, metadata_digest
+
+    _, comp, _ = request.getfixturevalue(which)
+    C = comp.Xi
+    old = tmp_path / "float32.h5"
+    shutil.copy(comp.path, old)
+    with h5py.File(old, "r+") as f:
+        assert "greens/hmatrix/U" not in f and f["greens/hmatrix/U16"].dtype == np.int16
+        covers = json.loads(f.attrs["sha256_covers"])
+        for k, dec in (("U", C.U), ("V", C.V)):
+            f[f"greens/hmatrix/{k}"] = values = np.asarray(dec, np.float32)
+            covers["datasets"][f"greens/hmatrix/{k}"] = array_digest(values)
+        for k in ("U16", "V16", "U_scale", "V_scale"):
+            del f[f"greens/hmatrix/{k}"]
+            covers["datasets"].pop(f"greens/hmatrix/{k}")
+            covers.get("blocks", {}).pop(f"greens/hmatrix/{k}", None)
+        f.attrs["sha256_covers"] = json.dumps(covers, sort_keys=True)
+        f.attrs["format_version"] = "1.7.0"
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        f.attrs["metadata_sha256"] = metadata_digest(attrs, covers)
+    W = Model.load(old)
+    assert W.Xi.U.dtype == np.float32 and np.array_equal(W.Xi.U, C.U) and np.array_equal(W.Xi.V, C.V)
+    assert W.Xi.far_nbytes == 2 * (C.far_nbytes - 4 * 2 * int(C.lowrank_index[:, 4].sum()))
+    n = len(comp.contact)
+    i, j = np.random.default_rng(6).integers(0, n, (2, 5000))
+    assert np.array_equal(W.Xi.blocks(i, j), C.blocks(i, j))
+    x = np.random.default_rng(7).standard_normal(3 * n)
+    assert np.array_equal(W.Xi.matvec(x), C.matvec(x))
+    assert np.array_equal(W.stiffness("linear", R_MAX).K_full, comp.stiffness("linear", R_MAX).K_full)
+    capsys.readouterr()
+    said = []
+    for path in (comp.path, old):
+        assert main(["info", str(path)]) == 0
+        said.append(next(line for line in capsys.readouterr().out.splitlines() if line.startswith("Xi ")))
+    assert said[0].endswith("the far field's factors in 16 bits") and said[1].endswith("factors in float32")
+
+
 def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path):
     """A file of format 1.5 stores every dense block whole (``dense``) and has no near_* datasets: it is read as
     before (the same file with its blocks decoded and written whole reads the same Ξ: the packed reader's blocks
