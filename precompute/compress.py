@@ -118,7 +118,8 @@ INT16_TOLERANCE = 1e-4
 #: the share of the tolerance a 16-bit far block's rounding may take (:func:`truncation_tolerance`).  On a kidney's
 #: far blocks (P2, 4,338 vertices, by hand) the rounding was 2.7e-5 of a block at the median and 4.4e-5 at most:
 #: with half of 1e-4 no block needed the rank-3k form, with 0.4 one in a hundred, with 0.3 a quarter; truncated to
-#: half the tolerance the factors held 13 % more numbers than at the whole, in half the bytes (float32 → int16)
+#: half the tolerance the factors held 13 % more numbers than at the whole, each in half the bytes (float32 → int16;
+#: at organ scale the far field came to 0.59-0.60 of float32's bytes, the bench page's rows)
 ROUNDING_SHARE = 0.5
 #: a pass of tiles (:func:`tiles`) holds at most this share of its worker's memory limit per thread, by its model
 #: (:func:`pass_budget`): the more tiles a pass holds, the fewer times W is read (by hand at 20,427 vertices: 16
