@@ -1438,8 +1438,8 @@ def far_words(store: "TileStore", lowrank_index: np.ndarray, U: "Concatenated", 
         for q in range(b, e):
             k = int(li[q, 4])
             u0, v0 = int(li[q, 5] - li[b, 5]), int(li[q, 6] - li[b, 6])
-            qu, s_u, qv, s_v, err = encode_far(Ub[u0:u0 + mu[q]].reshape(-1, k), Vb[v0:v0 + mv[q]].reshape(-1, k),
-                                               budget)
+            m, w = 3 * int(li[q, 1] - li[q, 0]), 3 * int(li[q, 3] - li[q, 2])  # (explicit: a block may be of rank 0)
+            qu, s_u, qv, s_v, err = encode_far(Ub[u0:u0 + mu[q]].reshape(m, k), Vb[v0:v0 + mv[q]].reshape(w, k), budget)
             out[q, 4] = qu.shape[1]
             wide += qu.shape[1] > k
             qus.append(qu.ravel()), qvs.append(qv.ravel()), su.append(s_u), sv.append(s_v), errs.append(err)

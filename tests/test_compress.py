@@ -340,13 +340,14 @@ def test_a_block_16_bits_cannot_hold_is_stored_exactly():
     assert "\n" not in str(err.value)
 
 
-def test_a_far_block_in_16_bits_is_within_the_rounding_share_or_stored_at_rank_3k():
+def test_a_far_block_in_16_bits_is_within_the_rounding_share_or_stored_at_rank_3k(tmp_path):
     """Format 1.8's far factors (encode_far): the rounding's error the encoder computes from Gram matrices is the
     error of the decoded block against U Vᵀ computed directly (to float32's 6e-8 of the block: the reader decodes
     to float32), within the budget; a block whose columns are a few large entries (a spike of 300 against ~1)
     cannot be rounded within it and is stored at rank 3k, within 1e-7 of itself.  A reader decodes exactly the
-    encoder's values, whole or a slice at a time (Far16), and an index that does not match the words or scales is
-    one line."""
+    encoder's values, whole or a slice at a time (Far16), also across a block of rank 0; the assembly's rounding
+    over the tile store (far_words) rewrites the index for the ranks it stores, each block within its budget; and
+    an index that does not match the words or scales is one line."""
     from pmask.runtime.compressed import Far16, encode_far
 
     rng = np.random.default_rng(7)
@@ -366,6 +367,29 @@ def test_a_far_block_in_16_bits_is_within_the_rounding_share_or_stored_at_rank_3
         assert abs(direct - err) <= 6e-8 * 4 and err <= budget
         assert (err > 1e-5) != spike and (not spike or direct <= 1e-7)  # the rank-3k form: the residuals' rounding
         assert np.array_equal(Far16(qu.ravel(), su, li, 5)[17:400], Ud.ravel()[17:400])
+    # a block of rank 0 (zero: merge_pieces keeps none of its columns) before another, read across both
+    q0 = encode_far(np.zeros((6, 0)), np.zeros((9, 0)), budget)
+    assert q0[0].shape == (6, 0) and q0[4] == 0.0
+    li2 = np.array([[0, 2, 0, 3, 0, 0, 0], [0, 20, 0, 30, rank, 0, 0]])
+    assert np.array_equal(Far16(qu.ravel(), su, li2, 5)[5:300], Ud.ravel()[5:300])
+    # far_words over the tile store: a rank-0 block, the smooth block and the spiked one (rank 3k), their index
+    # rewritten (ranks, offsets), each decoded block within its budget of U Vᵀ
+    store = compress.TileStore(tmp_path / "t.h5", "k")
+    U2 = U.copy()
+    U2[3, 0] = 1.0
+    blocks = [(np.zeros((6, 0)), np.zeros((9, 0)), 2, 3), (U2, V, 20, 30), (U, V, 20, 30)]
+    li = np.array([[0, m, 0, w, A.shape[1], 0, 0] for A, _, m, w in blocks])
+    li[:, 5] = np.cumsum([A.size for A, _, _, _ in blocks]) - [A.size for A, _, _, _ in blocks]
+    li[:, 6] = np.cumsum([B.size for _, B, _, _ in blocks]) - [B.size for _, B, _, _ in blocks]
+    far, stats = compress.far_words(store, li, np.concatenate([A.ravel() for A, _, _, _ in blocks]),
+                                    np.concatenate([B.ravel() for _, B, _, _ in blocks]), 1e-4)
+    store.close()
+    out = far["lowrank_index"]
+    assert list(out[:, 4]) == [0, 6, 18] and stats["far_rank3k_blocks"] == 1
+    Ud, Vd = (Far16(np.asarray(far[k]), far[f"{k[0]}_scale"], out, c)[:] for k, c in (("U16", 5), ("V16", 6)))
+    for (A, B, m, w), (_, _, _, _, k, uo, vo) in zip(blocks[1:], out[1:]):
+        got = Ud[uo:uo + 3 * m * k].reshape(-1, k).astype(np.float64) @ Vd[vo:vo + 3 * w * k].reshape(-1, k).T
+        assert np.linalg.norm(got - A @ B.T) <= (budget + 1e-7) * np.linalg.norm(A @ B.T)
     with pytest.raises(InputError, match="16-bit far field does not match"):
         CompressedXi([0, 1], [0, 1, 2], [(0, 1, 0, 1, 0), (1, 2, 1, 2, 9)], np.zeros(18), [(0, 1, 1, 2, 2, 0, 0)],
                      U16=np.zeros(6, np.int16), V16=np.zeros(6, np.int16), U_scale=np.ones(1, np.float32),
