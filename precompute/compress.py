@@ -83,7 +83,7 @@ import scipy.sparse as sp
 from pmask.errors import InputError, ResourceError
 from pmask.runtime.artifact import READ_BLOCK_BYTES
 from pmask.runtime.files import Background
-from pmask.runtime.compressed import PAIR_WORDS, encode_near, pack_exact
+from pmask.runtime.compressed import PAIR_WORDS, SlicedArray, encode_near, pack_exact
 
 log = logging.getLogger(__name__)
 
@@ -1222,7 +1222,7 @@ def far_dtype(tol: float, dtype=np.float64):
     return np.dtype(np.float32) if tol >= FLOAT32_TOLERANCE else np.dtype(dtype)
 
 
-class Concatenated:
+class Concatenated(SlicedArray):
     """One of the artifact's flat arrays (the near field, U, V) as the runs of the tile store's datasets and the
     merged blocks it is the concatenation of, read a slice at a time when the writer stores it: the client never
     holds the compressed Ξ whole (its near field is most of it at organ scale).  ``np.asarray`` reads it
@@ -1236,16 +1236,12 @@ class Concatenated:
         self.shape, self.ndim = (int(self.offsets[-1]),), 1
         self.size, self.nbytes = self.shape[0], self.shape[0] * self.dtype.itemsize
 
-    def __len__(self) -> int:
-        return self.shape[0]
+    what = "a Concatenated array"
 
-    def __getitem__(self, key) -> np.ndarray:
-        if not isinstance(key, slice) or key.step not in (None, 1):
-            raise TypeError("a Concatenated array is read in contiguous slices")
+    def _slice(self, start: int, stop: int) -> np.ndarray:
         import h5py
 
-        start, stop, _ = key.indices(len(self))
-        out = np.empty(max(stop - start, 0), self.dtype)
+        out = np.empty(stop - start, self.dtype)
         first = int(np.searchsorted(self.offsets, start, side="right")) - 1
         with h5py.File(self.path, "r") as f:
             for q in range(max(first, 0), len(self.runs)):
@@ -1261,12 +1257,8 @@ class Concatenated:
                 out[a - start:b - start] = part  # (cast to the artifact's dtype: --float32)
         return out
 
-    def __array__(self, dtype=None, copy=None):
-        whole = self[0:len(self)]
-        return whole if dtype is None else whole.astype(dtype)
 
-
-class FixedPointPairs:
+class FixedPointPairs(SlicedArray):
     """A float64 near field's exact pairs (a :class:`Concatenated` of nine values a pair) in fixed point, as format
     1.7 stores them (:func:`pmask.runtime.compressed.pack_exact`, :data:`~pmask.runtime.compressed.PAIR_WORDS`
     uint16 words a pair), packed a slice at a time as the writer reads it."""
@@ -1277,21 +1269,13 @@ class FixedPointPairs:
         self.shape, self.ndim = (len(values) // 9 * PAIR_WORDS,), 1
         self.size, self.nbytes = self.shape[0], self.shape[0] * self.dtype.itemsize
 
-    def __len__(self) -> int:
-        return self.shape[0]
+    what = "the fixed-point pairs"
 
-    def __getitem__(self, key) -> np.ndarray:
-        if not isinstance(key, slice) or key.step not in (None, 1):
-            raise TypeError("the fixed-point pairs are read in contiguous slices")
-        start, stop, _ = key.indices(len(self))
+    def _slice(self, start: int, stop: int) -> np.ndarray:
         if stop <= start:
             return np.zeros(0, self.dtype)
         p0, p1 = start // PAIR_WORDS, -(-stop // PAIR_WORDS)  # the whole pairs the slice's words lie in
         return pack_exact(self.values[9 * p0:9 * p1])[start - PAIR_WORDS * p0:stop - PAIR_WORDS * p0]
-
-    def __array__(self, dtype=None, copy=None):
-        whole = self[0:len(self)]
-        return whole if dtype is None else whole.astype(dtype)
 
 
 def _append(ds, values: np.ndarray) -> tuple[int, int]:

@@ -196,7 +196,33 @@ def far_scale_offsets(lowrank_index: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(k)])[:-1]
 
 
-class Far16:
+class SlicedArray:
+    """A flat array read in contiguous slices, ``a[i:j]`` (:meth:`_slice`), never whole unless asked
+    (``np.asarray``): the tile store's runs as the writer reads them (:class:`pmask.precompute.compress.Concatenated`),
+    the exact pairs packed as they are read (:class:`pmask.precompute.compress.FixedPointPairs`), a 16-bit factor
+    decoded (:class:`Far16`)."""
+
+    #: what the refusal of a strided or fancy index names
+    what = "a sliced array"
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not isinstance(key, slice) or key.step not in (None, 1):
+            raise TypeError(f"{self.what} is read in contiguous slices")
+        start, stop, _ = key.indices(len(self))
+        return self._slice(start, max(start, stop))
+
+    def _slice(self, start: int, stop: int) -> np.ndarray:
+        raise NotImplementedError
+
+    def __array__(self, dtype=None, copy=None):
+        whole = self[0:len(self)]
+        return whole if dtype is None else whole.astype(dtype)
+
+
+class Far16(SlicedArray):
     """A 16-bit factor (format 1.8, :func:`encode_far`) left in the file (:class:`pmask.runtime.artifact.FileArray`)
     and read as float32 a slice at a time: ``f[a:b]`` reads those words and multiplies each by its column's scale.
     A slice may span blocks (``f[:]`` decodes it all, block after block)."""
@@ -211,13 +237,9 @@ class Far16:
         self.shape, self.dtype = (len(words),), np.dtype(np.float32)
         self.nbytes = int(getattr(words, "nbytes", 2 * len(words))) + self.scale.nbytes  # (as stored)
 
-    def __len__(self) -> int:
-        return self.shape[0]
+    what = "a 16-bit factor"
 
-    def __getitem__(self, key) -> np.ndarray:
-        if not isinstance(key, slice) or key.step not in (None, 1):
-            raise TypeError("a 16-bit factor is read in contiguous slices")
-        a, b, _ = key.indices(len(self))
+    def _slice(self, a: int, b: int) -> np.ndarray:
         if b <= a:
             return np.zeros(0, np.float32)
         q = np.asarray(self.words[a:b])
@@ -237,10 +259,6 @@ class Far16:
                 out[at - a:stop - a] = q[at - a:stop - a] * sc[(np.arange(at, stop) - s0) % k]
             at, blk = stop, blk + 1
         return out
-
-    def __array__(self, dtype=None, copy=None):
-        whole = self[0:len(self)]
-        return whole if dtype is None else whole.astype(dtype)
 
 
 class CompressedXi:
