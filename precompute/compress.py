@@ -1209,16 +1209,19 @@ def merge_pieces(pieces: list[tuple[np.ndarray, np.ndarray]], tol: float) -> tup
 def truncation_tolerance(tol: float) -> float:
     """The tolerance a far block is truncated to (its pieces to half of it, their merge within the other half):
     ``tol`` where its factors are stored in float32 or float64, less :data:`ROUNDING_SHARE` of it where they are
-    stored in 16 bits (``tol`` ≥ :data:`INT16_TOLERANCE`), whose rounding takes that share
+    stored in 16 bits (:func:`far_dtype`), whose rounding takes that share
     (:func:`pmask.runtime.compressed.encode_far`, :func:`far_words`): each block within ``tol`` in all."""
-    return tol * (1.0 - ROUNDING_SHARE) if tol >= INT16_TOLERANCE else tol
+    return tol * (1.0 - ROUNDING_SHARE) if far_dtype(tol) == np.int16 else tol
 
 
 def far_dtype(tol: float, dtype=np.float64):
-    """The far field's factors' dtype: float32 where its rounding (2⁻²⁴ ≈ 6e-8 relative, on U and V) is at most
-    1 % of the tolerance they were truncated to (``tol`` ≥ :data:`FLOAT32_TOLERANCE`): eight digits of a
-    float64 below a 1e-4 truncation are noise, and the far field's bytes halve.  The near field stays in
-    ``dtype`` (float64: exact)."""
+    """The far field's factors' dtype as stored: int16 with a scale per column (format 1.8, :func:`far_words`) at
+    ``tol`` ≥ :data:`INT16_TOLERANCE`, the truncation leaving the rounding its share (:func:`truncation_tolerance`);
+    else float32 where its rounding (2⁻²⁴ ≈ 6e-8 relative, on U and V) is at most 1 % of the tolerance they were
+    truncated to (``tol`` ≥ :data:`FLOAT32_TOLERANCE`): eight digits of a float64 below a 1e-5 truncation are
+    noise.  The near field stays in ``dtype`` (float64: exact)."""
+    if tol >= INT16_TOLERANCE:
+        return np.dtype(np.int16)
     return np.dtype(np.float32) if tol >= FLOAT32_TOLERANCE else np.dtype(dtype)
 
 
@@ -1294,7 +1297,9 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     wider than a panel are merged (:func:`merge_pieces`, within ``tol``), one block's pieces at a time, and each
     merged block is appended to the store's ``merged`` group as it is made, so the client holds one block's merge
     at a time, not the merged far field (which grows like the far field: by the bench's refit ~1.5 GiB of it at
-    200,000 contact vertices).  Also the tiles' summed timings and the merge's."""
+    200,000 contact vertices).  ``lowrank_dtype`` (:func:`far_dtype`; None: ``dtype``) int16: the factors are
+    then rounded to 16 bits after the merges (:func:`far_words`).  Also the tiles' summed timings and the merge's
+    and the rounding's."""
     names = sorted(store.tiles(), key=lambda g: tree.start[int(g.split("-")[1])])
     groups = [store.file[g] for g in names]
     index = [g["lowrank_index"][()].reshape(-1, 8) for g in groups]
@@ -1304,7 +1309,7 @@ def assemble(tree: ClusterTree, store: "TileStore", tol: float = TOLERANCE, dtyp
     for t, (li, w) in enumerate(zip(index, whole)):
         for e in np.flatnonzero(~w):
             blocks.setdefault((int(li[e, 0]), int(li[e, 1]), int(li[e, 7])), []).append((int(li[e, 2]), t, e))
-    words = tol >= INT16_TOLERANCE  # (format 1.8: the factors in 16 bits, rounded from float64 below)
+    words = np.dtype(lowrank_dtype or dtype) == np.int16  # (format 1.8: the factors rounded from float64 below)
     lowrank_dtype = np.dtype(np.float64 if words else (lowrank_dtype or dtype))
     out_U, out_V = store.merged(lowrank_dtype)
     merged = []  # (r0, r1, c0, c1, k, U's run, V's run) in the store's merged group
@@ -2003,8 +2008,7 @@ def compressed_greens(factor, points: np.ndarray, r_max: float, *, tol: float = 
                 client.close()
                 if cluster is not None:
                     cluster.close()
-        stats["assembly_bytes"] = assembly_bytes(tree, ts, np.dtype(np.int16) if tol >= INT16_TOLERANCE
-                                                 else far_dtype(tol, dtype))
+        stats["assembly_bytes"] = assembly_bytes(tree, ts, far_dtype(tol, dtype))
         check_phase_memory("assembly", stats["assembly_bytes"] + WRITE_BYTES,
                            f"every tile is kept in {store}: run again where more memory is free (the tiles are "
                            "reused), or with a larger tolerance (--compress TOL)")
