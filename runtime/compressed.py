@@ -196,6 +196,24 @@ def far_scale_offsets(lowrank_index: np.ndarray) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(k)])[:-1]
 
 
+def far_words_of(decoded: np.ndarray, scale: np.ndarray, lowrank_index: np.ndarray, which: int) -> np.ndarray:
+    """A 16-bit factor's words (format 1.8) from its float32 values as :class:`Far16` decodes them, ``which`` 5
+    for U, 6 for V: each value divided by its column's scale and rounded, exact (a decoded value is a word times
+    a scale, |word| ≤ :data:`Q_MAX`, rounded to 24 bits: the quotient is within 2⁻⁹ of the word); decoded again
+    and compared, bit for bit (a difference is a bug here, not a user's file)."""
+    li = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
+    rows = 3 * (li[:, 1] - li[:, 0]) if which == 5 else 3 * (li[:, 3] - li[:, 2])
+    so, scale = far_scale_offsets(li), np.asarray(scale, np.float32)
+    s = np.zeros(len(decoded), np.float32)
+    for b in np.flatnonzero(li[:, 4] > 0):
+        k = int(li[b, 4])
+        s[li[b, which]:li[b, which] + rows[b] * k] = np.tile(scale[so[b]:so[b] + k], int(rows[b]))
+    words = np.rint(np.divide(decoded, s, out=np.zeros(len(decoded)), where=s > 0)).astype(np.int16)
+    if not np.array_equal((words * s).view(np.uint32), np.asarray(decoded, np.float32).view(np.uint32)):
+        raise RuntimeError("a 16-bit factor's words do not decode to its values (a bug in pmask)")
+    return words
+
+
 class SlicedArray:
     """A flat array read in contiguous slices, ``a[i:j]`` (:meth:`_slice`), never whole unless asked
     (``np.asarray``): the tile store's runs as the writer reads them (:class:`pmask.precompute.compress.Concatenated`),
@@ -284,6 +302,7 @@ class CompressedXi:
             raise InputError("the compressed Green's functions' far field is missing; recompute the artifact "
                              "(pmask precompute --force)")
         self.far_nbytes = int(U.nbytes + V.nbytes)  # (as stored: format 1.8's 16-bit words and their scales)
+        self.far_scales = None  # format 1.8: U's and V's column scales (float32), which a table carries (1.5)
         if np.dtype(U.dtype) == np.int16 or np.dtype(V.dtype) == np.int16:  # format 1.8: in 16 bits (encode_far)
             U, V = self._far16(U, V, U_scale, V_scale)
         self.dense, self.U, self.V = dense, U, V
@@ -329,7 +348,8 @@ class CompressedXi:
         if not ok:
             raise InputError("the compressed Green's functions' 16-bit far field does not match its index or scales; "
                              "recompute the artifact (pmask precompute --force)")
-        self.far_nbytes += int(np.asarray(U_scale).nbytes + np.asarray(V_scale).nbytes)
+        self.far_scales = (np.asarray(U_scale, np.float32), np.asarray(V_scale, np.float32))
+        self.far_nbytes += int(self.far_scales[0].nbytes + self.far_scales[1].nbytes)
         if isinstance(U, np.ndarray):
             return (Far16(U, U_scale, li, 5)[:], Far16(V, V_scale, li, 6)[:])
         return Far16(U, U_scale, li, 5), Far16(V, V_scale, li, 6)

@@ -6,10 +6,11 @@ linear --radius R -o FILE``, or :func:`export_table`); the native servo core
 the rendered per-vertex stiffness K_i (eq. 12 with the support blend and the region taper of
 :mod:`pmask.runtime.stiffness`), so an application needs neither Ξ nor the masks.
 
-Format 1.4, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
+Format 1.5, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linear_depth``, which this version's
 contact law needs, and a 1.0 table is refused with the advice to export it again; 1.2 the display surface; 1.3
 the subdivided contact surface's map to the mesh, ``mesh_triangles``, ``parent`` and ``corners``; 1.4 a
-compressed Ξ's own sections in place of the ζ table, ``xi_*`` and ``mask_*``)::
+compressed Ξ's own sections in place of the ζ table, ``xi_*`` and ``mask_*``; 1.5 the far field's factors in 16
+bits as an artifact of format 1.8 stores them, with ``xi_U_scale`` and ``xi_V_scale``)::
 
     header (64 bytes)   "PMASKTBL", u32 major, u32 minor, u64 file size, u64 directory offset (64),
                         u32 section count, u32 CRC-32 of the header (this field zero) and the directory,
@@ -42,11 +43,15 @@ zeta              3n_c x 3n_c  optional: the ζ table (rows 3m..3m+2 = ζ_mᵀ),
                                the deformation of eq. 16
 contact_row       n_m x 1      with zeta or xi_info: each mesh vertex's row block (contact vertex), -1 for none
 xi_info           1 x 3        optional (1.4, a compressed artifact's table, in place of zeta): n_c, bytes of a
-                               factor's value (4 or 8), 1 when only the blocks on and above the diagonal are stored
+                               factor's value (4 or 8; 2: int16 words, 1.5), 1 when only the blocks on and above
+                               the diagonal are stored
 xi_*              ...          with xi_info: Ξ as :mod:`pmask.runtime.compressed` stores it (perm, leaves, scale,
                                dense_index, near_index, near_exact, near_mask, near_q (int16 bytes),
                                near_scale, lowrank_index, U and V (bytes)) and ``xi_owner`` (key, block,
-                               flipped: the lookup of a pair of leaves' block), :func:`greens_sections`
+                               flipped: the lookup of a pair of leaves' block), :func:`greens_sections`; with
+                               16-bit factors (1.5) ``xi_U_scale`` and ``xi_V_scale``, float32 bytes: each
+                               low-rank block's column scales, block after block (a value is its word times
+                               its column's scale, in float32: :class:`pmask.runtime.compressed.Far16`)
 mask_ptr          n_c+1 x 1    with xi_info: the core masks ρ^m by contact vertex m in compressed rows, ...
 mask_cols         · x 1        ... their columns (contact vertices) ...
 mask_weights      · x 1        ... and weights; the C core forms ζ_m(i) = Σ_j ρ^m_j Ξ_ij from them (eq. 13)
@@ -84,7 +89,7 @@ from pmask.errors import InputError
 from pmask.runtime.files import atomic_write, check_interrupt
 
 MAGIC = b"PMASKTBL"
-TABLE_MAJOR, TABLE_MINOR = 1, 4
+TABLE_MAJOR, TABLE_MINOR = 1, 5
 HEADER, ENTRY, NAME = 64, 64, 32
 F64, I64, BYTES = 1, 2, 3
 
@@ -125,7 +130,8 @@ def surface_sections(surface, zeta: bool = True, display=None) -> dict:
 def greens_sections(stiffness) -> dict:
     r"""A compressed artifact's Green's functions as table sections (format 1.4, module docstring): Ξ's
     H-matrix as the artifact stores it (:mod:`pmask.runtime.compressed`: the exact near field pair by pair with its
-    16-bit neighbours, the far field's low-rank factors, the lookup of a pair's block) and the core masks ρ^m by
+    16-bit neighbours, the far field's low-rank factors (from a format 1.8 artifact its 16-bit words and their
+    scales, table 1.5), the lookup of a pair's block) and the core masks ρ^m by
     contact vertex, from which the C core forms ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) for the vertices a pair of
     coupled contacts touches, as :meth:`pmask.runtime.stiffness.Stiffness.zeta_block` does.  A dense block of a
     format ≤ 1.5 artifact (stored whole) is written pair by pair, every pair exact.  Everything is read whole:
@@ -148,10 +154,19 @@ def greens_sections(stiffness) -> dict:
         ni[:, 2] = np.concatenate([[0], np.cumsum(3 * (di[:, 3] - di[:, 2]))[:-1]]) if len(di) else 0
         mask = np.concatenate([np.packbits(np.ones(k, bool)) for k in pairs] or [np.zeros(0, np.uint8)])
         q, qscale = np.zeros(0, np.int16), np.zeros(int(np.sum(3 * (di[:, 3] - di[:, 2]))))
-    U, V = whole(Xi.U, Xi.U.dtype), whole(Xi.V, Xi.V.dtype)
-    if U.dtype not in (np.float32, np.float64) or V.dtype != U.dtype:
-        raise InputError("the compressed Green's functions' factors are neither float32 nor float64; recompute the "
-                         "artifact (pmask precompute --force)")
+    scales = {}
+    if Xi.far_scales is not None:  # (format 1.8: the words as the artifact stores them, table 1.5, half float32's bytes)
+        from pmask.runtime.compressed import Far16, far_words_of
+
+        U, V = (np.ascontiguousarray(a.words[:], np.int16) if isinstance(a, Far16)  # (left in the file: its words)
+                else far_words_of(a, sc, Xi.lowrank_index, w)  # (decoded at open: the same words back)
+                for a, sc, w in ((Xi.U, Xi.far_scales[0], 5), (Xi.V, Xi.far_scales[1], 6)))
+        scales = {"xi_U_scale": np.asarray(Xi.far_scales[0], "<f4"), "xi_V_scale": np.asarray(Xi.far_scales[1], "<f4")}
+    else:
+        U, V = whole(Xi.U, Xi.U.dtype), whole(Xi.V, Xi.V.dtype)
+        if U.dtype not in (np.float32, np.float64) or V.dtype != U.dtype:
+            raise InputError("the compressed Green's functions' factors are neither float32 nor float64; recompute "
+                             "the artifact (pmask precompute --force)")
     masks = stiffness.masks
     lens = np.zeros(n, np.int64)
     lens[masks.centres] = np.diff(masks.indptr)
@@ -173,6 +188,7 @@ def greens_sections(stiffness) -> dict:
         "xi_V": V.astype(V.dtype.newbyteorder("<"), copy=False),
         "xi_owner": np.stack([Xi._key, Xi._block, Xi._flip.astype(np.int64)], axis=1).astype(np.int64),
         "mask_ptr": col(ptr, np.int64), "mask_cols": col(cols, np.int64), "mask_weights": col(w, np.float64),
+        **scales,
     }
 
 
@@ -196,8 +212,9 @@ def table_arrays(sections: dict, meta: dict) -> dict:
 
 def _is_bytes(name: str, value) -> bool:
     """Whether a section is raw bytes: given as bytes (the metadata, a table's own byte sections), or one the
-    format names bytes (:data:`GREENS`: 16-bit pairs, the factors in float32 or float64)."""
-    return isinstance(value, (bytes, bytearray, memoryview)) or GREENS.get(name, ("",))[0] == "b"
+    format names bytes (:data:`GREENS`: 16-bit pairs, the factors in float32, float64 or 16 bits, and
+    :data:`FAR16`: their scales)."""
+    return isinstance(value, (bytes, bytearray, memoryview)) or name in FAR16 or GREENS.get(name, ("",))[0] == "b"
 
 
 def _raw(value) -> np.ndarray:
@@ -422,13 +439,15 @@ GREENS = {"xi_info": ("i", 3), "xi_leaves": ("i", 1), "xi_scale": ("f", 1), "xi_
           "xi_near_scale": ("f", 1), "xi_lowrank_index": ("i", 7), "xi_U": ("b", 1), "xi_V": ("b", 1),
           "xi_owner": ("i", 3), "mask_ptr": ("i", 1), "mask_cols": ("i", 1), "mask_weights": ("f", 1),
           "xi_perm": ("i", 1)}
+#: with 16-bit factors (xi_info's item 2, table 1.5): their column scales, float32 bytes
+FAR16 = ("xi_U_scale", "xi_V_scale")
 
 
 def table_greens(t: dict, where: str = "the runtime table"):
     """A table's compressed Green's functions (:func:`greens_sections`) as a
     :class:`pmask.runtime.compressed.MaskedXi`, checked as the C loader checks them (``core/greens.c``: the same
     checks in the same order, the same line when one fails)."""
-    from pmask.runtime.compressed import _ONES, CompressedXi, MaskedXi
+    from pmask.runtime.compressed import _ONES, CompressedXi, Far16, MaskedXi
 
     def bad(what):
         return TableError(f"{where}: corrupt runtime table: the compressed Green's functions {what} (export it again)")
@@ -445,13 +464,20 @@ def table_greens(t: dict, where: str = "the runtime table"):
             if a.shape[0] != 1:
                 raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
             n, item, symmetric = (int(x) for x in a[0])
-            if n < 1 or item not in (4, 8) or symmetric not in (0, 1):
+            if n < 1 or item not in (2, 4, 8) or symmetric not in (0, 1):
                 raise bad("have a bad header")
     rows = {"xi_scale": n if symmetric else 0, "xi_near_index": len(t["xi_dense_index"]), "mask_ptr": n + 1,
             "mask_weights": len(t["mask_cols"]), "xi_perm": n}
     for name, r in rows.items():
         if len(t[name]) != r:
             raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
+    for name in FAR16:
+        a = t.get(name)
+        if a is not None and not isinstance(a, (bytes, bytearray, memoryview)):
+            raise TableError(f"{where}: corrupt runtime table: section '{name}' has the wrong type or shape")
+        if item == 2 and a is None:
+            raise TableError(f"{where}: not a complete runtime table: section '{name}' is missing (a damaged table: "
+                             "export it again with `pmask export-table`)")
     if len(t["xi_U"]) % item or len(t["xi_V"]) % item:
         raise bad("have a bad header")
     perm, leaves = t["xi_perm"][:, 0], t["xi_leaves"][:, 0]
@@ -463,7 +489,7 @@ def table_greens(t: dict, where: str = "the runtime table"):
     box = np.vstack([di[:, :4], li[:, :4]])
     if len(box) and (box[:, [0, 2]].min() < 0 or box[:, [1, 3]].max() > n or np.any(box[:, [1, 3]] <= box[:, [0, 2]])):
         raise bad("have a block outside their vertices")
-    U, V = (np.frombuffer(t[k], "<f4" if item == 4 else "<f8") for k in ("xi_U", "xi_V"))
+    U, V = (np.frombuffer(t[k], {2: "<i2", 4: "<f4", 8: "<f8"}[item]) for k in ("xi_U", "xi_V"))
     mask, exact, qscale = np.frombuffer(t["xi_near_mask"], np.uint8), t["xi_near_exact"][:, 0], t["xi_near_scale"][:, 0]
     pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])
     nbytes = -(-pairs // 8)
@@ -478,6 +504,12 @@ def table_greens(t: dict, where: str = "the runtime table"):
     if not ok or (len(li) and (k.min() < 0 or li[:, 5:].min() < 0 or np.any(li[:, 5] + m * k > len(U))
                                 or np.any(li[:, 6] + w * k > len(V)))):
         raise bad("do not match their index")
+    if item == 2:  # (table 1.5: the words times their columns' scales, decoded as the artifact's reader does)
+        su, sv = (np.frombuffer(t[k], "<f4") if len(t[k]) % 4 == 0 else None for k in FAR16)
+        if su is None or sv is None or len(su) != int(k.sum()) or len(sv) != int(k.sum()):
+            raise bad("do not match their index")
+        with np.errstate(over="ignore", invalid="ignore"):  # (a huge scale: refused as non-finite below)
+            U, V = Far16(U, su, li, 5)[:], Far16(V, sv, li, 6)[:]
     scale = t["xi_scale"][:, 0]
     if not all(np.all(np.isfinite(a)) for a in (exact, qscale, t["mask_weights"], U, V)):
         raise bad("hold a non-finite number")

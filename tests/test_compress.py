@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 
+import h5py
 import numpy as np
 import pytest
 
@@ -262,6 +263,22 @@ def test_a_format_1_7_file_with_float32_factors_is_read_as_before(which, request
         assert main(["info", str(path)]) == 0
         said.append(next(line for line in capsys.readouterr().out.splitlines() if line.startswith("Xi ")))
     assert said[0].endswith("the far field's factors in 16 bits") and said[1].endswith("factors in float32")
+    # their tables: float32 factors (xi_info's item 4, table 1.4's form) and the 16-bit words with their scales
+    # (item 2, table 1.5) give the same coupling blocks bit for bit, in Python and in the C core (which decodes a
+    # word times its scale in float32, as numpy does)
+    from pmask.runtime import servo
+    from pmask.runtime.table import export_table, read_table
+
+    paths = [export_table(m, tmp_path / f"{k}.tbl") for k, m in (("f32", W), ("w16", comp))]
+    tables = [read_table(p) for p in paths]
+    assert [int(t["xi_info"][0, 1]) for t in tables] == [4, 2] and "xi_U_scale" not in tables[0]
+    assert len(tables[0]["xi_U"]) == 2 * len(tables[1]["xi_U"])  # (4 bytes a value against 2, the scales aside)
+    for a, b in zip(i[:200], j[:200]):
+        assert np.array_equal(tables[0]["greens"].block(int(a), int(b)), tables[1]["greens"].block(int(a), int(b)))
+    if servo.available():
+        cores = [servo.load_table(p) for p in paths]
+        for a, b in _triangle_pairs(comp, count=10):
+            assert np.array_equal(cores[0].pair_blocks(a, b), cores[1].pair_blocks(a, b))
 
 
 def test_a_format_1_5_file_with_whole_blocks_is_read_as_before(pair_p1, tmp_path):
@@ -575,7 +592,8 @@ def _triangle_pairs(model, seed=1, count=40):
 @both
 def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(which, request, tmp_path, capsys):
     """The hands issue's item 8, for a C program: a table exported from a compressed artifact carries Ξ's
-    compressed sections and the masks in place of the ζ table (table 1.4), and the C core forms the coupling
+    compressed sections and the masks in place of the ζ table (table 1.4; since 1.5 its far field's 16-bit words and
+    scales as the artifact stores them), and the C core forms the coupling
     blocks from them itself (no pair function from the application).  Its blocks equal the Python surface's on
     the artifact to 1e-12 of each block (round-off: the C sums a mask's columns in order, numpy's einsum may
     not), at every distance (exact near field, 16-bit pairs, low-rank blocks; P2 stores every block, P1 reads
@@ -600,9 +618,16 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
     assert np.array_equal(t["mesh_triangles"], comp.triangles) and len(t["triangles"]) > len(comp.triangles)
     assert t["meta"]["greens"] == {"form": "hmatrix", "tolerance": TOL}
     n3 = 3 * len(comp.contact)
-    # (this kidney's Ξ compresses ~10x at r_max = 10 mm; the table holds the far field's factors as float32 at the
-    # ranks of half the tolerance, which the artifact stores in 16 bits: 0.26 of the dense ζ table for P2)
-    assert out.stat().st_size < 0.3 * n3 * n3 * 8
+    # (this kidney's Ξ compresses ~10x at r_max = 10 mm: the table, which holds the far field's factors in 16 bits as
+    # the artifact does (table 1.5), is 0.22 of the dense ζ table for P2 and 0.18 for P1; with float32 factors at
+    # the ranks of half the tolerance it was 0.26 for P2)
+    assert out.stat().st_size < 0.25 * n3 * n3 * 8
+    with h5py.File(comp.path, "r") as f:  # the words and scales as the artifact stores them, read by h5py
+        g = f["greens/hmatrix"]
+        assert t["xi_info"][0, 1] == 2
+        for name, dt in (("U16", "<i2"), ("V16", "<i2"), ("U_scale", "<f4"), ("V_scale", "<f4")):
+            key = "xi_" + name.replace("16", "")
+            assert np.array_equal(np.frombuffer(t[key], dt), g[name][:]), name
     sc = comp.stiffness("linear")
     on_artifact = ContactSurface(sc)
     worst = 0.0
@@ -654,6 +679,7 @@ def test_a_table_carries_float64_factors_and_hands_them_to_the_core_in_memory(pa
     _, comp, _ = pair_p1
     wide = Model.load(comp.path)
     wide.Xi.U, wide.Xi.V = (np.asarray(a[:], np.float64) for a in (wide.Xi.U, wide.Xi.V))
+    wide.Xi.far_scales = None  # (as a file of float64 factors reads: no 16-bit words to carry)
     out = export_table(wide, tmp_path / "f64.tbl")
     t = read_table(out)
     assert t["xi_info"][0, 1] == 8 and len(t["xi_U"]) == 8 * len(wide.Xi.U)
@@ -684,11 +710,23 @@ def _greens_damaged(good: dict, case: str) -> dict:
     elif case == "offset":
         t["xi_lowrank_index"] = t["xi_lowrank_index"].copy()
         t["xi_lowrank_index"][-1, 5] = len(t["xi_U"])
-    elif case == "nan":
+    elif case == "nan":  # (16-bit factors, table 1.5: a column's scale; their words cannot be NaN)
         item = int(t["xi_info"][0, 1])
-        U = bytearray(t["xi_U"])
-        U[:item] = np.array([np.nan], "<f4" if item == 4 else "<f8").tobytes()
-        t["xi_U"] = bytes(U)
+        name, dt = ("xi_U_scale", "<f4") if item == 2 else ("xi_U", "<f4" if item == 4 else "<f8")
+        U = bytearray(t[name])
+        U[:np.dtype(dt).itemsize] = np.array([np.nan], dt).tobytes()
+        t[name] = bytes(U)
+    elif case == "huge scale":  # (finite, but a word times it overflows float32: inf)
+        U = bytearray(t["xi_U_scale"])
+        li, words = t["xi_lowrank_index"], np.frombuffer(t["xi_U"], "<i2")
+        b = int(np.flatnonzero(li[:, 4])[0])  # the first block of rank > 0: its scales are the first (so = 0)
+        j = int(np.flatnonzero(words[li[b, 5]:li[b, 5] + li[b, 4]])[0])  # a column with a non-zero word in row 0
+        U[4 * j:4 * j + 4] = np.array([3e38], "<f4").tobytes()
+        t["xi_U_scale"] = bytes(U)
+    elif case == "scales":
+        t["xi_V_scale"] = bytes(t["xi_V_scale"])[:-4]
+    elif case == "no scales":
+        del t["xi_U_scale"]
     elif case == "mask":
         t["mask_cols"] = t["mask_cols"].copy()
         t["mask_cols"][3] = len(t["xi_perm"])
@@ -707,12 +745,16 @@ def _greens_damaged(good: dict, case: str) -> dict:
     ("mask", "have masks that do not match"),
     ("lookup", "have a block lookup that does not match their blocks"),
     ("missing", "section 'xi_near_q' is missing"),
+    ("huge scale", "hold a non-finite number"),
+    ("scales", "do not match their index"),
+    ("no scales", "section 'xi_U_scale' is missing"),
 ])
 def test_both_loaders_refuse_a_damaged_compressed_table_for_the_same_reason(pair_p1, tmp_path, case, match):
     """Every check on a compressed table's sections runs at load in both loaders (the C core's pair lookups
     then cannot land outside the block that holds a pair): a vertex order that is not a permutation, a
-    factor's offset beyond its array, a NaN among the float32 factors, a mask column outside the vertices,
-    a lookup out of order, a section missing: one line each, the same from both."""
+    factor's offset beyond its array, a NaN among the 16-bit factors' scales, a scale so large that a word times
+    it overflows, a mask column outside the vertices, a lookup out of order, a section missing, the scales one
+    short or missing: one line each, the same from both."""
     from pmask.runtime import servo
     from pmask.runtime.table import TableError, export_table, read_table, table_bytes
 

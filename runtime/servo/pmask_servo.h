@@ -48,7 +48,7 @@ extern "C" {
 #endif
 
 #define PM_TABLE_MAJOR 1
-#define PM_TABLE_MINOR 4
+#define PM_TABLE_MINOR 5
 
 /* contact statuses (the values of pmask.runtime.Status) */
 enum {

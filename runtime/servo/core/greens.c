@@ -1,10 +1,11 @@
-/* pmask servo core: a compressed Ξ's own sections in a runtime table (table 1.4), and the coupling blocks of a
+/* pmask servo core: a compressed Ξ's own sections in a runtime table (table 1.4; 16-bit factors 1.5), and the coupling blocks of a
  * pair of mesh triangles formed from them (pmask.runtime.compressed.MaskedXi.block, ContactSurface.pair_blocks).
  *
  * A table exported from a compressed artifact has no ζ table (as large as dense Ξ: 28 GiB at 20,000 contact
  * vertices) but Ξ as the artifact stores it: the contact vertices in cluster order, blocks over pairs of leaf
  * clusters, the dense ones pair by pair (the pairs within r_max exact, the others as 16-bit multiples of a scale
- * per column), the far ones as U Vᵀ, and a lookup from a pair of leaves to its block; with the core masks ρ^m by
+ * per column), the far ones as U Vᵀ (float32 or float64, or from table 1.5 as the artifact stores them from format
+ * 1.8: int16 words times a float32 scale per column of each block), and a lookup from a pair of leaves to its block; with the core masks ρ^m by
  * contact vertex.  When two coupled contacts land on a new pair of triangles the servo asks for their nine
  * vertex-pair blocks (pm_servo_create_paired's pair function); this one reads ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) for
  * each, the mask's size in 3x3 blocks of Ξ, whatever n.  Everything is checked at load, so that a lookup can
@@ -28,8 +29,19 @@ static int64_t ones(const unsigned char *m, int64_t from, int64_t to)
     return k;
 }
 
-static double factor(const pm_greens *x, const unsigned char *base, int64_t i)
+/* factor value i, in column j of its block, whose column scales (item 2) start at sc: a 16-bit word times its
+ * column's scale in float32, then widened, as pmask.runtime.compressed.Far16 decodes it (numpy's int16 x float32
+ * is a float32 product: the same number, bit for bit; -ffp-contract=off keeps it a product) */
+static double factor(const pm_greens *x, const unsigned char *base, const unsigned char *sc, int64_t i, int64_t j)
 {
+    if (x->item == 2) {
+        float f;
+        memcpy(&f, sc + 4 * j, 4);
+        int16_t q;
+        memcpy(&q, base + 2 * i, 2);
+        const float v = (float)q * f;
+        return (double)v;
+    }
     if (x->item == 4) {
         float f;
         memcpy(&f, base + 4 * i, 4);
@@ -70,7 +82,7 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
     int64_t info[3];
     memcpy(info, s.data, sizeof info);
     const int64_t n = info[0];
-    if (n < 1 || (info[1] != 4 && info[1] != 8) || (info[2] != 0 && info[2] != 1))
+    if (n < 1 || (info[1] != 2 && info[1] != 4 && info[1] != 8) || (info[2] != 0 && info[2] != 1))
         return bad(err, errlen, "have a bad header");
     x->item = info[1];
     x->symmetric = (int)info[2];
@@ -109,6 +121,18 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
     x->V = s.data;
     const int64_t nV = (int64_t)s.rows / x->item;
     if ((int64_t)s.rows % x->item) return bad(err, errlen, "have a bad header");
+    section us, vs;  /* (table 1.5: with 16-bit factors, their column scales) */
+    if (pm__want(secs, nsec, "xi_U_scale", PM_SECTION_BYTES, -1, 1, 1, &us, err, errlen) ||
+        pm__want(secs, nsec, "xi_V_scale", PM_SECTION_BYTES, -1, 1, 1, &vs, err, errlen))
+        return -1;
+    if (x->item == 2 && (!us.found || !vs.found)) {
+        if (err && errlen)
+            snprintf(err, errlen, "not a complete runtime table: section '%s' is missing (a damaged table: export it "
+                     "again with `pmask export-table`)", us.found ? "xi_V_scale" : "xi_U_scale");
+        return -1;
+    }
+    x->Us = us.found ? us.data : NULL;
+    x->Vs = vs.found ? vs.data : NULL;
     SEC("xi_owner", PM_SECTION_I64, -1, 3);
     x->owner = (const int64_t *)s.data;
     x->nowner = (int64_t)s.rows;
@@ -161,14 +185,43 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
                 return bad(err, errlen, "do not match their index");
         }
     }
+    /* 16-bit factors: each block's column scales, block after block (pmask.runtime.compressed.far_scale_offsets) */
+    if (x->item == 2) {
+        x->so = malloc((size_t)(x->nl > 0 ? x->nl : 1) * sizeof *x->so);
+        if (!x->so) {
+            if (err && errlen) snprintf(err, errlen, "out of memory loading the runtime table");
+            return -1;
+        }
+        int64_t ks = 0;
+        for (int64_t l = 0; l < x->nl; l++) {
+            x->so[l] = ks;
+            ks += x->lowrank_index[7 * l + 4];  /* (each rank at most nU, checked above) */
+        }
+        if ((int64_t)(us.rows % 4) || (int64_t)(vs.rows % 4) || (int64_t)(us.rows / 4) != ks ||
+            (int64_t)(vs.rows / 4) != ks)
+            return bad(err, errlen, "do not match their index");
+    }
     /* finite values, positive scales */
     if (!finite_run(x->exact, (uint64_t)nexact) || !finite_run(x->qscale, (uint64_t)nqscale) ||
         !finite_run(x->mask_w, (uint64_t)ncols))
         return bad(err, errlen, "hold a non-finite number");
-    for (int64_t i = 0; i < nU; i++)
-        if (!isfinite(factor(x, x->U, i))) return bad(err, errlen, "hold a non-finite number");
-    for (int64_t i = 0; i < nV; i++)
-        if (!isfinite(factor(x, x->V, i))) return bad(err, errlen, "hold a non-finite number");
+    if (x->item == 2) {  /* every decoded value, as the Python loader checks them (a huge scale overflows) */
+        for (int64_t l = 0; l < x->nl; l++) {
+            const int64_t *k = x->lowrank_index + 7 * l, rank = k[4];
+            const int64_t m = 3 * (k[1] - k[0]) * rank, w = 3 * (k[3] - k[2]) * rank;
+            for (int64_t i = 0; i < m; i++)
+                if (!isfinite(factor(x, x->U, x->Us + 4 * x->so[l], k[5] + i, i % rank)))
+                    return bad(err, errlen, "hold a non-finite number");
+            for (int64_t i = 0; i < w; i++)
+                if (!isfinite(factor(x, x->V, x->Vs + 4 * x->so[l], k[6] + i, i % rank)))
+                    return bad(err, errlen, "hold a non-finite number");
+        }
+    } else {
+        for (int64_t i = 0; i < nU; i++)
+            if (!isfinite(factor(x, x->U, NULL, i, 0))) return bad(err, errlen, "hold a non-finite number");
+        for (int64_t i = 0; i < nV; i++)
+            if (!isfinite(factor(x, x->V, NULL, i, 0))) return bad(err, errlen, "hold a non-finite number");
+    }
     for (int64_t i = 0; x->symmetric && i < n; i++)
         if (!(isfinite(x->scale[i]) && x->scale[i] > 0.0)) return bad(err, errlen, "have a scale that is not positive");
     /* the masks: compressed rows by contact vertex, columns among the contact vertices */
@@ -210,7 +263,9 @@ void pm__greens_free(pm_table *t)
 {
     free(t->xi.position);
     free(t->xi.leaf_of);
+    free(t->xi.so);
     t->xi.position = t->xi.leaf_of = NULL;
+    t->xi.so = NULL;
     t->xi.n = 0;
 }
 
@@ -236,11 +291,12 @@ static void stored(const pm_greens *x, int64_t p, int64_t q, int64_t b, double *
     const int64_t *k = x->lowrank_index + 7 * (b - x->nd);
     const int64_t rank = k[4];
     const int64_t u = k[5] + 3 * (p - k[0]) * rank, v = k[6] + 3 * (q - k[2]) * rank;
+    const unsigned char *us = x->so ? x->Us + 4 * x->so[b - x->nd] : NULL, *vs = x->so ? x->Vs + 4 * x->so[b - x->nd] : NULL;
     for (int r = 0; r < 3; r++)
         for (int c = 0; c < 3; c++) {
             double acc = 0.0;
             for (int64_t j = 0; j < rank; j++)
-                acc += factor(x, x->U, u + r * rank + j) * factor(x, x->V, v + c * rank + j);
+                acc += factor(x, x->U, us, u + r * rank + j, j) * factor(x, x->V, vs, v + c * rank + j, j);
             out[3 * r + c] = acc;
         }
 }
@@ -343,16 +399,17 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
         return;
     }
     const int64_t rank = k[4], m = 3 * (r1 - r0), w = 3 * (c1 - c0);
+    const unsigned char *us = x->so ? x->Us + 4 * x->so[b - x->nd] : NULL, *vs = x->so ? x->Vs + 4 * x->so[b - x->nd] : NULL;
     if (fwd) {  /* U (Vᵀ x_J) */
         for (int64_t j = 0; j < rank; j++) tk[j] = 0.0;
         for (int64_t c = 0; c < w; c++) {
             const double v = xs[3 * c0 + c];
             if (v != 0.0)
-                for (int64_t j = 0; j < rank; j++) tk[j] += factor(x, x->V, k[6] + c * rank + j) * v;
+                for (int64_t j = 0; j < rank; j++) tk[j] += factor(x, x->V, vs, k[6] + c * rank + j, j) * v;
         }
         for (int64_t r = 0; r < m; r++) {
             double acc = 0.0;
-            for (int64_t j = 0; j < rank; j++) acc += factor(x, x->U, k[5] + r * rank + j) * tk[j];
+            for (int64_t j = 0; j < rank; j++) acc += factor(x, x->U, us, k[5] + r * rank + j, j) * tk[j];
             ys[3 * r0 + r] += acc;
         }
     }
@@ -361,11 +418,11 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
         for (int64_t r = 0; r < m; r++) {
             const double v = xs[3 * r0 + r] * as[r0 + r / 3];
             if (v != 0.0)
-                for (int64_t j = 0; j < rank; j++) tk[j] += factor(x, x->U, k[5] + r * rank + j) * v;
+                for (int64_t j = 0; j < rank; j++) tk[j] += factor(x, x->U, us, k[5] + r * rank + j, j) * v;
         }
         for (int64_t c = 0; c < w; c++) {
             double acc = 0.0;
-            for (int64_t j = 0; j < rank; j++) acc += factor(x, x->V, k[6] + c * rank + j) * tk[j];
+            for (int64_t j = 0; j < rank; j++) acc += factor(x, x->V, vs, k[6] + c * rank + j, j) * tk[j];
             ys[3 * c0 + c] += acc / as[c0 + c / 3];
         }
     }

@@ -94,13 +94,16 @@ typedef void (*pm_block_sum_fn)(const double *P, const double *ba, const double 
  * vertex, from which the coupling blocks are formed when contacts land on new triangles (pm__greens_pairs) */
 typedef struct {
     int64_t n, nleaves, nd, nl, nowner, item;  /* contact vertices, leaves, dense and low-rank blocks, lookup
-                                                  entries, bytes of a factor's value (4 or 8) */
+                                                  entries, bytes of a factor's value (4 or 8; 2: int16 words
+                                                  times a float32 scale per column, table 1.5) */
     int64_t maxrank;                           /* the largest rank of a low-rank block */
     int symmetric;                             /* only the blocks on and above the diagonal are stored */
     const int64_t *leaves, *dense_index, *near_index, *lowrank_index, *owner, *mask_ptr, *mask_cols;
     const double *scale, *exact, *qscale, *mask_w;
-    const unsigned char *mask, *q, *U, *V;     /* bits, int16 and float32/64 values, little-endian */
+    const unsigned char *mask, *q, *U, *V;     /* bits, int16 and float32/64 (or int16) values, little-endian */
+    const unsigned char *Us, *Vs;              /* item 2: the factors' column scales (float32), block after block */
     int64_t *position, *leaf_of;               /* made at load: contact index -> position -> leaf */
+    int64_t *so;                               /* item 2, made at load: each low-rank block's first scale */
 } pm_greens;
 
 struct pm_table {
