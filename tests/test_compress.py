@@ -1623,6 +1623,12 @@ def test_the_far_field_can_stay_in_the_file(pair):
     _same_deformation_and_coupling(sl, sm, seed=5)
     with pytest.raises(InputError, match="far_field"):
         Model.load(comp.path, far_field="disk")
+    # its table (1.5) carries the words read from the file, the same sections as from the decoded far field's
+    from pmask.runtime.table import greens_sections
+
+    ga, gb = greens_sections(sl), greens_sections(sm)
+    assert ga.keys() == gb.keys() and all(np.array_equal(ga[k], gb[k]) for k in ga)
+    assert ga["xi_U"].dtype == np.int16 and len(ga["xi_U_scale"]) == int(comp.Xi.lowrank_index[:, 4].sum())
 
 
 def test_a_far_field_left_in_the_file_is_checked_chunk_by_chunk(pair, tmp_path):
