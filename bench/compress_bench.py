@@ -370,9 +370,9 @@ def beside_gil_holder(contacts, path) -> dict:
 
 def coupled_step_c(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> dict:
     """The same two jaws in C (servo_bench, tight), on tables exported from each artifact: the dense one's with its
-    ζ table, the organ-scale compressed one's with Ξ's compressed sections (table 1.4), from which the core forms a
-    pair of triangles' blocks itself when the jaws land on them; alternated ``repeats`` times, each run a fresh
-    process (a cold cache of blocks).  The median and the longest tick of each run, the empty timer's median beside
+    ζ table, the organ-scale compressed one's with Ξ's compressed sections (table 1.4; 1.5: 16-bit factors), from
+    which the core forms a pair of triangles' blocks itself when the jaws land on them; alternated ``repeats``
+    times, each run a fresh process (a cold cache of blocks).  The median and the longest tick of each run, the empty timer's median beside
     them (the noise reference), the tables' sizes, and the ratio of the medians (the hands issue asks ≤ 2x)."""
     import runtime_bench
 
@@ -543,6 +543,33 @@ def kidneys(out: Path) -> dict:
         r.update(date=time.strftime("%Y-%m-%d %H:%M"), machine=machine())
     res.update(rows)
     res.setdefault("date", r["date"])
+    out.write_text(json.dumps(res, indent=1, default=float))
+    return res
+
+
+def grasp_in_c(out: Path) -> dict:
+    """The same grasp in C alone (:func:`coupled_step_c`, `make bench ONLY=compress-c`, ~10 min): the organ-scale
+    artifact (LARGE) and the 3,882-vertex dense kidney made afresh, their tables exported as this version writes
+    them (table 1.5: the far field's 16-bit words); stamped with its own date and machine and stored beside the
+    section's other results in ``out`` (kept as they were, with theirs)."""
+    import tempfile
+
+    from run import machine
+
+    from pmask.pipeline.stages import Spec, run
+
+    res = json.loads(out.read_text()) if out.exists() else {"r_max_m": R_MAX, "tolerance": TOL, "element": ELEMENT}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        print("the dense kidney (size 0.003) and the organ-scale compressed one ...", flush=True)
+        run(Spec(model="kidney", params={"size": 0.003}, r_max=R_MAX, element=ELEMENT), tmp / "dense.h5", force=True)
+        run(Spec(model="kidney", params=LARGE, r_max=R_MAX, compress=TOL, workers=2, element=ELEMENT),
+            tmp / "large.h5", force=True)
+        print("two coupled contacts in C on the organ-scale compressed artifact's table ...", flush=True)
+        c = coupled_step_c(tmp / "dense.h5", tmp / "large.h5", tmp)
+    c.update(date=time.strftime("%Y-%m-%d %H:%M"), machine=machine())
+    print(json.dumps(c, default=str), flush=True)
+    res["coupled_step_c"] = c
     out.write_text(json.dumps(res, indent=1, default=float))
     return res
 
@@ -871,7 +898,10 @@ def markdown(res: dict) -> str:
                       f"run's {res['machine']['cores']} cores).")
     c = res.get("coupled_step_c")
     if g and c:
-        L += ["", f"The same grasp in C (`servo_bench`, tight, μ = 0.3, a fresh process each run) on the tables "
+        m = c.get("machine")
+        apart = (f"measured apart, {c['date']}, {m['cpu']}, {m['cores']} cores, `make bench ONLY=compress-c`; "
+                 if m else "")
+        L += ["", f"The same grasp in C ({apart}`servo_bench`, tight, μ = 0.3, a fresh process each run) on the tables "
                   f"`pmask export-table` writes: the organ-scale compressed artifact's ({c['compressed_table_mib']:,.0f} "
                   f"MiB, Ξ's compressed sections in place of the ζ table; the core forms a pair of triangles' blocks "
                   f"when the jaws land on them) and the dense {c['dense_vertices']:,}-vertex one's "

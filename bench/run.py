@@ -160,6 +160,13 @@ def main() -> None:
             compress = compress_bench.kidneys(HERE / "compress_results.json")
             print(f"wrote {report.write(report.stored()[0], compress)}")
             return None
+        if part == ["compress-c"]:  # that section's grasp in C on the organ-scale table alone, ~10 min
+            import compress_bench
+            import report
+
+            compress = compress_bench.grasp_in_c(HERE / "compress_results.json")
+            print(f"wrote {report.write(report.stored()[0], compress)}")
+            return None
         if part in (["organ"], ["organ-5mm"], ["organ-p2"]):  # issue #27's 50,000-vertex organ (r_max 10 or 5 mm),
             # ~30-45 min; or the 20,000-vertex one with P2
             import compress_bench
@@ -171,7 +178,7 @@ def main() -> None:
             print(f"wrote {report.write(report.stored()[0], compress)}")
             return None
         if part not in (["haptics"], ["viewer"], ["display"]):
-            sys.exit("bench: --only takes 'haptics', 'viewer', 'display', 'compress', 'compress-kidneys', 'organ', 'organ-5mm' or 'organ-p2' (the other sections "
+            sys.exit("bench: --only takes 'haptics', 'viewer', 'display', 'compress', 'compress-kidneys', 'compress-c', 'organ', 'organ-5mm' or 'organ-p2' (the other sections "
                      "run as one: `make bench`)")
         return section_only(part[0])
 

@@ -198,9 +198,9 @@ def far_scale_offsets(lowrank_index: np.ndarray) -> np.ndarray:
 
 def far_words_of(decoded: np.ndarray, scale: np.ndarray, lowrank_index: np.ndarray, which: int) -> np.ndarray:
     """A 16-bit factor's words (format 1.8) from its float32 values as :class:`Far16` decodes them, ``which`` 5
-    for U, 6 for V: each value divided by its column's scale and rounded, exact (a decoded value is a word times
-    a scale, |word| ≤ :data:`Q_MAX`, rounded to 24 bits: the quotient is within 2⁻⁹ of the word); decoded again
-    and compared, bit for bit (a difference is a bug here, not a user's file)."""
+    for U, 6 for V: each value divided by its column's scale and rounded, exact (a decoded value is a word, of
+    magnitude at most :data:`Q_MAX`, times a scale, rounded to 24 bits: the quotient is within 2⁻⁹ of the
+    word); decoded again and compared, bit for bit (a difference is a bug here, not a user's file)."""
     li = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
     rows = 3 * (li[:, 1] - li[:, 0]) if which == 5 else 3 * (li[:, 3] - li[:, 2])
     so, scale = far_scale_offsets(li), np.asarray(scale, np.float32)

@@ -505,7 +505,7 @@ def table_greens(t: dict, where: str = "the runtime table"):
                                 or np.any(li[:, 6] + w * k > len(V)))):
         raise bad("do not match their index")
     if item == 2:  # (table 1.5: the words times their columns' scales, decoded as the artifact's reader does)
-        su, sv = (np.frombuffer(t[k], "<f4") if len(t[k]) % 4 == 0 else None for k in FAR16)
+        su, sv = (np.frombuffer(t[name], "<f4") if len(t[name]) % 4 == 0 else None for name in FAR16)
         if su is None or sv is None or len(su) != int(k.sum()) or len(sv) != int(k.sum()):
             raise bad("do not match their index")
         with np.errstate(over="ignore", invalid="ignore"):  # (a huge scale: refused as non-finite below)
