@@ -10,7 +10,8 @@ Format 1.5, little-endian (1.1 added ``normal_stiffness``, ``shape`` and ``linea
 contact law needs, and a 1.0 table is refused with the advice to export it again; 1.2 the display surface; 1.3
 the subdivided contact surface's map to the mesh, ``mesh_triangles``, ``parent`` and ``corners``; 1.4 a
 compressed Ξ's own sections in place of the ζ table, ``xi_*`` and ``mask_*``; 1.5 the far field's factors in 16
-bits as an artifact of format 1.8 stores them, with ``xi_U_scale`` and ``xi_V_scale``)::
+bits as an artifact of format 1.8 stores them, with ``xi_U_scale`` and ``xi_V_scale``, and the exact pairs in
+48-bit fixed point as format 1.7 stores them, ``xi_near_exact48``)::
 
     header (64 bytes)   "PMASKTBL", u32 major, u32 minor, u64 file size, u64 directory offset (64),
                         u32 section count, u32 CRC-32 of the header (this field zero) and the directory,
@@ -51,7 +52,10 @@ xi_*              ...          with xi_info: Ξ as :mod:`pmask.runtime.compresse
                                flipped: the lookup of a pair of leaves' block), :func:`greens_sections`; with
                                16-bit factors (1.5) ``xi_U_scale`` and ``xi_V_scale``, float32 bytes: each
                                low-rank block's column scales, block after block (a value is its word times
-                               its column's scale, in float32: :class:`pmask.runtime.compressed.Far16`)
+                               its column's scale, in float32: :class:`pmask.runtime.compressed.Far16`);
+                               optional (1.5) ``xi_near_exact48``: the exact pairs in 48-bit fixed point, 28
+                               uint16 words a pair (:func:`pmask.runtime.compressed.pack_exact`), in place of
+                               ``xi_near_exact``'s float64 (then empty)
 mask_ptr          n_c+1 x 1    with xi_info: the core masks ρ^m by contact vertex m in compressed rows, ...
 mask_cols         · x 1        ... their columns (contact vertices) ...
 mask_weights      · x 1        ... and weights; the C core forms ζ_m(i) = Σ_j ρ^m_j Ξ_ij from them (eq. 13)
@@ -131,7 +135,7 @@ def greens_sections(stiffness) -> dict:
     r"""A compressed artifact's Green's functions as table sections (format 1.4, module docstring): Ξ's
     H-matrix as the artifact stores it (:mod:`pmask.runtime.compressed`: the exact near field pair by pair with its
     16-bit neighbours, the far field's low-rank factors (from a format 1.8 artifact its 16-bit words and their
-    scales, table 1.5), the lookup of a pair's block) and the core masks ρ^m by
+    scales, from 1.7 the exact pairs' 48-bit words: table 1.5), the lookup of a pair's block) and the core masks ρ^m by
     contact vertex, from which the C core forms ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) for the vertices a pair of
     coupled contacts touches, as :meth:`pmask.runtime.stiffness.Stiffness.zeta_block` does.  A dense block of a
     format ≤ 1.5 artifact (stored whole) is written pair by pair, every pair exact.  Everything is read whole:
@@ -140,8 +144,11 @@ def greens_sections(stiffness) -> dict:
     n = Xi.n
     whole = lambda a, dt: np.ascontiguousarray(np.asarray(a[:] if len(a) else np.zeros(0)), dt)  # noqa: E731
     di = Xi.dense_index.copy()
+    exact48 = {}
     if Xi.packed:
-        ni, exact = Xi.near_index, (Xi.exact_values() if Xi.fixed else whole(Xi.dense, np.float64))  # (1.7: unpacked)
+        ni, exact = Xi.near_index, (np.zeros(0) if Xi.fixed else whole(Xi.dense, np.float64))
+        if Xi.fixed:  # (format 1.7: the exact pairs' 48-bit words as the artifact stores them, table 1.5: 56 bytes
+            exact48 = {"xi_near_exact48": whole(Xi.dense, np.uint16).astype("<u2", copy=False)}  # a pair, not 72)
         mask, q, qscale = Xi.near_mask, whole(Xi.near_q, np.int16), Xi.near_scale
     else:  # whole blocks (format <= 1.5): every pair exact, in pair order
         pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])
@@ -188,7 +195,7 @@ def greens_sections(stiffness) -> dict:
         "xi_V": V.astype(V.dtype.newbyteorder("<"), copy=False),
         "xi_owner": np.stack([Xi._key, Xi._block, Xi._flip.astype(np.int64)], axis=1).astype(np.int64),
         "mask_ptr": col(ptr, np.int64), "mask_cols": col(cols, np.int64), "mask_weights": col(w, np.float64),
-        **scales,
+        **scales, **exact48,
     }
 
 
@@ -213,8 +220,9 @@ def table_arrays(sections: dict, meta: dict) -> dict:
 def _is_bytes(name: str, value) -> bool:
     """Whether a section is raw bytes: given as bytes (the metadata, a table's own byte sections), or one the
     format names bytes (:data:`GREENS`: 16-bit pairs, the factors in float32, float64 or 16 bits, and
-    :data:`FAR16`: their scales)."""
-    return isinstance(value, (bytes, bytearray, memoryview)) or name in FAR16 or GREENS.get(name, ("",))[0] == "b"
+    :data:`FAR16`: their scales, :data:`EXACT48`: the exact pairs' fixed point)."""
+    return (isinstance(value, (bytes, bytearray, memoryview)) or name in FAR16 or name == EXACT48
+            or GREENS.get(name, ("",))[0] == "b")
 
 
 def _raw(value) -> np.ndarray:
@@ -441,13 +449,16 @@ GREENS = {"xi_info": ("i", 3), "xi_leaves": ("i", 1), "xi_scale": ("f", 1), "xi_
           "xi_perm": ("i", 1)}
 #: with 16-bit factors (xi_info's item 2, table 1.5): their column scales, float32 bytes
 FAR16 = ("xi_U_scale", "xi_V_scale")
+#: optional (table 1.5): the exact pairs in 48-bit fixed point (:func:`pmask.runtime.compressed.pack_exact`'s uint16
+#: words, 28 a pair), xi_near_exact then empty
+EXACT48 = "xi_near_exact48"
 
 
 def table_greens(t: dict, where: str = "the runtime table"):
     """A table's compressed Green's functions (:func:`greens_sections`) as a
     :class:`pmask.runtime.compressed.MaskedXi`, checked as the C loader checks them (``core/greens.c``: the same
     checks in the same order, the same line when one fails)."""
-    from pmask.runtime.compressed import _ONES, CompressedXi, Far16, MaskedXi
+    from pmask.runtime.compressed import _ONES, PAIR_WORDS, CompressedXi, Far16, MaskedXi, unpack_exact
 
     def bad(what):
         return TableError(f"{where}: corrupt runtime table: the compressed Green's functions {what} (export it again)")
@@ -491,13 +502,21 @@ def table_greens(t: dict, where: str = "the runtime table"):
         raise bad("have a block outside their vertices")
     U, V = (np.frombuffer(t[k], {2: "<i2", 4: "<f4", 8: "<f8"}[item]) for k in ("xi_U", "xi_V"))
     mask, exact, qscale = np.frombuffer(t["xi_near_mask"], np.uint8), t["xi_near_exact"][:, 0], t["xi_near_scale"][:, 0]
+    nexact, words48 = len(exact), t.get(EXACT48)
+    if words48 is not None:  # (table 1.5: the exact pairs in fixed point, xi_near_exact empty)
+        if not isinstance(words48, (bytes, bytearray, memoryview)):
+            raise TableError(f"{where}: corrupt runtime table: section '{EXACT48}' has the wrong type or shape")
+        if nexact or len(words48) % (2 * PAIR_WORDS):
+            raise bad("have a bad header")
+        words48 = np.frombuffer(words48, "<u2")
+        nexact = len(words48) // PAIR_WORDS * 9
     pairs = (di[:, 1] - di[:, 0]) * (di[:, 3] - di[:, 2])
     nbytes = -(-pairs // 8)
     ok = not len(di) or (di[:, 4].min() >= 0 and ni.min() >= 0 and np.all(ni[:, 1] <= len(mask) - nbytes))
     if ok and len(di):
         before = np.concatenate([[0], np.cumsum(_ONES[mask])])
         e = before[ni[:, 1] + nbytes] - before[ni[:, 1]]
-        ok = (np.all(e <= pairs) and np.all(di[:, 4] <= len(exact) - 9 * e)
+        ok = (np.all(e <= pairs) and np.all(di[:, 4] <= nexact - 9 * e)
               and np.all(ni[:, 0] <= len(t["xi_near_q"]) // 2 - 9 * (pairs - e))
               and np.all(ni[:, 2] <= len(qscale) - 3 * (di[:, 3] - di[:, 2])))
     m, w, k = 3 * (li[:, 1] - li[:, 0]), 3 * (li[:, 3] - li[:, 2]), li[:, 4]
@@ -511,7 +530,16 @@ def table_greens(t: dict, where: str = "the runtime table"):
         with np.errstate(over="ignore", invalid="ignore"):  # (a huge scale: refused as non-finite below)
             U, V = Far16(U, su, li, 5)[:], Far16(V, sv, li, 6)[:]
     scale = t["xi_scale"][:, 0]
-    if not all(np.all(np.isfinite(a)) for a in (exact, qscale, t["mask_weights"], U, V)):
+    if words48 is not None:  # every pair's exponent one a float64 has, every value finite (as the C core checks)
+        e48 = words48[PAIR_WORDS - 1::PAIR_WORDS].view("<i2")
+        if len(e48) and (e48.max() > 1023 or e48.min() < -1074):
+            raise bad("hold an exponent no float64 has")
+        step = 2**20 * PAIR_WORDS  # (a million pairs at a time: 72 MB decoded, not the whole near field)
+        with np.errstate(over="ignore"):
+            if not all(np.all(np.isfinite(unpack_exact(words48[a:a + step]))) for a in range(0, len(words48), step)):
+                raise bad("hold a non-finite number")
+        exact = words48  # (CompressedXi reads uint16 words as fixed point: format 1.7's reader)
+    if not all(np.all(np.isfinite(a)) for a in [qscale, t["mask_weights"], U, V] + ([exact] if words48 is None else [])):
         raise bad("hold a non-finite number")
     if symmetric and not np.all(scale > 0):
         raise bad("have a scale that is not positive")

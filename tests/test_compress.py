@@ -202,10 +202,22 @@ def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_pat
     x = np.random.default_rng(5).standard_normal(3 * n)
     assert np.array_equal(W.matvec(x), C.matvec(x))
     assert np.array_equal(Model.load(old).stiffness("linear", R_MAX).K_full, comp.stiffness("linear", R_MAX).K_full)
-    tables = [read_table(export_table(m, tmp_path / f"{k}.tbl"))["greens"]
-              for k, m in (("w", Model.load(old)), ("c", comp))]
+    paths = [export_table(m, tmp_path / f"{k}.tbl") for k, m in (("w", Model.load(old)), ("c", comp))]
+    raw = [read_table(p) for p in paths]
+    tables = [r["greens"] for r in raw]
     for a, b in zip(i[:200], j[:200]):
         assert tables[0].block(int(a), int(b)) == tables[1].block(int(a), int(b))
+    # the tables carry the pairs as each file stores them (table 1.5: 48-bit words, 56 bytes a pair, not 72), and
+    # the C core reads the same numbers from both, bit for bit (its fixed point decoded as unpack_exact does)
+    assert "xi_near_exact48" not in raw[0] and len(raw[1]["xi_near_exact"]) == 0
+    pairs = len(raw[0]["xi_near_exact"]) // 9
+    assert pairs > 0 and len(raw[1]["xi_near_exact48"]) == 56 * pairs
+    from pmask.runtime import servo
+
+    if servo.available():
+        cores = [servo.load_table(p) for p in paths]
+        for a, b in _triangle_pairs(comp, count=10):
+            assert np.array_equal(cores[0].pair_blocks(a, b), cores[1].pair_blocks(a, b))
     from pmask.pipeline.cli import main
 
     capsys.readouterr()
@@ -628,6 +640,9 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
         for name, dt in (("U16", "<i2"), ("V16", "<i2"), ("U_scale", "<f4"), ("V_scale", "<f4")):
             key = "xi_" + name.replace("16", "")
             assert np.array_equal(np.frombuffer(t[key], dt), g[name][:]), name
+        # the exact pairs' 48-bit words too (format 1.7), in place of float64
+        assert np.array_equal(np.frombuffer(t["xi_near_exact48"], "<u2"), g["near_exact48"][:])
+        assert len(t["xi_near_exact"]) == 0
     sc = comp.stiffness("linear")
     on_artifact = ContactSurface(sc)
     worst = 0.0
@@ -727,6 +742,16 @@ def _greens_damaged(good: dict, case: str) -> dict:
         t["xi_V_scale"] = bytes(t["xi_V_scale"])[:-4]
     elif case == "no scales":
         del t["xi_U_scale"]
+    elif case in ("exponent", "overflow"):  # (table 1.5's fixed-point pairs: pair 0's exponent word, its values)
+        W = np.frombuffer(t["xi_near_exact48"], "<u2").copy()
+        if case == "exponent":
+            W[27] = np.array([1100], "<i2").view("<u2")[0]  # no float64 has 2^1100
+        else:
+            W[27] = np.array([1023], "<i2").view("<u2")[0]
+            W[:3] = (0, 0, 0x8000)  # -2^47 times 2^(1023 - 46) = -2^1024: past the largest float64 (-inf)
+        t["xi_near_exact48"] = W.tobytes()
+    elif case == "both pair forms":
+        t["xi_near_exact"] = np.zeros((9, 1))
     elif case == "mask":
         t["mask_cols"] = t["mask_cols"].copy()
         t["mask_cols"][3] = len(t["xi_perm"])
@@ -748,13 +773,17 @@ def _greens_damaged(good: dict, case: str) -> dict:
     ("huge scale", "hold a non-finite number"),
     ("scales", "do not match their index"),
     ("no scales", "section 'xi_U_scale' is missing"),
+    ("exponent", "hold an exponent no float64 has"),
+    ("overflow", "hold a non-finite number"),
+    ("both pair forms", "have a bad header"),
 ])
 def test_both_loaders_refuse_a_damaged_compressed_table_for_the_same_reason(pair_p1, tmp_path, case, match):
     """Every check on a compressed table's sections runs at load in both loaders (the C core's pair lookups
     then cannot land outside the block that holds a pair): a vertex order that is not a permutation, a
     factor's offset beyond its array, a NaN among the 16-bit factors' scales, a scale so large that a word times
     it overflows, a mask column outside the vertices, a lookup out of order, a section missing, the scales one
-    short or missing: one line each, the same from both."""
+    short or missing, a fixed-point pair's exponent no float64 has or its value past the largest, the pairs in both
+    forms at once: one line each, the same from both."""
     from pmask.runtime import servo
     from pmask.runtime.table import TableError, export_table, read_table, table_bytes
 

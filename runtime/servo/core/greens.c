@@ -52,6 +52,37 @@ static double factor(const pm_greens *x, const unsigned char *base, const unsign
     return d;
 }
 
+/* the nine values of exact pair k (pmask.runtime.compressed.unpack_exact, bit for bit): each a 48-bit integer
+ * (three little-endian words, sign-extended) times 2^(e - 46), e the pair's 28th word as int16; an integer below
+ * 2^48 is a double exactly and ldexp's power of two is exact where the result is normal, and rounds as numpy's
+ * ldexp where it is not */
+#define EXACT_BITS 46
+#define PAIR_WORDS 28
+static void exact_pair(const pm_greens *x, int64_t k, double *out)
+{
+    const unsigned char *w = x->exact48 + 2 * PAIR_WORDS * k;
+    int16_t e;
+    memcpy(&e, w + 2 * 27, 2);
+    for (int v = 0; v < 9; v++) {
+        const unsigned char *b = w + 6 * v;
+        uint64_t u = (uint64_t)b[0] | (uint64_t)b[1] << 8 | (uint64_t)b[2] << 16 | (uint64_t)b[3] << 24 |
+                     (uint64_t)b[4] << 32 | (uint64_t)b[5] << 40;
+        if (u >> 47) u |= 0xFFFF000000000000u;  /* the sign of the 48-bit integer */
+        int64_t m;
+        memcpy(&m, &u, 8);
+        out[v] = ldexp((double)m, (int)e - EXACT_BITS);
+    }
+}
+
+/* the exact pairs' values from value offset off (a multiple of nine), pair by pair */
+static void exact_values(const pm_greens *x, int64_t off, double *out)
+{
+    if (x->exact48)
+        exact_pair(x, off / 9, out);
+    else
+        memcpy(out, x->exact + off, 9 * sizeof *out);
+}
+
 static int16_t q16(const unsigned char *base, int64_t i)
 {
     int16_t v;
@@ -100,7 +131,15 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
     x->near_index = (const int64_t *)s.data;
     SEC("xi_near_exact", PM_SECTION_F64, -1, 1);
     x->exact = (const double *)s.data;
-    const int64_t nexact = (int64_t)s.rows;
+    int64_t nexact = (int64_t)s.rows;
+    section e48;  /* (table 1.5: the exact pairs in fixed point, in place of float64) */
+    if (pm__want(secs, nsec, "xi_near_exact48", PM_SECTION_BYTES, -1, 1, 1, &e48, err, errlen)) return -1;
+    x->exact48 = NULL;
+    if (e48.found) {
+        if (nexact || e48.rows % (2 * PAIR_WORDS)) return bad(err, errlen, "have a bad header");
+        x->exact48 = e48.data;
+        nexact = (int64_t)(e48.rows / (2 * PAIR_WORDS)) * 9;
+    }
     SEC("xi_near_mask", PM_SECTION_BYTES, -1, 1);
     x->mask = s.data;
     const int64_t nmask = (int64_t)s.rows;
@@ -202,7 +241,17 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
             return bad(err, errlen, "do not match their index");
     }
     /* finite values, positive scales */
-    if (!finite_run(x->exact, (uint64_t)nexact) || !finite_run(x->qscale, (uint64_t)nqscale) ||
+    if (x->exact48) {  /* every pair's exponent one a double has (unpack_exact's check), every value finite */
+        for (int64_t k = 0; k < nexact / 9; k++) {
+            int16_t e;
+            memcpy(&e, x->exact48 + 2 * PAIR_WORDS * k + 2 * 27, 2);
+            if (e > 1023 || e < -1074) return bad(err, errlen, "hold an exponent no float64 has");
+            double v[9];
+            exact_pair(x, k, v);
+            if (!finite_run(v, 9)) return bad(err, errlen, "hold a non-finite number");
+        }
+    }
+    if ((!x->exact48 && !finite_run(x->exact, (uint64_t)nexact)) || !finite_run(x->qscale, (uint64_t)nqscale) ||
         !finite_run(x->mask_w, (uint64_t)ncols))
         return bad(err, errlen, "hold a non-finite number");
     if (x->item == 2) {  /* every decoded value, as the Python loader checks them (a huge scale overflows) */
@@ -279,7 +328,7 @@ static void stored(const pm_greens *x, int64_t p, int64_t q, int64_t b, double *
         const int bit = (int)(g & 7);
         const int64_t before = ones(x->mask, ni[1], g >> 3) + (bit ? popcount8((unsigned char)(byte >> (8 - bit))) : 0);
         if ((byte >> (7 - bit)) & 1) {
-            memcpy(out, x->exact + k[4] + 9 * before, 9 * sizeof *out);
+            exact_values(x, k[4] + 9 * before, out);
         } else {
             const int64_t at = ni[0] + 9 * (t - before);
             const double *sc = x->qscale + ni[2] + 3 * (q - k[2]);
@@ -374,7 +423,6 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
     if (!fwd && !back) return;
     if (b < x->nd) {  /* pair by pair in the stored order: exact where the mask's bit is set, else 16 bits */
         const int64_t *ni = x->near_index + 3 * b;
-        const double *ex = x->exact + k[4];
         int64_t e = 0, qn = 0, t = 0;
         for (int64_t p = r0; p < r1; p++)
             for (int64_t q = c0; q < c1; q++, t++) {
@@ -384,7 +432,7 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
                 if (use_f || use_b) {
                     double B[9];
                     if (exact) {
-                        memcpy(B, ex + 9 * e, sizeof B);
+                        exact_values(x, k[4] + 9 * e, B);
                     } else {
                         const int64_t at = ni[0] + 9 * qn;
                         const double *sc = x->qscale + ni[2] + 3 * (q - c0);

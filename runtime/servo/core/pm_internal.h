@@ -102,6 +102,8 @@ typedef struct {
     const double *scale, *exact, *qscale, *mask_w;
     const unsigned char *mask, *q, *U, *V;     /* bits, int16 and float32/64 (or int16) values, little-endian */
     const unsigned char *Us, *Vs;              /* item 2: the factors' column scales (float32), block after block */
+    const unsigned char *exact48;              /* table 1.5: the exact pairs in 48-bit fixed point, 28 uint16 words
+                                                  a pair (pmask.runtime.compressed.pack_exact); NULL: float64 */
     int64_t *position, *leaf_of;               /* made at load: contact index -> position -> leaf */
     int64_t *so;                               /* item 2, made at load: each low-rank block's first scale */
 } pm_greens;
