@@ -231,15 +231,64 @@ def cmd_models(args) -> int:
 
 
 def add_info(sub) -> None:
-    p = sub.add_parser("info", help="describe an artifact: counts, material, units, provenance")
-    p.add_argument("artifact")
+    p = sub.add_parser("info", help="describe an artifact (counts, material, units, provenance) or a runtime table")
+    p.add_argument("artifact", help="an artifact (.h5) or a runtime table (pmask export-table), checked as read")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_info)
 
 
+def _print_info(info: dict, as_json: bool) -> int:
+    if as_json:
+        print(json.dumps(info, indent=2, default=str))
+    else:
+        for k, v in info.items():
+            print(f"{k:16s} {v}")
+    return 0
+
+
+def table_info(path: str) -> dict:
+    """What a runtime table (:mod:`pmask.runtime.table`) holds, read and checked as both loaders check it: its
+    format, the contact surface's counts, how it couples contacts (a ζ table, or a compressed Ξ's sections and how
+    they store the far field and the exact pairs), the display surface, the mask and its source."""
+    from pmask.runtime.table import read_table
+
+    t = read_table(path)
+    meta = t["meta"]
+    info = {"file": path, "format": f"pmask runtime table {meta.get('format', '?')}",
+            "size": f"{Path(path).stat().st_size / 2**20:,.1f} MiB",
+            "surface": f"{len(t['points']):,} vertices, {len(t['triangles']):,} triangles"
+                       + (f" (the mesh's {len(t['mesh_triangles']):,} subdivided {meta.get('levels')} times)"
+                          if "mesh_triangles" in t else " (the mesh's own)")}
+    if "zeta" in t:
+        info["coupling"] = f"zeta table {t['zeta'].shape[0]:,} x {t['zeta'].shape[1]:,} (float64)"
+    elif "xi_info" in t:
+        n, item, symmetric = (int(x) for x in t["xi_info"][0])
+        factors = {2: "16 bits with a scale per column", 4: "float32", 8: "float64"}[item]
+        pairs = "48-bit fixed point" if "xi_near_exact48" in t else "float64"
+        info["coupling"] = (f"compressed Green's functions over {n:,} contact vertices (tolerance "
+                            f"{meta.get('greens', {}).get('tolerance', '?')}): {len(t['xi_dense_index']):,} dense "
+                            f"and {len(t['xi_lowrank_index']):,} low-rank blocks"
+                            + (", those on and above the diagonal" if symmetric else "")
+                            + f"; the far field's factors in {factors}, the pairs within r_max in {pairs}")
+    else:
+        info["coupling"] = "none (exported with --no-zeta: single contacts only)"
+    info["display"] = (f"{len(t['display_points']):,} vertices, {len(t['display_triangles']):,} triangles"
+                       if "display_points" in t else "none")
+    info.update({k: meta.get(k) for k in ("mask", "radius", "k_rigid", "normal_radius", "source", "pmask_version")})
+    return info
+
+
 def cmd_info(args) -> int:
     from pmask.runtime.artifact import read_artifact
+    from pmask.runtime.table import MAGIC
 
+    try:
+        with open(args.artifact, "rb") as f:
+            is_table = f.read(len(MAGIC)) == MAGIC
+    except OSError:
+        is_table = False  # (read_artifact says what is wrong with the path)
+    if is_table:
+        return _print_info(table_info(args.artifact), args.json)
     d = read_artifact(args.artifact)
     a = d["attrs"]
     info = {
@@ -261,12 +310,7 @@ def cmd_info(args) -> int:
         "input_hash": a["input_hash"],
         "libraries": a["provenance"].get("libraries"), "timings": a["timings"],
     }
-    if args.json:
-        print(json.dumps(info, indent=2, default=str))
-    else:
-        for k, v in info.items():
-            print(f"{k:16s} {v}")
-    return 0
+    return _print_info(info, args.json)
 
 
 def add_reference(sub) -> None:

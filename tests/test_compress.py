@@ -643,6 +643,10 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
         # the exact pairs' 48-bit words too (format 1.7), in place of float64
         assert np.array_equal(np.frombuffer(t["xi_near_exact48"], "<u2"), g["near_exact48"][:])
         assert len(t["xi_near_exact"]) == 0
+    assert main(["info", str(out)]) == 0  # what the table holds, in a line a user reads
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("coupling"))
+    assert f"over {len(comp.contact):,} contact vertices" in line and "factors in 16 bits" in line
+    assert "pairs within r_max in 48-bit fixed point" in line and f"{len(t['xi_lowrank_index']):,} low-rank" in line
     sc = comp.stiffness("linear")
     on_artifact = ContactSurface(sc)
     worst = 0.0

@@ -601,6 +601,14 @@ def test_export_table_command(kidney_small, tmp_path):
     t = read_table(out)
     assert t["meta"]["mask"] == "linear" and t["meta"]["radius"] == pytest.approx(0.006)
     assert "zeta" in t and servo.load_table(out).counts()[2] == 1
+    info = subprocess.run([sys.executable, "-m", "pmask.pipeline", "info", str(out)], capture_output=True, text=True)
+    assert info.returncode == 0, info.stderr
+    n3 = len(t["zeta"])
+    assert f"zeta table {n3:,} x {n3:,}" in info.stdout and "format           pmask runtime table 1." in info.stdout
+    cut = tmp_path / "cut.tbl"  # a truncated table: the loaders' one line, no traceback
+    cut.write_bytes(out.read_bytes()[:-100])
+    info = subprocess.run([sys.executable, "-m", "pmask.pipeline", "info", str(cut)], capture_output=True, text=True)
+    assert info.returncode == 2 and "truncated" in info.stderr and len(info.stderr.strip().splitlines()) == 1
     # the coarse test kidney: the default (the automatic choice) subdivides it
     assert t["meta"]["levels"] >= 2 and len(t["triangles"]) == 4 ** t["meta"]["levels"] * len(t["mesh_triangles"])
     assert servo.load_table(out).counts()[:2] == (int(t["mesh_triangles"].max()) + 1, len(t["mesh_triangles"]))
