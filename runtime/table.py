@@ -162,7 +162,7 @@ def greens_sections(stiffness) -> dict:
         mask = np.concatenate([np.packbits(np.ones(k, bool)) for k in pairs] or [np.zeros(0, np.uint8)])
         q, qscale = np.zeros(0, np.int16), np.zeros(int(np.sum(3 * (di[:, 3] - di[:, 2]))))
     scales = {}
-    if Xi.far_scales is not None:  # (format 1.8: the words as the artifact stores them, table 1.5, half float32's bytes)
+    if Xi.far_scales is not None:  # (format 1.8: the words as the artifact stores them, table 1.5: half the bytes)
         from pmask.runtime.compressed import Far16, far_words_of
 
         U, V = (np.ascontiguousarray(a.words[:], np.int16) if isinstance(a, Far16)  # (left in the file: its words)
@@ -539,7 +539,8 @@ def table_greens(t: dict, where: str = "the runtime table"):
             if not all(np.all(np.isfinite(unpack_exact(words48[a:a + step]))) for a in range(0, len(words48), step)):
                 raise bad("hold a non-finite number")
         exact = words48  # (CompressedXi reads uint16 words as fixed point: format 1.7's reader)
-    if not all(np.all(np.isfinite(a)) for a in [qscale, t["mask_weights"], U, V] + ([exact] if words48 is None else [])):
+    values = [qscale, t["mask_weights"], U, V] + ([exact] if words48 is None else [])
+    if not all(np.all(np.isfinite(a)) for a in values):
         raise bad("hold a non-finite number")
     if symmetric and not np.all(scale > 0):
         raise bad("have a scale that is not positive")

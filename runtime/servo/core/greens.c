@@ -1,15 +1,17 @@
-/* pmask servo core: a compressed Ξ's own sections in a runtime table (table 1.4; 16-bit factors 1.5), and the coupling blocks of a
- * pair of mesh triangles formed from them (pmask.runtime.compressed.MaskedXi.block, ContactSurface.pair_blocks).
+/* pmask servo core: a compressed Ξ's own sections in a runtime table (table 1.4; 1.5 as the artifact stores
+ * them), and the coupling blocks of a pair of mesh triangles formed from them
+ * (pmask.runtime.compressed.MaskedXi.block, ContactSurface.pair_blocks).
  *
  * A table exported from a compressed artifact has no ζ table (as large as dense Ξ: 28 GiB at 20,000 contact
  * vertices) but Ξ as the artifact stores it: the contact vertices in cluster order, blocks over pairs of leaf
  * clusters, the dense ones pair by pair (the pairs within r_max exact, the others as 16-bit multiples of a scale
- * per column), the far ones as U Vᵀ (float32 or float64, or from table 1.5 as the artifact stores them from format
- * 1.8: int16 words times a float32 scale per column of each block), and a lookup from a pair of leaves to its block; with the core masks ρ^m by
- * contact vertex.  When two coupled contacts land on a new pair of triangles the servo asks for their nine
- * vertex-pair blocks (pm_servo_create_paired's pair function); this one reads ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) for
- * each, the mask's size in 3x3 blocks of Ξ, whatever n.  Everything is checked at load, so that a lookup can
- * only land in the block that holds the pair. */
+ * per column; from table 1.5 the exact ones in 48-bit fixed point, as format 1.7 stores them), the far ones as
+ * U Vᵀ (float32 or float64; from table 1.5 int16 words times a float32 scale per column of each block, as format
+ * 1.8 stores them), and a lookup from a pair of leaves to its block; with the core masks ρ^m by contact vertex.
+ * When two coupled contacts land on a new pair of triangles the servo asks for their nine vertex-pair blocks
+ * (pm_servo_create_paired's pair function); this one reads ζ_m(i) = Σ_j ρ^m_j Ξ_ij (eq. 13) for each, the mask's
+ * size in 3x3 blocks of Ξ, whatever n.  Everything is checked at load, so that a lookup can only land in the
+ * block that holds the pair. */
 #include "pm_internal.h"
 
 static int bad(char *err, size_t errlen, const char *what)
@@ -81,6 +83,12 @@ static void exact_values(const pm_greens *x, int64_t off, double *out)
         exact_pair(x, off / 9, out);
     else
         memcpy(out, x->exact + off, 9 * sizeof *out);
+}
+
+/* stored block b's column scales in U's or V's (16-bit factors), NULL for float factors */
+static const unsigned char *far_scales(const pm_greens *x, const unsigned char *scales, int64_t b)
+{
+    return x->so ? scales + 4 * x->so[b - x->nd] : NULL;
 }
 
 static int16_t q16(const unsigned char *base, int64_t i)
@@ -340,7 +348,7 @@ static void stored(const pm_greens *x, int64_t p, int64_t q, int64_t b, double *
     const int64_t *k = x->lowrank_index + 7 * (b - x->nd);
     const int64_t rank = k[4];
     const int64_t u = k[5] + 3 * (p - k[0]) * rank, v = k[6] + 3 * (q - k[2]) * rank;
-    const unsigned char *us = x->so ? x->Us + 4 * x->so[b - x->nd] : NULL, *vs = x->so ? x->Vs + 4 * x->so[b - x->nd] : NULL;
+    const unsigned char *us = far_scales(x, x->Us, b), *vs = far_scales(x, x->Vs, b);
     for (int r = 0; r < 3; r++)
         for (int c = 0; c < 3; c++) {
             double acc = 0.0;
@@ -447,7 +455,7 @@ static void block_product(const pm_greens *x, int64_t b, const double *xs, const
         return;
     }
     const int64_t rank = k[4], m = 3 * (r1 - r0), w = 3 * (c1 - c0);
-    const unsigned char *us = x->so ? x->Us + 4 * x->so[b - x->nd] : NULL, *vs = x->so ? x->Vs + 4 * x->so[b - x->nd] : NULL;
+    const unsigned char *us = far_scales(x, x->Us, b), *vs = far_scales(x, x->Vs, b);
     if (fwd) {  /* U (Vᵀ x_J) */
         for (int64_t j = 0; j < rank; j++) tk[j] = 0.0;
         for (int64_t c = 0; c < w; c++) {
