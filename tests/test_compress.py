@@ -707,6 +707,8 @@ def test_a_table_carries_float64_factors_and_hands_them_to_the_core_in_memory(pa
     srf = ContactSurface(wide.stiffness("linear"))
     arrays = table_arrays(surface_sections(srf), srf.meta)
     assert arrays["xi_U"].dtype == np.uint8 and np.shares_memory(arrays["xi_U"], wide.Xi.U)
+    # (table 1.5: the exact pairs' 48-bit words are the model's own, not a float64 copy: 56 bytes a pair held once)
+    assert arrays["xi_near_exact48"].dtype == np.uint8 and np.shares_memory(arrays["xi_near_exact48"], wide.Xi.dense)
     tables = [servo.load_table(out), servo.load_table(arrays)]
     assert all(tb.has_greens() for tb in tables)
     worst = 0.0
