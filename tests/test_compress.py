@@ -184,8 +184,9 @@ def test_the_exact_pairs_in_fixed_point_are_within_their_bound_and_read_back_bit
 def test_a_format_1_6_file_with_float64_pairs_is_read_as_before(pair_p1, tmp_path, capsys):
     """A file of format 1.6 stores the exact pairs as float64 (``near_exact``): written with the 1.7 file's
     values unpacked, it reads the same Ξ to the bit (pairs, whole blocks and products), K_i equal, and its
-    exported table is the same as the 1.7 file's (the C core reads float64 pairs from both); `pmask info` says
-    how each stores them."""
+    exported table gives the same blocks as the 1.7 file's, in Python and in the C core, bit for bit (table 1.5:
+    the 1.6 file's table carries float64 pairs, the 1.7 file's their 48-bit words); `pmask info` says how each
+    file stores them."""
     from pmask.runtime.table import export_table, read_table
 
     _, comp, _ = pair_p1
@@ -233,7 +234,8 @@ def test_a_format_1_7_file_with_float32_factors_is_read_as_before(which, request
     """A file of format 1.7 stores the far field's factors as float32 (``U``, ``V``): written with the 1.8 file's
     16-bit factors decoded (the values its reader computes), it reads the same Ξ to the bit (low-rank blocks,
     products, K_i), in twice the far field's bytes less the scales; `pmask info` says how each stores them, and a
-    1.8 file is what a 1.7 reader refuses as missing ``U`` (its datasets: U16, V16 and their scales)."""
+    1.8 file is what a 1.7 reader refuses as missing ``U`` (its datasets: U16, V16 and their scales); their
+    tables (float32 factors against 16-bit words) give the same coupling blocks bit for bit, in Python and C."""
     import json
     import shutil
 
@@ -605,7 +607,8 @@ def _triangle_pairs(model, seed=1, count=40):
 def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(which, request, tmp_path, capsys):
     """The hands issue's item 8, for a C program: a table exported from a compressed artifact carries Ξ's
     compressed sections and the masks in place of the ζ table (table 1.4; since 1.5 its far field's 16-bit words and
-    scales as the artifact stores them), and the C core forms the coupling
+    scales and its exact pairs' 48-bit words as the artifact stores them, read back with h5py), and `pmask info`
+    says so; the C core forms the coupling
     blocks from them itself (no pair function from the application).  Its blocks equal the Python surface's on
     the artifact to 1e-12 of each block (round-off: the C sums a mask's columns in order, numpy's einsum may
     not), at every distance (exact near field, 16-bit pairs, low-rank blocks; P2 stores every block, P1 reads
@@ -631,8 +634,8 @@ def test_an_exported_table_couples_contacts_in_c_from_the_compressed_greens(whic
     assert t["meta"]["greens"] == {"form": "hmatrix", "tolerance": TOL}
     n3 = 3 * len(comp.contact)
     # (this kidney's Ξ compresses ~10x at r_max = 10 mm: the table, which holds the far field's factors in 16 bits as
-    # the artifact does (table 1.5), is 0.22 of the dense ζ table for P2 and 0.18 for P1; with float32 factors at
-    # the ranks of half the tolerance it was 0.26 for P2)
+    # the artifact does and its exact pairs in 48-bit fixed point (table 1.5), is 0.215 of the dense ζ table for P2
+    # and 0.17 for P1; with float32 factors at the ranks of half the tolerance and float64 pairs it was 0.26 for P2)
     assert out.stat().st_size < 0.25 * n3 * n3 * 8
     with h5py.File(comp.path, "r") as f:  # the words and scales as the artifact stores them, read by h5py
         g = f["greens/hmatrix"]
