@@ -274,7 +274,8 @@ def table_info(path: str) -> dict:
         info["coupling"] = "none (exported with --no-zeta: single contacts only)"
     info["display"] = (f"{len(t['display_points']):,} vertices, {len(t['display_triangles']):,} triangles"
                        if "display_points" in t else "none")
-    info.update({k: meta.get(k) for k in ("mask", "radius", "k_rigid", "normal_radius", "source", "pmask_version")})
+    info.update({k: meta.get(k) for k in ("mask", "radius", "k_rigid", "normal_radius", "units", "source",
+                                          "pmask_version")})
     return info
 
 
@@ -288,7 +289,10 @@ def cmd_info(args) -> int:
     except OSError:
         is_table = False  # (read_artifact says what is wrong with the path)
     if is_table:
-        return _print_info(table_info(args.artifact), args.json)
+        info = table_info(args.artifact)
+        if not args.json:  # (six digits of the lengths and stiffness to read; --json keeps every one)
+            info = {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in info.items()}
+        return _print_info(info, args.json)
     d = read_artifact(args.artifact)
     a = d["attrs"]
     info = {

@@ -10,6 +10,7 @@ own trace replays through the Python engine.
 from __future__ import annotations
 
 import gc
+import json
 import math
 import shutil
 import struct
@@ -605,6 +606,9 @@ def test_export_table_command(kidney_small, tmp_path):
     assert info.returncode == 0, info.stderr
     n3 = len(t["zeta"])
     assert f"zeta table {n3:,} x {n3:,}" in info.stdout and "format           pmask runtime table 1." in info.stdout
+    info = subprocess.run([sys.executable, "-m", "pmask.pipeline", "info", "--json", str(out)], capture_output=True,
+                          text=True)
+    assert json.loads(info.stdout)["radius"] == t["meta"]["radius"]  # (--json: every digit, as a number)
     cut = tmp_path / "cut.tbl"  # a truncated table: the loaders' one line, no traceback
     cut.write_bytes(out.read_bytes()[:-100])
     info = subprocess.run([sys.executable, "-m", "pmask.pipeline", "info", str(cut)], capture_output=True, text=True)
