@@ -637,7 +637,7 @@ def extrapolation(res: dict, sizes=(50_000, 100_000, 200_000)) -> str:
     for n in sizes:
         near = g["near_bytes"] * (n / n0) ** 2
         far = g["far_bytes"] * n * np.log(n) / (n0 * np.log(n0))
-        t = f", GF stage ~{g['greens_s'] * (n / n0) ** slope / 3600:.1f} h on 2 workers" if slope else ""
+        t = f", GF stage ~{duration(g['greens_s'] * (n / n0) ** slope)} on 2 workers" if slope else ""
         rows.append(f"{n:,}: ~{(near + far) / 2**30:.1f} GiB stored ({near / 2**30:.1f} near, {far / 2**30:.1f} far"
                     + (f"; ~{disk * (near + far) / 2**30:.1f} in the file at this run's ratio" if disk else "")
                     + f"){t}")
@@ -696,6 +696,12 @@ def refit_numbers(res: dict, sizes=REFIT_SIZES) -> dict | None:
     return out
 
 
+def duration(seconds: float) -> str:
+    """A modelled time as a reader takes it in: minutes below an hour (an extrapolation's "0.0 h" said nothing),
+    else hours to a tenth."""
+    return f"{seconds / 60:.0f} min" if seconds < 3600 else f"{seconds / 3600:.1f} h"
+
+
 def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
     """The extrapolation again, each quantity a power of n through the two largest runs at the same r_max (the
     organ-scale run and the 50,000 row): what the measured growth says, still a model.  The W sweep runs on
@@ -709,7 +715,7 @@ def refit(res: dict, sizes=REFIT_SIZES, workers=(2, 16, 64)) -> str:
     rows = []
     for n in sizes:
         x = r[str(n)]
-        times = ", ".join(f"{(x['sweep_s'] + x['tiles_s'] * 2 / w) / 3600:.1f} h on {w}" for w in workers)
+        times = ", ".join(f"{duration(x['sweep_s'] + x['tiles_s'] * 2 / w)} on {w}" for w in workers)
         disk = (f", ~{x['disk_bytes'] / 2**30:.2f} in the file at the {n_o:,}-vertex run's ratio"
                 if x["disk_bytes"] is not None else "")
         peaks = (f"; peak RSS of the client ~{x['client_peak_rss_gib']:.2f} GiB, of the worker that factorises and "
