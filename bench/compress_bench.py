@@ -370,10 +370,11 @@ def beside_gil_holder(contacts, path) -> dict:
 
 def coupled_step_c(dense: Path, compressed: Path, work: Path, repeats: int = 3) -> dict:
     """The same two jaws in C (servo_bench, tight), on tables exported from each artifact: the dense one's with its
-    ζ table, the organ-scale compressed one's with Ξ's compressed sections (table 1.4; 1.5: 16-bit factors), from
-    which the core forms a pair of triangles' blocks itself when the jaws land on them; alternated ``repeats``
-    times, each run a fresh process (a cold cache of blocks).  The median and the longest tick of each run, the empty timer's median beside
-    them (the noise reference), the tables' sizes, and the ratio of the medians (the hands issue asks ≤ 2x)."""
+    ζ table, the organ-scale compressed one's with Ξ's compressed sections (table 1.4; 1.5 as the artifact stores
+    them), from which the core forms a pair of triangles' blocks itself when the jaws land on them; alternated
+    ``repeats`` times, each run a fresh process (a cold cache of blocks).  The median and the longest tick of each
+    run, the empty timer's median beside them (the noise reference), the tables' sizes, and the ratio of the
+    medians (the hands issue asks ≤ 2x)."""
     import runtime_bench
 
     from pmask.pipeline.strokes import grasp_path
@@ -548,9 +549,9 @@ def kidneys(out: Path) -> dict:
 
 
 def grasp_in_c(out: Path) -> dict:
-    """The same grasp in C alone (:func:`coupled_step_c`, `make bench ONLY=compress-c`, ~10 min): the organ-scale
-    artifact (LARGE) and the 3,882-vertex dense kidney made afresh, their tables exported as this version writes
-    them (table 1.5: the far field's 16-bit words); stamped with its own date and machine and stored beside the
+    """The same grasp in C alone (:func:`coupled_step_c`, `make bench ONLY=compress-c`, ~5 min on 2 cores): the
+    organ-scale artifact (LARGE) and the 3,882-vertex dense kidney made afresh, their tables exported as this
+    version writes them (table 1.5: the far field's 16-bit words, the exact pairs' 48-bit ones); stamped with its own date and machine and stored beside the
     section's other results in ``out`` (kept as they were, with theirs)."""
     import tempfile
 

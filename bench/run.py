@@ -160,7 +160,7 @@ def main() -> None:
             compress = compress_bench.kidneys(HERE / "compress_results.json")
             print(f"wrote {report.write(report.stored()[0], compress)}")
             return None
-        if part == ["compress-c"]:  # that section's grasp in C on the organ-scale table alone, ~10 min
+        if part == ["compress-c"]:  # that section's grasp in C on the organ-scale table alone, ~5 min
             import compress_bench
             import report
 

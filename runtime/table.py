@@ -534,9 +534,12 @@ def table_greens(t: dict, where: str = "the runtime table"):
         e48 = words48[PAIR_WORDS - 1::PAIR_WORDS].view("<i2")
         if len(e48) and (e48.max() > 1023 or e48.min() < -1074):
             raise bad("hold an exponent no float64 has")
-        step = 2**20 * PAIR_WORDS  # (a million pairs at a time: 72 MB decoded, not the whole near field)
+        # a value m 2^(e - 46), |m| ≤ 2^47, is below 2^1023 where e < 1023: only the pairs at e = 1023 can overflow
+        # (-2^47 there is -2^1024), so only they are decoded (decoding all took 0.46 s of the 20,427-vertex
+        # organ's 1.3 s load, by hand)
+        top = np.flatnonzero(e48 == 1023)
         with np.errstate(over="ignore"):
-            if not all(np.all(np.isfinite(unpack_exact(words48[a:a + step]))) for a in range(0, len(words48), step)):
+            if len(top) and not np.all(np.isfinite(unpack_exact(words48.reshape(-1, PAIR_WORDS)[top]))):
                 raise bad("hold a non-finite number")
         exact = words48  # (CompressedXi reads uint16 words as fixed point: format 1.7's reader)
     values = [qscale, t["mask_weights"], U, V] + ([exact] if words48 is None else [])

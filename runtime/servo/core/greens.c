@@ -249,14 +249,17 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
             return bad(err, errlen, "do not match their index");
     }
     /* finite values, positive scales */
-    if (x->exact48) {  /* every pair's exponent one a double has (unpack_exact's check), every value finite */
+    if (x->exact48) {  /* every pair's exponent one a double has (unpack_exact's check), every value finite: a
+                          value m 2^(e - 46), |m| <= 2^47, can overflow only at e = 1023, so only those are decoded */
         for (int64_t k = 0; k < nexact / 9; k++) {
             int16_t e;
             memcpy(&e, x->exact48 + 2 * PAIR_WORDS * k + 2 * 27, 2);
             if (e > 1023 || e < -1074) return bad(err, errlen, "hold an exponent no float64 has");
             double v[9];
-            exact_pair(x, k, v);
-            if (!finite_run(v, 9)) return bad(err, errlen, "hold a non-finite number");
+            if (e == 1023) {
+                exact_pair(x, k, v);
+                if (!finite_run(v, 9)) return bad(err, errlen, "hold a non-finite number");
+            }
         }
     }
     if ((!x->exact48 && !finite_run(x->exact, (uint64_t)nexact)) || !finite_run(x->qscale, (uint64_t)nqscale) ||
