@@ -448,7 +448,8 @@ def eight_workers(size, work: Path) -> dict:
 
 
 def passes_side_by_side(params: dict, work: Path) -> dict:
-    """The organ-scale kidney's tiles as passes (the route's default) and one tile a task (``PASS_BYTES`` = 0:
+    """The organ-scale kidney's tiles as passes (the route's default: at least ``PASSES_PER_THREAD`` a worker
+    thread), as three passes a thread (the default before 2026-12-04) and one tile a task (``PASS_BYTES`` = 0:
     every pass a single tile, as before passes), on the same 2-worker LocalCluster in this one run, each run
     from its own W sweep: the tiles' time (the GF stage less the sweep), how many times they read W's store, and
     whether the two give the same arrays (they must, bit for bit: a pass shares reads, not arithmetic)."""
@@ -465,16 +466,19 @@ def passes_side_by_side(params: dict, work: Path) -> dict:
     surf = stages.surface_stage(spec, mesh)
     factor, _ = stages.factor_stage(spec, mesh, surf)
     pts = mesh.points[surf.vertices[surf.regions.contact]]
-    out, arrays, default = {"contact": len(pts)}, {}, compress.PASS_BYTES
+    out, arrays = {"contact": len(pts)}, {}
+    default, per_thread = compress.PASS_BYTES, compress.PASSES_PER_THREAD
     with Client(LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address="127.0.0.1:0",
                                 scheduler_kwargs={"dashboard": False})) as cl:
-        for label, budget in (("passes", default), ("one tile a task", 0), ("passes again", default)):
-            compress.PASS_BYTES = budget  # (read by the client only, where it cuts the passes)
+        for label, budget, threads in (("passes", default, per_thread), ("three passes a thread", default, 3),
+                                       ("one tile a task", 0, per_thread), ("passes again", default, per_thread)):
+            compress.PASS_BYTES = budget  # (both read by the client only, where it cuts the passes)
+            compress.PASSES_PER_THREAD = threads
             try:
                 a, st = compress.compressed_greens(factor, pts, R_MAX, store=work / f"ab-{len(out)}.h5", key=label,
                                                    client=cl)
             finally:
-                compress.PASS_BYTES = default
+                compress.PASS_BYTES, compress.PASSES_PER_THREAD = default, per_thread
             arrays[label] = {k: hashlib.sha256(np.ascontiguousarray(np.asarray(v))).hexdigest() for k, v in a.items()}
             out[label] = {"tiles_s": st["seconds"] - st["sweep_s"], "sweep_s": st["sweep_s"], "passes": st["passes"],
                           "W_reads": st["W_reads"], "tiles": st["tiles"]}
@@ -928,13 +932,18 @@ def markdown(res: dict) -> str:
     ab = res.get("passes_ab")
     if ab:
         p, one, again = ab["passes"], ab["one tile a task"], ab["passes again"]
+        three = ab.get("three passes a thread")  # (a run before 2026-12-04 has no such row)
+        runs = [p] + ([three] if three else []) + [one, again]  # (in the sentence's order)
         L += ["", f"Passes against one tile a task, side by side in this run ({ab['contact']:,} contact vertices, "
                   f"2 local workers, each run from its own W sweep): the tiles took {p['tiles_s']:.0f} s in "
-                  f"{p['passes']} passes, reading W's store {p['W_reads']:.1f} times, against {one['tiles_s']:.0f} s "
+                  f"{p['passes']} passes, reading W's store {p['W_reads']:.1f} times, "
+                  + (f"against {three['tiles_s']:.0f} s in {three['passes']} passes (three a worker thread), reading "
+                     f"it {three['W_reads']:.1f} times, and " if three else "against ")
+                  + f"{one['tiles_s']:.0f} s "
                   f"one tile a task ({one['tiles']} tasks), reading it {one['W_reads']:.1f} times "
                   f"({p['tiles_s'] / one['tiles_s']:.2f}x); the passes again {again['tiles_s']:.0f} s (the run's "
                   "noise); "
-                  f"the sweeps {p['sweep_s']:.0f}, {one['sweep_s']:.0f} and {again['sweep_s']:.0f} s; the arrays "
+                  f"the sweeps {', '.join(format(r['sweep_s'], '.0f') for r in runs)} s; the arrays "
                   + ("identical bit for bit." if ab["identical"] else "**not identical**.")]
     e = res["eight_workers"]
     L += ["", f"8 simulated workers (LocalCluster, 1 GiB each, on 2 cores), {e['tiles']} tiles of the default kidney "

@@ -19,7 +19,8 @@ their rows and sketches in place of W's passes):
    compresses its share of each block; one task, a *pass* (:func:`tiles`), runs a run of neighbouring tiles
    together, reading each of W's blocks once for all of them (:func:`passes`: as many as :data:`PASS_SHARE` of the
    worker's memory per thread holds by :func:`pass_bytes`, :func:`pass_budget`; about equal shares of the work, at least
-   :data:`PASSES_PER_THREAD` per thread, the largest handed out first).  A far
+   :data:`PASSES_PER_THREAD` per thread, the largest handed out first: every pass reads most of W, so W is read
+   about once a pass and once more for the tiles' own columns).  A far
    block wide and tall enough (:func:`sketches`: most of the far field's entries) is never formed: the pass takes
    its range sketch :math:`B\Omega` (64 columns, 16 of them a test) and forms 64 of its rows, and
    :func:`from_sketches` interpolates the block from them, the error estimated by the test columns (a block
@@ -1675,9 +1676,13 @@ def tile_work(tree: ClusterTree, column: int, blocks) -> float:
     return float(np.sum(formed)) * 3 * (c1 - c0) + sketched * (SKETCH_RANK + SKETCH_TESTS)
 
 
-#: passes per worker thread the tiles are cut into where memory allows fewer (:func:`passes`): the scheduler
-#: hands the largest out first, and the last ones even out the workers' loads
-PASSES_PER_THREAD = 3
+#: passes per worker thread the tiles are cut into where memory allows fewer (:func:`passes`), the largest handed out
+#: first.  Each pass reads most of W (its sketched rows are most of 3n), so fewer passes read W fewer times: at 20,427
+#: vertices on 2 local workers (by hand, 2026-12-04, AMD EPYC, side by side in one run) one pass a thread read W 3.1
+#: times where three read it 5.7, and the tiles took 95 and 100 s against 98 and 87 s (equal shares of the work even out the
+#: workers' loads to within that run's noise; the bench page compares the two in its own run).  Where memory sets
+#: more passes than this (51,519 vertices on this machine) it makes no difference
+PASSES_PER_THREAD = 1
 
 
 def passes(tree: ClusterTree, columns: list[int], plans: dict, budget: float, held: float, n_contact: int,
