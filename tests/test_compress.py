@@ -1324,6 +1324,9 @@ def test_a_lost_scheduler_is_one_line_and_a_rerun_resumes_with_w_kept(tmp_path, 
 
         # the client waits this long for the scheduler to come back (10 s by default); it never does here
         monkeypatch.setattr(compress, "SCHEDULER_WAIT", 2.0)
+        # three passes for the one worker thread, so that tiles are left when the scheduler goes (one pass a thread,
+        # the default, would bring every tile at once and the run would finish without it)
+        monkeypatch.setattr(compress, "PASSES_PER_THREAD", 3)
         with pytest.raises(ResourceError, match="lost the Dask scheduler") as err:
             compress.compressed_greens(factor, pts, R_MAX, store=store, key="k", scheduler=address, panel=48,
                                        on_tile=kill_scheduler)
