@@ -938,7 +938,8 @@ def markdown(res: dict) -> str:
                   f"2 local workers, each run from its own W sweep): the tiles took {p['tiles_s']:.0f} s in "
                   f"{p['passes']} passes, reading W's store {p['W_reads']:.1f} times, "
                   + (f"against {three['tiles_s']:.0f} s in {three['passes']} passes (three a worker thread), reading "
-                     f"it {three['W_reads']:.1f} times, and " if three else "against ")
+                     f"it {three['W_reads']:.1f} times ({p['tiles_s'] / three['tiles_s']:.2f}x), and "
+                     if three else "against ")
                   + f"{one['tiles_s']:.0f} s "
                   f"one tile a task ({one['tiles']} tasks), reading it {one['W_reads']:.1f} times "
                   f"({p['tiles_s'] / one['tiles_s']:.2f}x); the passes again {again['tiles_s']:.0f} s (the run's "
