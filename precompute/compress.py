@@ -1677,11 +1677,11 @@ def tile_work(tree: ClusterTree, column: int, blocks) -> float:
 
 
 #: passes per worker thread the tiles are cut into where memory allows fewer (:func:`passes`), the largest handed out
-#: first.  Each pass reads most of W (its sketched rows are most of 3n), so fewer passes read W fewer times: at 20,427
-#: vertices on 2 local workers (by hand, 2026-12-04, AMD EPYC, side by side in one run) one pass a thread read W 3.1
-#: times where three read it 5.7, and the tiles took 95 and 100 s against 98 and 87 s (equal shares of the work even out the
-#: workers' loads to within that run's noise; the bench page compares the two in its own run).  Where memory sets
-#: more passes than this (51,519 vertices on this machine) it makes no difference
+#: first.  Each pass reads most of W (its sketched rows are most of 3n), and there are at least this many passes a
+#: worker thread, so W's reads grow with the workers: one a thread reads W about once per thread and once more, at
+#: the cost of the balance that three gave, whose last passes evened out the workers' loads (the bench page's
+#: passes_ab compares the two in one run: W's reads and the tiles' times).  Where memory sets more passes than the
+#: threads (51,519 vertices on 2 local workers) it makes no difference
 PASSES_PER_THREAD = 1
 
 
