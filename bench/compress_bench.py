@@ -451,8 +451,9 @@ def passes_side_by_side(params: dict, work: Path) -> dict:
     """The organ-scale kidney's tiles as passes (the route's default: at least ``PASSES_PER_THREAD`` a worker
     thread), as three passes a thread (the default before 2026-12-04) and one tile a task (``PASS_BYTES`` = 0:
     every pass a single tile, as before passes), on the same 2-worker LocalCluster in this one run, each run
-    from its own W sweep: the tiles' time (the GF stage less the sweep), how many times they read W's store, and
-    whether the two give the same arrays (they must, bit for bit: a pass shares reads, not arithmetic)."""
+    from its own W sweep (and the default's passes again, for the run's noise): the tiles' time (the GF stage less the
+    sweep), how many times they read W's store, and whether all give the same arrays (they must, bit for bit: a pass
+    shares reads, not arithmetic)."""
     import hashlib
 
     import numpy as np
