@@ -198,18 +198,14 @@ def far_scale_offsets(lowrank_index: np.ndarray) -> np.ndarray:
 
 def far_words_of(decoded: np.ndarray, scale: np.ndarray, lowrank_index: np.ndarray, which: int) -> np.ndarray:
     """A 16-bit factor's words (format 1.8) from its float32 values as :class:`Far16` decodes them, ``which`` 5
-    for U, 6 for V: each value divided by its column's scale and rounded, exact (a decoded value is a word, of
-    magnitude at most :data:`Q_MAX`, times a scale, rounded to 24 bits: the quotient is within 2⁻⁹ of the
-    word); decoded again and compared, bit for bit (a difference is a bug here, not a user's file)."""
-    li = np.asarray(lowrank_index, np.int64).reshape(-1, 7)
-    rows = 3 * (li[:, 1] - li[:, 0]) if which == 5 else 3 * (li[:, 3] - li[:, 2])
-    so, scale = far_scale_offsets(li), np.asarray(scale, np.float32)
-    s = np.zeros(len(decoded), np.float32)
-    for b in np.flatnonzero(li[:, 4] > 0):
-        k = int(li[b, 4])
-        s[li[b, which]:li[b, which] + rows[b] * k] = np.tile(scale[so[b]:so[b] + k], int(rows[b]))
+    for U, 6 for V: each value divided by its column's scale (:class:`Far16` of words one: every value's scale) and
+    rounded, exact (a decoded value is a word, of magnitude at most :data:`Q_MAX`, times a scale, rounded to 24
+    bits: the quotient is within 2⁻⁹ of the word); decoded again by :class:`Far16` and compared, bit for bit (a
+    difference is a bug here, not a user's file)."""
+    s = Far16(np.ones(len(decoded), np.int16), scale, lowrank_index, which)[:]
     words = np.rint(np.divide(decoded, s, out=np.zeros(len(decoded)), where=s > 0)).astype(np.int16)
-    if not np.array_equal((words * s).view(np.uint32), np.asarray(decoded, np.float32).view(np.uint32)):
+    again = Far16(words, scale, lowrank_index, which)[:]
+    if not np.array_equal(again.view(np.uint32), np.asarray(decoded, np.float32).view(np.uint32)):
         raise RuntimeError("a 16-bit factor's words do not decode to its values (a bug in pmask)")
     return words
 
