@@ -82,6 +82,15 @@ _ONES = np.array([bin(k).count("1") for k in range(256)], np.int64)
 EXACT_BITS = 46
 #: words (uint16) a pair takes: three a value (its 48-bit two's complement, low word first) and the exponent e
 PAIR_WORDS = 28
+#: the exponents e a pair's 28th word may hold (:func:`pack_exact`: a float64's binary exponents, subnormals
+#: included); the C core (greens.c) checks the same range
+EXACT_EXPONENTS = (-1074, 1023)
+
+
+def exponents_valid(e: np.ndarray) -> bool:
+    """Whether every pair exponent ``e`` is one :func:`pack_exact` can write (:data:`EXACT_EXPONENTS`): anything
+    else is a writer's bug or a corrupt file, refused by both loaders."""
+    return not len(e) or (int(e.min()) >= EXACT_EXPONENTS[0] and int(e.max()) <= EXACT_EXPONENTS[1])
 
 
 def pack_exact(values: np.ndarray) -> np.ndarray:
@@ -109,7 +118,7 @@ def unpack_exact(words) -> np.ndarray:
     them to (an integer below 2^48 times a power of two is a float64 exactly)."""
     W = np.asarray(words, np.uint16).reshape(-1, PAIR_WORDS)
     e = W[:, 27].view(np.int16).astype(np.int64)
-    if len(e) and (e.max() > 1023 or e.min() < -1074):  # (pack_exact's exponents: anything else is a writer's bug)
+    if not exponents_valid(e):
         raise InputError("the compressed Green's functions' exact pairs hold an exponent no float64 has; recompute "
                          "the artifact (pmask precompute --force)")
     # each value's three words and a fourth that extends its sign, read as one little-endian int64 (on any host:

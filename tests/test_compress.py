@@ -24,7 +24,7 @@ from pmask.pipeline.stages import Spec, run
 from pmask.pipeline.strokes import grasp_path
 from pmask.precompute import compress
 from pmask.runtime import Model
-from pmask.runtime.compressed import CompressedXi
+from pmask.runtime.compressed import EXACT_EXPONENTS, CompressedXi
 
 #: a 10 mm probe tip on the default kidney (1,446 contact vertices, mean edge 3.2 mm)
 R_MAX = 0.01
@@ -751,10 +751,11 @@ def _greens_damaged(good: dict, case: str) -> dict:
         t["xi_V_scale"] = bytes(t["xi_V_scale"])[:-4]
     elif case == "no scales":
         del t["xi_U_scale"]
-    elif case in ("exponent", "overflow"):  # (table 1.5's fixed-point pairs: pair 0's exponent word, its values)
+    elif case in ("exponent", "exponent below", "overflow"):  # (table 1.5's fixed-point pairs: pair 0's words)
         W = np.frombuffer(t["xi_near_exact48"], "<u2").copy()
-        if case == "exponent":
-            W[27] = np.array([1100], "<i2").view("<u2")[0]  # no float64 has 2^1100
+        if case.startswith("exponent"):  # one past either end of the range (both loaders' edge: one home for it)
+            lo, hi = EXACT_EXPONENTS
+            W[27] = np.array([hi + 1 if case == "exponent" else lo - 1], "<i2").view("<u2")[0]
         else:
             W[27] = np.array([1023], "<i2").view("<u2")[0]
             W[:3] = (0, 0, 0x8000)  # -2^47 times 2^(1023 - 46) = -2^1024: past the largest float64 (-inf)
@@ -783,6 +784,7 @@ def _greens_damaged(good: dict, case: str) -> dict:
     ("scales", "do not match their index"),
     ("no scales", "section 'xi_U_scale' is missing"),
     ("exponent", "hold an exponent no float64 has"),
+    ("exponent below", "hold an exponent no float64 has"),
     ("overflow", "hold a non-finite number"),
     ("both pair forms", "have a bad header"),
 ])

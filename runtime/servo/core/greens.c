@@ -60,6 +60,9 @@ static double factor(const pm_greens *x, const unsigned char *base, const unsign
  * ldexp where it is not */
 #define EXACT_BITS 46
 #define PAIR_WORDS 28
+/* the exponents a pair's 28th word may hold (pmask.runtime.compressed.EXACT_EXPONENTS) */
+#define EXACT_EMIN (-1074)
+#define EXACT_EMAX 1023
 static void exact_pair(const pm_greens *x, int64_t k, double *out)
 {
     const unsigned char *w = x->exact48 + 2 * PAIR_WORDS * k;
@@ -250,13 +253,13 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
     }
     /* finite values, positive scales */
     if (x->exact48) {  /* every pair's exponent one a double has (unpack_exact's check), every value finite: a
-                          value m 2^(e - 46), |m| <= 2^47, can overflow only at e = 1023, so only those are decoded */
+                          value m 2^(e - 46), |m| <= 2^47, can overflow only at e = EXACT_EMAX, so only those are decoded */
         for (int64_t k = 0; k < nexact / 9; k++) {
             int16_t e;
             memcpy(&e, x->exact48 + 2 * PAIR_WORDS * k + 2 * 27, 2);
-            if (e > 1023 || e < -1074) return bad(err, errlen, "hold an exponent no float64 has");
+            if (e > EXACT_EMAX || e < EXACT_EMIN) return bad(err, errlen, "hold an exponent no float64 has");
             double v[9];
-            if (e == 1023) {
+            if (e == EXACT_EMAX) {
                 exact_pair(x, k, v);
                 if (!finite_run(v, 9)) return bad(err, errlen, "hold a non-finite number");
             }
