@@ -235,6 +235,7 @@ def main() -> None:
     print("haptics ...", flush=True)
     res["haptics"] = runtime_bench.run({len(Model.load(p).points): p for p in arts.values()},
                                        runtime_bench.synthetic_stiffness, work)
+    res["haptics"].update(date=res["date"], machine=res["machine"])  # (the guides name where the rounds ran)
     import viewer_bench
 
     res["viewer"] = viewer_bench.run({n: p for n, p in ((len(Model.load(p).points), p) for p in arts.values()) if n > 1000})
@@ -453,7 +454,7 @@ def markdown(res: dict) -> str:
               f"{c['load_unverified_s']:.3f} s without."]
     import runtime_bench
 
-    if res["haptics"].get("date"):
+    if res["haptics"].get("date", res["date"]) != res["date"]:  # (ONLY=haptics: a run of its own)
         L += ["", f"The haptic step below was measured again on its own, {res['haptics']['date']} on "
                   f"{where(res, res['haptics'])} (`make bench ONLY=haptics`)."]
     L += ["", runtime_bench.markdown(res["haptics"])]
