@@ -78,7 +78,7 @@ docs: venv
 	$(BIN)/python -m sphinx -W --keep-going -q -b html docs docs/_build/html
 	@echo "open docs/_build/html/index.html"
 
-## make bench: precompute and runtime benchmarks -> bench/results.json and docs/generated/benchmarks.md (ONLY=haptics, viewer, display or compress: that section alone; ONLY=compress-kidneys: its dense-against-compressed rows alone; ONLY=compress-c: its grasp in C on the organ-scale table alone; ONLY=organ: the 50,000-vertex organ, ~30-45 min; ONLY=organ-5mm: the same with masks up to 5 mm; ONLY=organ-p2: the 20,000-vertex organ with P2)
+## make bench: precompute and runtime benchmarks -> bench/results.json and docs/generated/benchmarks.md (ONLY=haptics, viewer, display or compress: that section alone; ONLY=compress-kidneys: its dense-against-compressed rows alone; ONLY=compress-c: its grasp in C on the organ-scale table alone; ONLY=organ: the 50,000-vertex organ, ~30-45 min; ONLY=organ-5mm: the same with masks up to 5 mm; ONLY=organ-p2: the 20,000-vertex organ with P2; ONLY=reads: the model of W's reads at both organ sizes, ~10 min)
 bench: venv
 	$(BIN)/python bench/run.py $(if $(ONLY),--only $(ONLY),)
 

@@ -517,7 +517,7 @@ def main(out: Path) -> dict:
         res["eight_workers"] = eight_workers(0.005, tmp)
         print(json.dumps(res["eight_workers"]), flush=True)
     kept = json.loads(out.read_text()) if out.exists() else {}
-    for key in (k for k in kept if k.startswith("organ") or k == "large_p2"):  # `ONLY=organ...`'s runs, kept
+    for key in (k for k in kept if k.startswith("organ") or k in ("large_p2", "read_model")):  # ONLY=organ..., reads
         res[key] = kept[key]
     res["refit"] = refit_numbers(res)
     out.write_text(json.dumps(res, indent=1, default=float))

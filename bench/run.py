@@ -177,8 +177,15 @@ def main() -> None:
             compress = compress_bench.organ(HERE / "compress_results.json", r_max, element)
             print(f"wrote {report.write(report.stored()[0], compress)}")
             return None
+        if part == ["reads"]:  # the read model of W's store at the two organ-scale kidneys, ~10 min
+            import read_model
+            import report
+
+            compress = read_model.main(HERE / "compress_results.json")
+            print(f"wrote {report.write(report.stored()[0], compress)}")
+            return None
         if part not in (["haptics"], ["viewer"], ["display"]):
-            sys.exit("bench: --only takes 'haptics', 'viewer', 'display', 'compress', 'compress-kidneys', 'compress-c', 'organ', 'organ-5mm' or 'organ-p2' (the other sections "
+            sys.exit("bench: --only takes 'haptics', 'viewer', 'display', 'compress', 'compress-kidneys', 'compress-c', 'organ', 'organ-5mm', 'organ-p2' or 'reads' (the other sections "
                      "run as one: `make bench`)")
         return section_only(part[0])
 

@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -1143,6 +1144,40 @@ def test_a_pass_of_tiles_reads_w_once_and_gives_each_tile_its_own_numbers(tmp_pa
                 b = compress.read_tile(t)
                 assert all(np.array_equal(a[k], b[k]) for k in compress.TileStore.FIELDS), a["column"]
             assert len(list((tmp_path / "passed").glob("tile-*.npz"))) == len(cols)
+
+
+def test_the_read_model_counts_what_a_pass_reads(tmp_path, monkeypatch):
+    """The bench's model of W's reads (bench/read_model.py, whose numbers the large-organs guide gives for orders
+    not built) counts, for the route's own order, the bytes a real pass reads (SweepStore.bytes_read), exactly:
+    the default kidney's tiles of 128 vertices (which sketch far blocks) in two passes, with whole blocks and
+    with row chunks of ~3 rows.  Its other orders read subsets of the same rows, so none may count more than the
+    one it narrows (fewer rows asked, or each read alone), and with row chunks the narrowest reads less."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "bench"))
+    import read_model
+
+    factor, pts = _kidney_factor()
+    tree = compress.cluster_tree(pts)
+    plans = {c: [b for b in compress.partition(tree, c, R_MAX) if tree.start[b[0]] <= tree.start[b[1]]]
+             for c in compress.panels(tree, 128)}
+    cols = list(plans)
+    halves = [cols[:len(cols) // 2], cols[len(cols) // 2:]]
+    for read_bytes in (compress.READ_BYTES, 8 * 3 * 60):
+        monkeypatch.setattr(compress, "READ_BYTES", read_bytes)
+        store = compress.sweep(factor, tmp_path / f"W-{read_bytes}.bin", key="k")
+        sketched = 0
+        for g in halves:
+            p = [compress._tile_plan(tree, c, plans[c], True) for c in g]
+            sketched += sum(x["sketched"] for x in p)
+            store.bytes_read = 0
+            store.passed([(x["rows"], x["dcols"], x["sketch"]) for x in p])
+            counted = {name: read_model.pass_reads(store, tree, g, [plans[c] for c in g], *v)
+                       for name, *v in read_model.VARIANTS}
+            assert counted["now"] == store.bytes_read, (read_bytes, counted, store.bytes_read)
+            assert counted["now_rows"] <= counted["now"] and counted["formed"] <= counted["now"]
+            assert counted["formed_rows"] <= min(counted["formed"], counted["formed_cluster"], counted["now_rows"])
+        assert sketched > 0  # (the second half's tiles sketch far blocks)
+        if read_bytes < compress.READ_BYTES:
+            assert counted["formed_rows"] < counted["now"], counted
 
 
 def test_a_pass_holds_no_more_than_its_memory_model_counts(tmp_path, monkeypatch):
