@@ -253,7 +253,8 @@ int pm__greens_assign(pm_table *t, const pm_section *secs, int32_t nsec, char *e
     }
     /* finite values, positive scales */
     if (x->exact48) {  /* every pair's exponent one a double has (unpack_exact's check), every value finite: a
-                          value m 2^(e - 46), |m| <= 2^47, can overflow only at e = EXACT_EMAX, so only those are decoded */
+                          value m 2^(e - 46), |m| <= 2^47, can overflow only at e = EXACT_EMAX, so only those are
+                          decoded */
         for (int64_t k = 0; k < nexact / 9; k++) {
             int16_t e;
             memcpy(&e, x->exact48 + 2 * PAIR_WORDS * k + 2 * 27, 2);
