@@ -218,7 +218,7 @@ def main() -> None:
     print("compressed Ξ against dense, workers ...", flush=True)
     import compress_bench
 
-    res["compressed"] = compress_bench.main(HERE / "compress_results.json")
+    compressed = compress_bench.main(HERE / "compress_results.json")  # (its own file: the page's last section)
     print("float32 ...", flush=True)
     r32 = precompute(0.005, work / "kidney_f32.h5", "--float32")
     res["float32"] = float32_effect(work / "kidney_0.005.h5", work / "kidney_f32.h5", r32)
@@ -257,7 +257,7 @@ def main() -> None:
     (HERE / "results.json").write_text(json.dumps(res, indent=2))
     import report
 
-    print(f"wrote {report.write(res, res.get('compressed'))}")
+    print(f"wrote {report.write(res, compressed)}")
 
 
 REMESH_SNIPPET = """
@@ -428,10 +428,6 @@ def markdown(res: dict) -> str:
         import repair_compare
 
         L += ["", repair_compare.markdown(res["repair_routes"])]
-    if res.get("compressed"):
-        import compress_bench
-
-        L += ["", compress_bench.markdown(res["compressed"])]
     s = res["scaling"]
     L += ["", f"Scaling: total time ∝ n_free^{s['time_vs_free_exponent']:.2f}, "
               f"∝ condensed dofs^{s['time_vs_condensed_dofs_exponent']:.2f}.", ""]
